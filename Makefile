@@ -1,0 +1,26 @@
+# `make demo` and `make test` install everything they need into .venv on first use.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test install clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	# Pinned first so that nothing later resolves an unpinned (CUDA) torch.
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	MUJOCO_GL=egl $(VENV)/bin/iwsim demo
+
+test: $(STAMP)
+	MUJOCO_GL=egl $(PY) -m pytest -q
+
+clean:
+	rm -rf $(VENV) outputs
