@@ -1,30 +1,325 @@
-"""Scripted policies for the T-pushing task: ``play`` (data) and ``expert`` (goal-directed).
+"""Scripted policies for the T-pushing task: ``play`` (world-model data) and ``expert``.
 
-A policy is called as ``policy(obs, info) -> action`` after ``policy.reset(obs, info)``.
+A policy is called as ``policy(obs, info) -> action`` after ``policy.reset(obs, info)``;
+actions are absolute pusher targets ``[lx, ly, rx, ry]``.
+
+Both are built on one manoeuvre, the *pinch*: the pushers slide into the notches under
+the T's bar, one on each side of the stem, squeeze the stem and then carry the block as a
+rigid grasp. Paths around the block come from a visibility graph over the corners of the
+T grown by the pusher radius, computed in the block's frame.
 """
 
 from __future__ import annotations
 
+import heapq
+
 import numpy as np
 
 from iwsim.envs import POLICIES
+from iwsim.envs import geometry as geo
+from iwsim.envs.pixels import estimate_block_pose
+from iwsim.envs.pusht import GOAL_POSE, PUSHER_RADIUS, WORKSPACE
+
+# The pinch, in the block frame: grip level just under the bar, on both sides of the stem.
+_BAR_BOTTOM = geo.BAR_CENTER[1] - geo.BAR_WIDTH / 2
+GRIP_Y = _BAR_BOTTOM - PUSHER_RADIUS - 0.008
+CONTACT_X = geo.STEM_WIDTH / 2 + PUSHER_RADIUS  # pusher centre touching the stem
+PRE_GRIP_X = CONTACT_X + 0.02  # where the pushers wait before closing
+SQUEEZE = 0.02  # targets this far inside the stem: ~8 N of grip at kp = 400
+CLEARANCE = 0.005  # paths keep this much free space around the block
+WAYPOINT_CLEARANCE = 0.012  # graph nodes sit a little further out than paths need
 
 
-class RandomPolicy:
-    """Placeholder: uniform random targets (replaced by play/expert)."""
+def to_block(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(..., 2) world points -> block frame."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    d = np.asarray(p) - pose[:2]
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
-    def __init__(self, env, seed: int) -> None:
-        self.space = env.action_space
-        self.rng = np.random.default_rng(seed)
+
+def to_world(q: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(..., 2) block-frame points -> world."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    q = np.asarray(q)
+    return np.stack([c * q[..., 0] - s * q[..., 1], s * q[..., 0] + c * q[..., 1]], axis=-1) + pose[:2]
+
+
+def _boxes(grow: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The T's two rectangles in the block frame, grown by ``grow``: (lo, hi) corners."""
+    out = []
+    for (cx, cy), (hx, hy) in ((geo.BAR_CENTER, (geo.BAR_LENGTH / 2, geo.BAR_WIDTH / 2)),
+                               (geo.STEM_CENTER, (geo.STEM_WIDTH / 2, geo.STEM_LENGTH / 2))):
+        h = np.array([hx + grow, hy + grow])
+        out.append((np.array([cx, cy]) - h, np.array([cx, cy]) + h))
+    return out
+
+
+_COLLIDE = _boxes(PUSHER_RADIUS + CLEARANCE)
+_bar, _stem = _boxes(PUSHER_RADIUS + WAYPOINT_CLEARANCE)
+# Convex corners of the grown T (the two notch corners are concave, never on a shortest path).
+_CORNERS = np.array([
+    [_bar[0][0], _bar[1][1]], [_bar[1][0], _bar[1][1]],  # bar top
+    [_bar[0][0], _bar[0][1]], [_bar[1][0], _bar[0][1]],  # bar bottom ends
+    [_stem[0][0], _stem[0][1]], [_stem[1][0], _stem[0][1]],  # stem bottom
+])
+
+
+def _segment_hits_box(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether segment a-b passes through the open box (lo, hi) (Liang-Barsky clipping)."""
+    t0, t1 = 0.0, 1.0
+    d = b - a
+    for k in range(2):
+        if abs(d[k]) < 1e-12:
+            if a[k] <= lo[k] or a[k] >= hi[k]:
+                return False
+            continue
+        ta, tb = (lo[k] - a[k]) / d[k], (hi[k] - a[k]) / d[k]
+        t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+        if t0 >= t1:
+            return False
+    return True
+
+
+def _visible(a: np.ndarray, b: np.ndarray) -> bool:
+    return not any(_segment_hits_box(a, b, lo, hi) for lo, hi in _COLLIDE)
+
+
+def plan_step(p: np.ndarray, target: np.ndarray, pose: np.ndarray, max_step: float) -> np.ndarray:
+    """Next pusher target (world) on a shortest collision-free path from ``p`` to ``target``
+    around the block at ``pose``, at most ``max_step`` along the path."""
+    q, goal = to_block(p, pose), to_block(target, pose)
+    for lo, hi in _COLLIDE:
+        if np.all(q > lo) and np.all(q < hi):  # too close to the block: back straight out
+            gaps = np.concatenate([q - lo, hi - q])
+            k = int(np.argmin(gaps))
+            out = q.copy()
+            out[k % 2] = lo[k] - 0.003 if k < 2 else hi[k - 2] + 0.003
+            return _advance(p, to_world(out, pose), max_step)
+    in_ws = np.all(np.abs(to_world(_CORNERS, pose)) <= WORKSPACE, axis=1)
+    nodes = [q, goal] + [c for c, ok in zip(_CORNERS, in_ws) if ok]
+    # Dijkstra from the goal so that each node knows its next hop towards it.
+    dist = {1: 0.0}
+    nxt: dict[int, int] = {}
+    heap = [(0.0, 1)]
+    done: set[int] = set()
+    while heap:
+        d, i = heapq.heappop(heap)
+        if i in done:
+            continue
+        done.add(i)
+        if i == 0:
+            break
+        for j in range(len(nodes)):
+            if j in done or j == i or not _visible(nodes[i], nodes[j]):
+                continue
+            nd = d + float(np.linalg.norm(nodes[i] - nodes[j]))
+            if nd < dist.get(j, np.inf):
+                dist[j], nxt[j] = nd, i
+                heapq.heappush(heap, (nd, j))
+    if 0 not in nxt:  # no path (e.g. walled in): head straight for the target
+        return _advance(p, target, max_step)
+    path, i = [], 0
+    while i != 1:
+        i = nxt[i]
+        path.append(nodes[i])
+    return _along(p, [to_world(n, pose) for n in path], max_step)
+
+
+def _advance(p: np.ndarray, target: np.ndarray, max_step: float) -> np.ndarray:
+    d = target - p
+    n = float(np.linalg.norm(d))
+    return target if n <= max_step else p + d * (max_step / n)
+
+
+def _along(p: np.ndarray, path: list[np.ndarray], max_step: float) -> np.ndarray:
+    """The point ``max_step`` along the polyline p -> path[0] -> ... (or its end)."""
+    left = max_step
+    for w in path:
+        n = float(np.linalg.norm(w - p))
+        if n >= left:
+            return p + (w - p) * (left / n)
+        left -= n
+        p = w
+    return p
+
+
+class Pinch:
+    """The pinch-and-carry manoeuvre towards a target block pose.
+
+    ``__call__(pushers, block_pose, target_pose)`` returns the two pusher targets (2, 2).
+    Phases: approach (each pusher to its pre-grip point), close (squeeze the stem), carry
+    (move the grasp; translation and rotation rate-limited). Losing the grip restarts it.
+    """
+
+    def __init__(self, speed: float = 0.03, carry_speed: float = 0.012, turn_speed: float = 0.3,
+                 gain: float = 2.0) -> None:
+        self.speed, self.carry_speed, self.turn_speed, self.gain = speed, carry_speed, turn_speed, gain
+        self.reset()
+
+    def reset(self) -> None:
+        self.phase = "approach"
+        self.sides: np.ndarray | None = None  # +-1 per pusher: which side of the stem
+        self.closing_steps = 0
+
+    def _assign(self, pushers: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        grips = to_world(np.array([[-PRE_GRIP_X, GRIP_Y], [PRE_GRIP_X, GRIP_Y]]), pose)
+        straight = np.linalg.norm(pushers - grips, axis=1).sum()
+        crossed = np.linalg.norm(pushers - grips[::-1], axis=1).sum()
+        return np.array([-1.0, 1.0]) if straight <= crossed else np.array([1.0, -1.0])
+
+    def _points(self, x: float) -> np.ndarray:
+        return np.stack([self.sides * x, np.full(2, GRIP_Y)], axis=1)
+
+    def __call__(self, pushers: np.ndarray, pose: np.ndarray, target: np.ndarray) -> np.ndarray:
+        if self.sides is None:
+            self.sides = self._assign(pushers, pose)
+        if self.phase == "carry":
+            contacts = to_world(self._points(CONTACT_X), pose)
+            if np.max(np.linalg.norm(pushers - contacts, axis=1)) > 0.012:
+                self.reset()
+                self.sides = self._assign(pushers, pose)
+            else:
+                err = np.array([*(target[:2] - pose[:2]), geo.wrap_angle(target[2] - pose[2])])
+                # Command past the target (gain > 1): the grasp lags the command by what
+                # friction costs, so a plain proportional command would stall short of it.
+                step = self.gain * err
+                n = np.linalg.norm(step[:2])
+                if n > self.carry_speed:
+                    step[:2] *= self.carry_speed / n
+                step[2] = np.clip(step[2], -self.turn_speed, self.turn_speed)
+                return to_world(self._points(CONTACT_X - SQUEEZE), pose + step)
+        if self.phase == "close":
+            self.closing_steps += 1
+            dist = np.array([geo.distance_to_t(p, pose) for p in pushers])
+            if np.all(dist <= PUSHER_RADIUS + 0.003):
+                self.phase = "carry"
+            elif self.closing_steps > 5:
+                self.reset()
+                self.sides = self._assign(pushers, pose)
+            return to_world(self._points(CONTACT_X - SQUEEZE), pose)
+        pre = to_world(self._points(PRE_GRIP_X), pose)
+        if np.max(np.linalg.norm(pushers - pre, axis=1)) < 0.004:
+            self.phase, self.closing_steps = "close", 0
+            return to_world(self._points(CONTACT_X - SQUEEZE), pose)
+        return np.stack([plan_step(p, t, pose, self.speed) for p, t in zip(pushers, pre)])
+
+
+class ExpertPolicy:
+    """Goal-directed pushing: pinch the stem, carry the block onto the goal pose.
+
+    ``pose_source="state"`` reads the block pose from ``info["block_pose"]``;
+    ``"pixels"`` estimates it from ``obs["pixels"]`` alone (the teleoperator stand-in).
+    """
+
+    def __init__(self, seed: int = 0, pose_source: str = "state", goal_pose: np.ndarray = GOAL_POSE) -> None:
+        if pose_source not in ("state", "pixels"):
+            raise ValueError(f"pose_source must be 'state' or 'pixels', got {pose_source!r}.")
+        self.pose_source = pose_source
+        self.goal_pose = np.asarray(goal_pose, dtype=np.float64)
+        self.pinch = Pinch()
+        self._last = np.zeros(4, np.float32)
 
     def reset(self, obs: dict, info: dict) -> None:
-        pass
+        self.pinch.reset()
+        self._last = obs["agent_pos"].astype(np.float32)
+
+    def block_pose(self, obs: dict, info: dict) -> np.ndarray | None:
+        if self.pose_source == "state":
+            return np.asarray(info["block_pose"], dtype=np.float64)
+        est = estimate_block_pose(obs["pixels"])
+        return est.pose if est.found else None
 
     def __call__(self, obs: dict, info: dict) -> np.ndarray:
-        return self.rng.uniform(self.space.low, self.space.high).astype(np.float32)
+        pose = self.block_pose(obs, info)
+        if pose is None:  # block not visible: hold still
+            return self._last
+        pushers = np.asarray(obs["agent_pos"], dtype=np.float64).reshape(2, 2)
+        targets = self.pinch(pushers, pose, self.goal_pose)
+        self._last = np.clip(targets.reshape(4), -WORKSPACE, WORKSPACE).astype(np.float32)
+        return self._last
+
+
+def _outline() -> tuple[np.ndarray, np.ndarray]:
+    """The T's outline in the block frame: counter-clockwise corners and edge lengths."""
+    b0, b1 = _BAR_BOTTOM, _BAR_BOTTOM + geo.BAR_WIDTH
+    s0, hb, hs = b0 - geo.STEM_LENGTH, geo.BAR_LENGTH / 2, geo.STEM_WIDTH / 2
+    corners = np.array([[-hs, s0], [hs, s0], [hs, b0], [hb, b0], [hb, b1], [-hb, b1], [-hb, b0], [-hs, b0]])
+    return corners, np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
+
+
+_OUTLINE, _EDGE_LENGTHS = _outline()
+
+
+class PlayPolicy:
+    """Random interaction for world-model data, biased towards touching the block.
+
+    The episode is cut into segments of 10-40 steps with a random speed. In each segment
+    both pushers pinch and carry the block to a random pose (30%), or each pusher on its
+    own either pokes the block (80%: approach a random point of its outline from outside,
+    then push in by a random depth) or wanders to a random target (20%). Actions get
+    2 mm of Gaussian jitter so that nearby actions are covered too.
+    """
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.pinch = Pinch()
+
+    def reset(self, obs: dict, info: dict) -> None:
+        self._segment_left = 0
+
+    def _new_segment(self, pose: np.ndarray) -> None:
+        rng = self.rng
+        self._segment_left = int(rng.integers(10, 41))
+        self.speed = float(rng.uniform(0.01, 0.04))
+        self.mode = "pinch" if rng.random() < 0.3 else "solo"
+        if self.mode == "pinch":
+            self.pinch.reset()
+            self.pinch.speed = self.speed
+            self.target_pose = np.array([*rng.uniform(-0.1, 0.1, 2), rng.uniform(-np.pi, np.pi)])
+            return
+        self.tasks = []
+        for _ in range(2):
+            if rng.random() < 0.8:
+                e = int(rng.choice(len(_OUTLINE), p=_EDGE_LENGTHS / _EDGE_LENGTHS.sum()))
+                a, b = _OUTLINE[e], _OUTLINE[(e + 1) % len(_OUTLINE)]
+                normal = np.array([b[1] - a[1], a[0] - b[0]]) / _EDGE_LENGTHS[e]
+                contact = a + rng.uniform(0.1, 0.9) * (b - a)
+                self.tasks.append({
+                    "kind": "poke", "stage": "approach",
+                    "pre": contact + normal * (PUSHER_RADIUS + 0.015),
+                    "through": contact - normal * rng.uniform(0.01, 0.06),
+                })
+            else:
+                self.tasks.append({"kind": "wander", "target": rng.uniform(-WORKSPACE, WORKSPACE, 2)})
+
+    def _solo(self, p: np.ndarray, pose: np.ndarray, task: dict) -> np.ndarray:
+        if task["kind"] == "wander":
+            return _advance(p, task["target"], self.speed)
+        if task["stage"] == "approach":
+            pre = to_world(task["pre"], pose)
+            if np.linalg.norm(p - pre) > 0.005:
+                return plan_step(p, pre, pose, self.speed)
+            task["stage"] = "push"
+        return _advance(p, to_world(task["through"], pose), self.speed)
+
+    def __call__(self, obs: dict, info: dict) -> np.ndarray:
+        pose = np.asarray(info["block_pose"], dtype=np.float64)
+        pushers = np.asarray(obs["agent_pos"], dtype=np.float64).reshape(2, 2)
+        if self._segment_left <= 0:
+            self._new_segment(pose)
+        self._segment_left -= 1
+        if self.mode == "pinch":
+            targets = self.pinch(pushers, pose, self.target_pose)
+        else:
+            targets = np.stack([self._solo(p, pose, t) for p, t in zip(pushers, self.tasks)])
+        targets = targets.reshape(4) + self.rng.normal(0.0, 0.002, 4)
+        return np.clip(targets, -WORKSPACE, WORKSPACE).astype(np.float32)
 
 
 def make_policy(name: str, env, seed: int):
+    """A scripted policy by name: ``play`` or ``expert`` (block pose from state)."""
     if name not in POLICIES:
         raise ValueError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
-    return RandomPolicy(env, seed)
+    if name == "expert":
+        return ExpertPolicy(seed)
+    return PlayPolicy(seed)

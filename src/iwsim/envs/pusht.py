@@ -81,13 +81,13 @@ def scene_xml(goal_pose: np.ndarray = GOAL_POSE) -> str:
       <joint name="{side}_x" type="slide" axis="1 0 0" range="{-WORKSPACE:g} {WORKSPACE:g}" damping="1"/>
       <joint name="{side}_y" type="slide" axis="0 1 0" range="{-WORKSPACE:g} {WORKSPACE:g}" damping="1"/>
       <geom name="{side}" type="cylinder" size="{PUSHER_RADIUS:g} {h + 0.005:g}" mass="0.5"
-            material="{side}" contype="2" conaffinity="2" friction="0.6 0.005 0.0001"/>
+            material="{side}" contype="2" conaffinity="2" friction="1.0 0.005 0.0001"/>
     </body>"""
         for side in ("left", "right")
     )
     actuators = "\n".join(
-        f'<position name="{side}_{ax}" joint="{side}_{ax}" kp="200" kv="20" '
-        f'ctrlrange="{-WORKSPACE:g} {WORKSPACE:g}" forcerange="-20 20"/>'
+        f'<position name="{side}_{ax}" joint="{side}_{ax}" kp="400" kv="28" '
+        f'ctrlrange="{-WORKSPACE:g} {WORKSPACE:g}" forcerange="-30 30"/>'
         for side in ("left", "right")
         for ax in "xy"
     )
@@ -96,7 +96,9 @@ def scene_xml(goal_pose: np.ndarray = GOAL_POSE) -> str:
         for n in PALETTE
     )
     return f"""<mujoco model="bimanual_pusht">
-  <option timestep="{TIMESTEP}" gravity="0 0 -9.81" integrator="implicitfast"/>
+  <compiler angle="radian"/>
+  <!-- noslip: without it soft contacts creep under load and a pinched block slips. -->
+  <option timestep="{TIMESTEP}" gravity="0 0 -9.81" integrator="implicitfast" noslip_iterations="5"/>
   <visual>
     <headlight active="1" ambient="0 0 0" diffuse="0 0 0" specular="0 0 0"/>
     <quality shadowsize="0" offsamples="4"/>

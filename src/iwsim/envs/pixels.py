@@ -1,0 +1,199 @@
+"""Scoring from pixels alone: block segmentation, pixel IoU and a block pose estimator.
+
+These read nothing but an RGB frame of the T-pushing scene, so they score MuJoCo frames
+and world-model frames alike. The camera is orthographic and top-down, so pixel (i, j)
+looks at the world point ``(x, y) = (-V + (j + 0.5) s, V - (i + 0.5) s)`` with
+``V = view_half`` and pixel size ``s = 2 V / W``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from itertools import combinations
+
+import numpy as np
+
+from iwsim.envs import geometry as geo
+from iwsim.envs.pusht import GOAL_POSE, PALETTE, VIEW_HALF
+
+# Palette as rendered (8-bit), block first.
+_NAMES = ["block"] + [n for n in PALETTE if n != "block"]
+_COLOURS = np.array([np.round(np.array(PALETTE[n]) * 255) for n in _NAMES], dtype=np.float32)
+# Every pixel is modelled as a mix of two palette colours (a colour with itself = pure).
+_PAIRS = [(i, i) for i in range(len(_NAMES))] + list(combinations(range(len(_NAMES)), 2))
+
+
+def pixel_centers(image_size: int, view_half: float = VIEW_HALF) -> np.ndarray:
+    """(H, W, 2) world (x, y) of each pixel centre."""
+    s = 2 * view_half / image_size
+    c = -view_half + (np.arange(image_size) + 0.5) * s
+    xx, yy = np.meshgrid(c, -c)
+    return np.stack([xx, yy], axis=-1)
+
+
+def world_to_pixel(xy: np.ndarray, image_size: int, view_half: float = VIEW_HALF) -> np.ndarray:
+    """(..., 2) world (x, y) -> (..., 2) continuous pixel (col, row) coordinates."""
+    s = 2 * view_half / image_size
+    xy = np.asarray(xy, dtype=np.float64)
+    return np.stack([(xy[..., 0] + view_half) / s - 0.5, (view_half - xy[..., 1]) / s - 0.5], axis=-1)
+
+
+def t_signed_distance(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(..., 2) world points -> (...) signed distance to the T's outline (< 0 inside)."""
+    x, y, yaw = (float(v) for v in pose)
+    c, s = np.cos(yaw), np.sin(yaw)
+    dx, dy = points[..., 0] - x, points[..., 1] - y
+    u, v = c * dx + s * dy, -s * dx + c * dy
+    out = None
+    for (cx, cy), (hx, hy) in ((geo.BAR_CENTER, (geo.BAR_LENGTH / 2, geo.BAR_WIDTH / 2)),
+                               (geo.STEM_CENTER, (geo.STEM_WIDTH / 2, geo.STEM_LENGTH / 2))):
+        qx, qy = np.abs(u - cx) - hx, np.abs(v - cy) - hy
+        d = np.hypot(np.maximum(qx, 0), np.maximum(qy, 0)) + np.minimum(np.maximum(qx, qy), 0)
+        out = d if out is None else np.minimum(out, d)
+    return out
+
+
+def soft_t_mask(pose: np.ndarray, image_size: int, centers: np.ndarray | None = None) -> np.ndarray:
+    """Approximate fraction of each pixel covered by the T at ``pose``: a one-pixel linear
+    ramp across the outline (exact for edges aligned with the pixel grid), smooth in pose."""
+    if centers is None:
+        centers = pixel_centers(image_size)
+    px = 2 * VIEW_HALF / image_size
+    return np.clip(0.5 - t_signed_distance(centers, pose) / px, 0.0, 1.0)
+
+
+@lru_cache(maxsize=16)
+def coverage_mask(pose: tuple[float, float, float], image_size: int, supersample: int = 8) -> np.ndarray:
+    """(H, W) float64: the fraction of each pixel covered by the T at ``pose``, measured on a
+    ``supersample`` x ``supersample`` grid of points per pixel. Read-only (cached)."""
+    n = image_size * supersample
+    fine = pixel_centers(n)
+    inside = geo.point_in_t(fine, np.array(pose)).astype(np.float64)
+    mask = inside.reshape(image_size, supersample, image_size, supersample).mean(axis=(1, 3))
+    mask.setflags(write=False)
+    return mask
+
+
+def goal_mask(image_size: int, goal_pose: np.ndarray = GOAL_POSE) -> np.ndarray:
+    """(H, W) coverage of the goal T."""
+    return coverage_mask(tuple(float(v) for v in goal_pose), image_size)
+
+
+def _check_frame(frame: np.ndarray) -> np.ndarray:
+    frame = np.asarray(frame)
+    if frame.ndim < 3 or frame.shape[-1] != 3 or frame.shape[-2] != frame.shape[-3]:
+        raise ValueError(f"expected RGB frames of shape (..., H, W, 3) with H == W, got {frame.shape}.")
+    return frame
+
+
+def block_fraction(frame: np.ndarray) -> np.ndarray:
+    """(..., H, W, 3) uint8 frames -> (..., H, W) float32 fraction of each pixel that is block.
+
+    Each pixel is explained as the best mix of two palette colours (anti-aliased edges
+    blend two surfaces); the block's share of that mix is the answer.
+    """
+    p = _check_frame(frame).astype(np.float32)
+    best_err = np.full(p.shape[:-1], np.inf, np.float32)
+    best_frac = np.zeros(p.shape[:-1], np.float32)
+    for i, j in _PAIRS:
+        a, b = _COLOURS[i], _COLOURS[j]
+        d = b - a
+        gamma = np.zeros(p.shape[:-1], np.float32) if i == j else np.clip(((p - a) @ d) / (d @ d), 0, 1)
+        err = np.sum((p - a - gamma[..., None] * d) ** 2, axis=-1)
+        frac = (1 - gamma) * (i == 0) + gamma * (j == 0)
+        better = err < best_err
+        best_err = np.where(better, err, best_err)
+        best_frac = np.where(better, frac, best_frac)
+    return best_frac
+
+
+def pixel_iou(frame: np.ndarray, goal_pose: np.ndarray = GOAL_POSE) -> np.ndarray | float:
+    """IoU of the block (segmented by colour) with the goal T, from (..., H, W, 3) frames.
+
+    Soft masks: intersection sum(min(a, g)), union sum(a + g - min(a, g)).
+    """
+    a = block_fraction(frame)
+    g = goal_mask(a.shape[-1], goal_pose)
+    inter = np.minimum(a, g).sum(axis=(-2, -1))
+    union = (a + g).sum(axis=(-2, -1)) - inter
+    iou = inter / np.maximum(union, 1e-9)
+    return float(iou) if np.ndim(iou) == 0 else iou
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """A block pose read from pixels: ``pose`` (x, y, yaw) and how well the T fits.
+
+    ``found`` is False when too little block colour is visible to fit a pose.
+    """
+
+    pose: np.ndarray
+    fit_iou: float
+    found: bool
+
+
+def estimate_block_pose(frame: np.ndarray, init: np.ndarray | None = None) -> PoseEstimate:
+    """Fit the T's pose (x, y, yaw) to one (H, W, 3) uint8 frame.
+
+    Segments the block colour, starts from the mask's centroid (the block frame's origin
+    is the T's area centroid) and the best of 72 headings (or from ``init``), then refines
+    all three by Gauss-Newton on the squared difference between the soft block mask and
+    a smoothly rendered T.
+    """
+    frame = _check_frame(frame)
+    if frame.ndim != 3:
+        raise ValueError(f"estimate_block_pose takes one (H, W, 3) frame, got {frame.shape}.")
+    size = frame.shape[0]
+    a = block_fraction(frame).astype(np.float64)
+    centers = pixel_centers(size)
+    px_area = (2 * VIEW_HALF / size) ** 2
+    if a.sum() * px_area < 0.25 * geo.T_AREA:
+        return PoseEstimate(np.full(3, np.nan), 0.0, False)
+
+    # Work on a window around the block only.
+    w = a / a.sum()
+    cx, cy = (w[..., None] * centers).sum(axis=(0, 1))
+    if init is not None:
+        cx, cy = init[0], init[1]
+    r = geo.T_RADIUS + 3 * 2 * VIEW_HALF / size
+    near = (np.abs(centers[..., 0] - cx) < r) & (np.abs(centers[..., 1] - cy) < r)
+    # Keep all block pixels even if the centroid is off.
+    near |= a > 0.1
+    pts, obs = centers[near], a[near]
+
+    def residual(pose: np.ndarray) -> np.ndarray:
+        return soft_t_mask(pose, size, pts) - obs
+
+    if init is None:
+        yaws = np.linspace(-np.pi, np.pi, 72, endpoint=False)
+        costs = [np.sum(residual(np.array([cx, cy, t])) ** 2) for t in yaws]
+        pose = np.array([cx, cy, yaws[int(np.argmin(costs))]])
+    else:
+        pose = np.asarray(init, dtype=np.float64).copy()
+
+    # Gauss-Newton with a numeric Jacobian and step halving (3 unknowns).
+    eps = np.array([1e-3, 1e-3, 1e-2])
+    res = residual(pose)
+    cost = res @ res
+    for _ in range(30):
+        jac = np.stack([(residual(pose + e) - res) / e[i] for i, e in enumerate(np.diag(eps))], axis=1)
+        step = np.linalg.lstsq(jac, -res, rcond=None)[0]
+        for _ in range(8):
+            cand = pose + step
+            cres = residual(cand)
+            ccost = cres @ cres
+            if ccost < cost:
+                break
+            step = step / 2
+        else:
+            break
+        converged = np.all(np.abs(cand - pose) < [1e-5, 1e-5, 1e-4])
+        pose, res, cost = cand, cres, ccost
+        if converged:
+            break
+
+    pose[2] = geo.wrap_angle(pose[2])
+    m = soft_t_mask(pose, size, pts)
+    fit = float(np.minimum(m, obs).sum() / max(np.maximum(m, obs).sum(), 1e-9))
+    return PoseEstimate(pose, fit, True)
