@@ -1,0 +1,49 @@
+import numpy as np
+import pytest
+
+from iwsim.envs import geometry as geo
+from iwsim.envs import pixels
+from iwsim.envs.pusht import GOAL_POSE, PALETTE, BimanualPushTEnv
+
+
+@pytest.fixture(scope="module")
+def frames():
+    env = BimanualPushTEnv(64)
+    rng = np.random.default_rng(7)
+    out = []
+    for k in range(6):
+        state = env.sample_state(rng)
+        if k % 2 == 0:
+            state[4:] = GOAL_POSE + rng.normal(0, [0.02, 0.02, 0.2])
+        obs, info = env.reset(options={"reset_to_state": state})
+        out.append((obs["pixels"], info))
+    env.close()
+    return out
+
+
+def test_pixel_iou_tracks_geometric_iou(frames):
+    errs = [abs(pixels.pixel_iou(f) - info["iou"]) for f, info in frames]
+    assert max(errs) < 0.04 and np.mean(errs) < 0.02
+    batch = pixels.pixel_iou(np.stack([f for f, _ in frames]))
+    assert batch.shape == (len(frames),)
+
+
+def test_pose_estimator(frames):
+    for f, info in frames:
+        est = pixels.estimate_block_pose(f)
+        assert est.found and est.fit_iou > 0.9
+        assert np.linalg.norm(est.pose[:2] - info["block_pose"][:2]) < 0.003
+        assert abs(geo.wrap_angle(est.pose[2] - info["block_pose"][2])) < np.radians(2)
+
+
+def test_no_block_no_pose():
+    table = np.round(np.array(PALETTE["table"]) * 255).astype(np.uint8)
+    frame = np.broadcast_to(table, (64, 64, 3)).copy()
+    assert not pixels.estimate_block_pose(frame).found
+    assert pixels.block_fraction(frame).max() == 0.0
+    assert pixels.pixel_iou(frame) == 0.0
+
+
+def test_bad_frame_shape():
+    with pytest.raises(ValueError, match="RGB"):
+        pixels.pixel_iou(np.zeros((64, 64), np.uint8))
