@@ -1,0 +1,143 @@
+"""The ``iwsim`` command: subcommands parse their flags, then call library functions."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Sequence
+
+log = logging.getLogger("iwsim")
+
+EXIT_USER_ERROR = 1  # bad values the library rejected (argparse's own usage errors exit 2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from iwsim.envs import POLICIES, TASKS
+    from iwsim.envs.pusht import IMAGE_SIZES
+
+    parser = argparse.ArgumentParser(prog="iwsim", description="Interactive world simulator for robot learning.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("collect", help="record scripted episodes of a MuJoCo task into an episode store")
+    p.add_argument("--task", default="pusht", help=f"task: {', '.join(TASKS)} (default: %(default)s)")
+    p.add_argument("--policy", default="play", help=f"scripted policy: {', '.join(POLICIES)} (default: %(default)s)")
+    p.add_argument("--episodes", type=int, required=True, help="total episodes the store should hold")
+    p.add_argument("--steps", type=int, default=200, help="steps per episode (default: %(default)s)")
+    p.add_argument(
+        "--image-size",
+        type=int,
+        default=64,
+        help=f"square image size: {', '.join(map(str, IMAGE_SIZES))} (default: %(default)s)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="worker processes (default: the number of CPUs, %(default)s)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="episode i uses seed SEED + i (default: %(default)s)")
+    p.add_argument("--out", help="store path (default: data/<task>_<policy>.zarr)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.set_defaults(func=_collect)
+
+    p = sub.add_parser("data", help="inspect episode stores")
+    data_sub = p.add_subparsers(dest="data_command", required=True, metavar="COMMAND")
+    q = data_sub.add_parser("info", help="episodes, frames, arrays and attributes of a store")
+    q.add_argument("path", help="episode store (a .zarr directory)")
+    q.set_defaults(func=_data_info)
+
+    p = sub.add_parser("demo", help="the scripted expert solving T-pushing, as a video")
+    p.add_argument("--episodes", type=int, default=4, help="expert episodes (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=100, help="steps per episode (default: %(default)s)")
+    p.add_argument("--image-size", type=int, default=128, help="square image size (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=100000, help="first episode's seed (default: %(default)s)")
+    p.add_argument("--out", default="outputs/demo", help="output directory (default: %(default)s)")
+    p.set_defaults(func=_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``iwsim`` console script; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except BrokenPipeError:  # e.g. `iwsim data info x | head`: the reader left, nothing to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_USER_ERROR
+    except (ValueError, OSError) as e:
+        print(f"iwsim: error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("iwsim: interrupted", file=sys.stderr)
+        return 130
+
+
+def _one_line(e: BaseException) -> str:
+    if isinstance(e, OSError) and e.strerror and e.filename is not None:
+        return f"{e.filename}: {e.strerror}."
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+def _collect(args: argparse.Namespace) -> int:
+    from iwsim.data.collect import collect
+
+    out = args.out or f"data/{args.task}_{args.policy}.zarr"
+    collect(
+        args.task,
+        args.policy,
+        args.episodes,
+        out=out,
+        steps=args.steps,
+        image_size=args.image_size,
+        workers=args.workers,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
+    return 0
+
+
+def _data_info(args: argparse.Namespace) -> int:
+    from iwsim.data.store import EpisodeStore
+
+    info = EpisodeStore.open(args.path, "r").info()
+    attrs = info["attrs"]
+    rows = [
+        ("path", info["path"]),
+        ("task", f"{info['task']} (policy {attrs['policy']})" if "policy" in attrs else info["task"]),
+        ("episodes", info["episodes"]),
+        ("frames", info["frames"]),
+        ("fps", info["fps"]),
+        ("image size", info["image_size"]),
+        ("size on disk", _human_bytes(info["bytes_on_disk"])),
+    ]
+    width = max(len(k) for k, _ in rows)
+    lines = [f"{k:<{width}}  {v}" for k, v in rows]
+    lines.append("arrays")
+    kw = max((len(k) for k in info["arrays"]), default=0)
+    for k, a in info["arrays"].items():
+        lines.append(f"  {k:<{kw}}  {str(a['shape']):<20} {a['dtype']}")
+    print("\n".join(lines))
+    return 0
+
+
+def _human_bytes(n: int) -> str:
+    size = float(n)
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if size < 1024 or unit == "GiB":
+            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
+        size /= 1024
+    raise AssertionError("unreachable")
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from iwsim import demo
+
+    return demo.main(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,210 @@
+"""Collect scripted episodes of a MuJoCo task into an episode store (``iwsim collect``).
+
+Episode i is recorded with seed ``seed + i``, so a command gives the same data whatever the
+number of workers, and re-running it with more episodes appends only the missing ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+import iwsim
+from iwsim.data.store import EpisodeStore
+from iwsim.envs import POLICIES, check_task, record_episode
+from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU, TaskSpec
+
+log = logging.getLogger(__name__)
+
+TASK_SPECS = {"pusht": TaskSpec}
+# Attributes that must agree before a run may append to an existing store.
+MATCHING_ATTRS = ("task", "policy", "image_size", "steps")
+
+
+@dataclasses.dataclass(frozen=True)
+class CollectStats:
+    """What one ``collect`` run added; rates are over the added episodes only."""
+
+    episodes_added: int
+    episodes_total: int
+    frames_added: int
+    seconds: float
+    frames_per_second: float
+    contact_fraction: float  # fraction of steps with a pusher touching the block
+    mean_max_iou: float  # mean over episodes of the maximum IoU reached
+    success_rate: float  # fraction of episodes whose maximum IoU reached SUCCESS_IOU
+
+    def summary(self) -> str:
+        return (
+            f"added {self.episodes_added} episodes ({self.frames_added} frames) in {self.seconds:.1f} s: "
+            f"{self.frames_per_second:.0f} frames/s; pusher-block contact in {100 * self.contact_fraction:.1f}% "
+            f"of steps; mean max IoU {self.mean_max_iou:.3f}; success {100 * self.success_rate:.1f}%"
+        )
+
+
+def store_attrs(task: str, policy: str, steps: int, image_size: int) -> dict[str, Any]:
+    """Root attributes of a collected store: the task spec (fps, action bounds and names,
+    goal pose, ...) plus how the episodes were made."""
+    spec = dataclasses.asdict(TASK_SPECS[task]())
+    spec["task"] = spec.pop("name")
+    return {**spec, "image_size": image_size, "policy": policy, "steps": steps, "iwsim_version": iwsim.__version__}
+
+
+def collect(
+    task: str,
+    policy: str,
+    episodes: int,
+    *,
+    out: str | os.PathLike,
+    steps: int = 200,
+    image_size: int = 64,
+    workers: int = 1,
+    seed: int = 0,
+    progress: bool = True,
+) -> CollectStats:
+    """Record episodes ``0..episodes-1`` (seeds ``seed + i``) into the store at ``out``.
+
+    Creates the store, or appends the episodes it lacks to one made by the same command
+    with fewer episodes. Everything is checked before the store is created or touched.
+    ``workers`` > 1 records in spawned processes (MuJoCo's EGL contexts must not be forked);
+    episodes are appended in order as they finish.
+    """
+    _check_args(task, policy, episodes, steps, image_size, workers, seed)
+    out = Path(out)
+    attrs = store_attrs(task, policy, steps, image_size)
+    start = 0
+    if out.exists():
+        start = _check_existing(out, attrs, seed)
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise ValueError(f"cannot append to {out}: the directory is not writable.")
+    else:
+        _check_creatable(out)
+    n_new = max(0, episodes - start)
+    if n_new == 0:
+        log.info("%s already holds %d episodes (>= %d requested); nothing to do", out, start, episodes)
+        return CollectStats(0, start, 0, 0.0, 0.0, float("nan"), float("nan"), float("nan"))
+
+    store = EpisodeStore.open(out, "a") if out.exists() else EpisodeStore.create(out, attrs)
+    log.info(
+        f"collecting {n_new} episodes (seeds {seed + start}..{seed + episodes - 1}) of {task}/{policy}: "
+        f"{steps} steps at {image_size}x{image_size}, {workers} worker(s) -> {out}"
+    )
+    jobs = [(task, policy, seed + i, steps, image_size) for i in range(start, episodes)]
+    frames = contact_steps = 0
+    max_ious: list[float] = []
+    t0 = time.perf_counter()
+    with tqdm(total=n_new, unit="ep", desc=f"collect {out.name}", disable=not progress) as bar:
+        for job, ep in zip(jobs, _record_all(jobs, workers), strict=True):
+            store.append(ep, seed=job[2])
+            frames += len(ep["img"])
+            contact_steps += int(np.count_nonzero(ep["n_contacts"] > 0))
+            max_ious.append(float(np.max(ep["iou"])))
+            bar.update()
+            bar.set_postfix_str(f"{frames / (time.perf_counter() - t0):.0f} frames/s")
+    seconds = time.perf_counter() - t0
+    ious = np.asarray(max_ious)
+    stats = CollectStats(
+        episodes_added=n_new,
+        episodes_total=store.n_episodes,
+        frames_added=frames,
+        seconds=seconds,
+        frames_per_second=frames / seconds,
+        contact_fraction=contact_steps / frames,
+        mean_max_iou=float(ious.mean()),
+        success_rate=float(np.mean(ious >= SUCCESS_IOU)),
+    )
+    log.info("%s; store now holds %d episodes", stats.summary(), stats.episodes_total)
+    return stats
+
+
+def _check_args(task: str, policy: str, episodes: int, steps: int, image_size: int, workers: int, seed: int) -> None:
+    check_task(task)
+    if task not in TASK_SPECS:
+        raise ValueError(f"task {task!r} has no TaskSpec registered for collection.")
+    if policy not in POLICIES:
+        raise ValueError(f"unknown policy {policy!r}; expected one of {list(POLICIES)}.")
+    if image_size not in IMAGE_SIZES:
+        raise ValueError(f"image size must be one of {list(IMAGE_SIZES)}, got {image_size!r}.")
+    for name, value in (("episodes", episodes), ("steps", steps), ("workers", workers)):
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+    if not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}.")
+
+
+def _check_creatable(out: Path) -> None:
+    """Raise if ``out`` (which does not exist) cannot be created: its nearest existing
+    ancestor must be a writable directory."""
+    ancestor = out.absolute().parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ValueError(f"cannot create {out}: {ancestor} is not a directory.")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ValueError(f"cannot create {out}: {ancestor} is not writable.")
+
+
+def _check_existing(out: Path, attrs: dict[str, Any], seed: int) -> int:
+    """Number of episodes already in the store at ``out``, after checking (read-only) that
+    this run may append to it."""
+    store = EpisodeStore.open(out, "r")
+    stored = store.attrs
+    diffs = [k for k in MATCHING_ATTRS if stored.get(k) != attrs[k]]
+    if diffs:
+        have = ", ".join(f"{k}={stored.get(k)!r}" for k in diffs)
+        want = ", ".join(f"{k}={attrs[k]!r}" for k in diffs)
+        raise ValueError(f"{out} holds episodes with {have}, not {want}; choose another --out.")
+    expected = [seed + i for i in range(store.n_episodes)]
+    if store.seeds != expected:
+        first = next(s for s, e in zip(store.seeds, expected, strict=True) if s != e)
+        raise ValueError(
+            f"{out} holds an episode with seed {first}, which --seed {seed} would not give "
+            f"(episode i uses seed {seed} + i); rerun with the store's original --seed or choose another --out."
+        )
+    if stored.get("iwsim_version") != attrs["iwsim_version"]:
+        log.warning(
+            "%s was written by iwsim %s; appending episodes from iwsim %s",
+            out,
+            stored.get("iwsim_version"),
+            attrs["iwsim_version"],
+        )
+    return store.n_episodes
+
+
+def _record(job: tuple[str, str, int, int, int]) -> dict[str, np.ndarray]:
+    task, policy, seed, steps, image_size = job
+    return record_episode(task, policy, seed, steps, image_size)
+
+
+def _record_all(jobs: list[tuple[str, str, int, int, int]], workers: int) -> Iterator[dict[str, np.ndarray]]:
+    """Episodes of ``jobs``, in order; in this process when ``workers`` is 1."""
+    if workers == 1 or len(jobs) == 1:
+        yield from map(_record, jobs)
+        return
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(min(workers, len(jobs)), initializer=_worker_init, initargs=(os.getpid(),)) as pool:
+        yield from pool.imap(_record, jobs)
+
+
+def _worker_init(parent_pid: int) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+
+    # A pool worker outlives a SIGKILLed parent (it holds both ends of the task pipe);
+    # exit when re-parented instead of idling forever.
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()

@@ -1,0 +1,339 @@
+"""The episode store: recorded episodes in Zarr, laid out like Diffusion Policy's ReplayBuffer.
+
+On disk (Zarr format 2, so that Diffusion Policy's zarr-2 + numcodecs stack opens it)::
+
+    root/.zattrs               task description, image size, per-episode ``seeds``, ...
+    root/data/<key>            (N, ...) arrays concatenated over episodes, e.g. ``img``
+                               (N, H, W, 3) uint8, ``state`` (N, 4) and ``action`` (N, 4) f32
+    root/meta/episode_ends     (E,) int64, cumulative: episode i is frames
+                               ``[episode_ends[i-1], episode_ends[i])``
+
+``episode_ends`` is the commit record. An append resizes and writes the data arrays first
+and grows ``episode_ends`` last, and every file Zarr writes is replaced atomically (written
+to a temporary name, then renamed), so a process killed at any point leaves a store whose
+``episode_ends`` describes only whole episodes. Readers take ``episode_ends[-1]`` as the
+length of the data (arrays may hold a few uncommitted frames past it) and ignore a trailing
+entry that is not yet written (it reads as the fill value 0, so ends must strictly
+increase). Opening in mode ``"a"`` repairs such leftovers before anything is appended.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import zarr
+from numcodecs import Blosc
+
+log = logging.getLogger(__name__)
+
+STORE_VERSION = 1  # layout version, stored as the ``store_version`` attribute
+# uint8 frames: zstd alone (byte shuffling is a no-op at itemsize 1); ~90x on rendered frames.
+IMAGE_COMPRESSOR = Blosc(cname="zstd", clevel=5, shuffle=Blosc.NOSHUFFLE)
+LOWDIM_COMPRESSOR = Blosc(cname="zstd", clevel=5, shuffle=Blosc.SHUFFLE)
+CHUNK_BYTES = 1 << 20  # target uncompressed chunk size: 64 frames at 64x64, 16 at 128x128
+MAX_CHUNK_FRAMES = 4096
+ENDS_CHUNK = 4096  # episode_ends entries per chunk
+_EXPECTED = "an episode store (a Zarr format 2 group with data/ and meta/episode_ends)"
+
+
+class StoreError(ValueError):
+    """A path that is not a usable episode store, or an episode that does not fit it."""
+
+
+def chunk_frames(frame_shape: tuple[int, ...], dtype: np.dtype) -> int:
+    """Frames per chunk: the largest power of two whose chunk stays within ``CHUNK_BYTES``."""
+    frame_bytes = max(1, int(np.prod(frame_shape, dtype=np.int64)) * np.dtype(dtype).itemsize)
+    n = max(1, CHUNK_BYTES // frame_bytes)
+    return min(MAX_CHUNK_FRAMES, 1 << (n.bit_length() - 1))
+
+
+def dir_size(path: str | os.PathLike) -> int:
+    """Bytes of all regular files under ``path``."""
+    total = 0
+    for dirpath, _, files in os.walk(path):
+        for f in files:
+            try:
+                total += os.lstat(os.path.join(dirpath, f)).st_size
+            except FileNotFoundError:  # removed while walking
+                pass
+    return total
+
+
+def _committed_ends(raw: np.ndarray) -> np.ndarray:
+    """The prefix of ``raw`` that is whole: positive and strictly increasing.
+
+    A crash between growing ``episode_ends`` and writing its new entry leaves a trailing
+    fill value 0, which this drops.
+    """
+    ok = np.diff(raw, prepend=0) > 0
+    return raw if ok.all() else raw[: int(np.argmin(ok))]
+
+
+class EpisodeStore:
+    """Episodes in a Zarr directory; open with :meth:`create` or :meth:`open`.
+
+    ``episode(i)`` returns ``{key: (T_i, ...) array}``; ``append(episode, seed)`` adds one.
+    """
+
+    def __init__(self, root: zarr.Group, path: Path, mode: Literal["r", "a"]) -> None:
+        self._root = root
+        self.path = path
+        self.mode = mode
+        self._ends_array = root["meta/episode_ends"]
+        self._data = root["data"]
+        self._arrays: dict[str, zarr.Array] = dict(self._data.arrays())
+        self._attrs: dict[str, Any] = dict(root.attrs)
+        raw = np.asarray(self._ends_array[:], dtype=np.int64)
+        self._ends = _committed_ends(raw)
+        self._n_uncommitted_ends = len(raw) - len(self._ends)
+        n = self.n_frames
+        for key, arr in self._arrays.items():
+            if arr.shape[0] < n:
+                raise StoreError(
+                    f"{path} is damaged: meta/episode_ends counts {n} frames but data/{key} holds only {arr.shape[0]}."
+                )
+        if n and not self._arrays:
+            raise StoreError(f"{path} is damaged: meta/episode_ends counts {n} frames but data/ holds no arrays.")
+        seeds = self._attrs.get("seeds", [])
+        if not isinstance(seeds, list) or len(seeds) < len(self._ends):
+            raise StoreError(f"{path} is damaged: its 'seeds' attribute does not list one seed per episode.")
+
+    # --- opening -----------------------------------------------------------------------
+    @classmethod
+    def create(cls, path: str | os.PathLike, attrs: Mapping[str, Any] | None = None) -> EpisodeStore:
+        """Create an empty store at ``path`` (which must not exist) with root ``attrs``.
+
+        The store is built under a temporary name next to ``path`` and renamed into place,
+        so ``path`` never holds a half-created store. Parent directories are created.
+        """
+        path = Path(path)
+        attrs = dict(attrs or {})
+        if "seeds" in attrs or "store_version" in attrs:
+            raise ValueError("attrs must not set 'seeds' or 'store_version'; the store manages them.")
+        try:
+            json.dumps(attrs)
+        except TypeError as e:
+            raise ValueError(f"store attributes must be JSON-serialisable: {e}.") from None
+        if path.exists():
+            raise StoreError(f"cannot create an episode store at {path}: it already exists.")
+        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            root = zarr.open_group(tmp, mode="w-", zarr_format=2)
+            root.require_group("data")
+            meta = root.require_group("meta")
+            # Like Diffusion Policy: episode_ends uncompressed, int64.
+            meta.create_array(
+                "episode_ends", shape=(0,), chunks=(ENDS_CHUNK,), dtype="int64", compressors=None, fill_value=0
+            )
+            root.attrs.update({**attrs, "store_version": STORE_VERSION, "seeds": []})
+            os.rename(tmp, path)
+        except OSError as e:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise StoreError(f"cannot create an episode store at {path}: {e.strerror or e}.") from e
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        log.debug("created episode store %s", path)
+        return cls.open(path, "a")
+
+    @classmethod
+    def open(cls, path: str | os.PathLike, mode: Literal["r", "a"] = "r") -> EpisodeStore:
+        """Open an existing store, read-only (``"r"``) or for appending (``"a"``).
+
+        Mode ``"a"`` first repairs what an interrupted append left behind (frames past
+        ``episode_ends[-1]``, an unwritten trailing end, temporary files).
+        """
+        if mode not in ("r", "a"):
+            raise ValueError(f"mode must be 'r' or 'a', got {mode!r}.")
+        path = Path(path)
+        if not path.exists():
+            raise StoreError(f"{path} does not exist; expected {_EXPECTED}.")
+        if not path.is_dir():
+            raise StoreError(f"{path} is a file, not {_EXPECTED}.")
+        try:
+            root = zarr.open_group(path, mode="r" if mode == "r" else "r+")
+        except (OSError, ValueError, KeyError, TypeError):
+            raise StoreError(f"{path} is not {_EXPECTED}: it holds no readable Zarr group.") from None
+        if root.metadata.zarr_format != 2:
+            raise StoreError(f"{path} is a Zarr format {root.metadata.zarr_format} group, not {_EXPECTED}.")
+        ends = root.get("meta/episode_ends")
+        if not isinstance(ends, zarr.Array) or ends.ndim != 1:
+            raise StoreError(f"{path} is a Zarr group without meta/episode_ends, not {_EXPECTED}.")
+        if not isinstance(root.get("data"), zarr.Group):
+            raise StoreError(f"{path} is a Zarr group without data/, not {_EXPECTED}.")
+        store = cls(root, path, mode)
+        if mode == "a":
+            store._repair()
+        elif store._n_uncommitted_ends or store._n_uncommitted_frames():
+            log.warning("%s holds leftovers of an interrupted append; they are ignored", path)
+        return store
+
+    def _n_uncommitted_frames(self) -> int:
+        return max((a.shape[0] - self.n_frames for a in self._arrays.values()), default=0)
+
+    def _repair(self) -> None:
+        """Undo the visible effects of an interrupted append (see the module docstring)."""
+        for tmp in self.path.rglob("*.partial"):  # Zarr's temporary files of a killed write
+            tmp.unlink(missing_ok=True)
+        extra = self._n_uncommitted_frames()
+        if self._n_uncommitted_ends:
+            self._ends_array.resize((len(self._ends),))
+            self._n_uncommitted_ends = 0
+        n = self.n_frames
+        for arr in self._arrays.values():
+            if arr.shape[0] != n:
+                arr.resize((n, *arr.shape[1:]))
+        if len(self._attrs["seeds"]) != self.n_episodes:
+            self._set_attr("seeds", self._attrs["seeds"][: self.n_episodes])
+        if extra:
+            log.warning("%s: discarded %d frames of an episode whose append was interrupted", self.path, extra)
+
+    # --- reading -----------------------------------------------------------------------
+    @property
+    def n_episodes(self) -> int:
+        return len(self._ends)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self._ends[-1]) if len(self._ends) else 0
+
+    @property
+    def episode_ends(self) -> np.ndarray:
+        """(E,) int64 cumulative frame counts of the whole episodes."""
+        return self._ends.copy()
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        """Root attributes; ``seeds`` lists one seed (or None) per stored episode."""
+        return {**self._attrs, "seeds": self.seeds}
+
+    @property
+    def seeds(self) -> list[int | None]:
+        return list(self._attrs["seeds"][: self.n_episodes])
+
+    @property
+    def keys(self) -> list[str]:
+        """Names of the arrays under ``data/``."""
+        return sorted(self._arrays)
+
+    def __len__(self) -> int:
+        return self.n_episodes
+
+    def __repr__(self) -> str:
+        return f"EpisodeStore({str(self.path)!r}, episodes={self.n_episodes}, frames={self.n_frames})"
+
+    def episode(self, i: int) -> dict[str, np.ndarray]:
+        """Episode ``i`` (negative counts from the end) as ``{key: (T_i, ...) array}``."""
+        n = self.n_episodes
+        if not -n <= i < n:
+            raise IndexError(f"episode index {i} out of range for a store of {n} episodes.")
+        i %= n
+        start = int(self._ends[i - 1]) if i else 0
+        stop = int(self._ends[i])
+        return {k: a[start:stop] for k, a in self._arrays.items()}
+
+    def info(self) -> dict[str, Any]:
+        """Summary: episodes, frames, per-array shape/dtype/chunks, fps, task, image size,
+        bytes on disk (the whole directory) and the remaining attributes."""
+        n = self.n_frames
+        return {
+            "path": str(self.path),
+            "episodes": self.n_episodes,
+            "frames": n,
+            "arrays": {
+                k: {"shape": (n, *a.shape[1:]), "dtype": str(a.dtype), "chunks": tuple(a.chunks)}
+                for k, a in sorted(self._arrays.items())
+            },
+            "fps": self._attrs.get("fps"),
+            "task": self._attrs.get("task"),
+            "image_size": self._attrs.get("image_size"),
+            "bytes_on_disk": dir_size(self.path),
+            "attrs": {k: v for k, v in self._attrs.items() if k != "seeds"},
+        }
+
+    # --- writing -----------------------------------------------------------------------
+    def append(self, episode: Mapping[str, np.ndarray], seed: int | None = None) -> None:
+        """Append one episode ``{key: (T, ...) array}`` (T >= 1), all-or-nothing for readers.
+
+        The keys, trailing shapes and dtype kinds must match the stored arrays (the first
+        episode defines them).
+        """
+        if self.mode != "a":
+            raise StoreError(f"{self.path} is open read-only; open it with mode 'a' to append.")
+        episode = self._check_episode(episode)
+        n0 = self.n_frames
+        t = next(iter(episode.values())).shape[0]
+        if self.n_episodes == 0:
+            self._define_arrays(episode)
+        # 1. data: grow every array to exactly n0 + t (this also drops any uncommitted tail)
+        for key, value in episode.items():
+            arr = self._arrays[key]
+            arr.resize((n0 + t, *arr.shape[1:]))
+            arr[n0:] = value
+        # 2. seeds: an entry past n_episodes means nothing until episode_ends commits it
+        self._set_attr("seeds", [*self._attrs["seeds"][: self.n_episodes], None if seed is None else int(seed)])
+        # 3. commit
+        self._commit(n0 + t)
+
+    def _commit(self, end: int) -> None:
+        """Grow episode_ends by one entry: the single step that makes an append visible."""
+        e = self.n_episodes
+        self._ends_array.resize((e + 1,))
+        self._ends_array[e] = end
+        self._ends = np.append(self._ends, np.int64(end))
+
+    def _check_episode(self, episode: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        if not episode:
+            raise StoreError("an episode must hold at least one array.")
+        out = {k: np.asarray(v) for k, v in episode.items()}
+        lengths = {k: (v.shape[0] if v.ndim else 0) for k, v in out.items()}
+        if len(set(lengths.values())) != 1 or min(lengths.values()) < 1:
+            raise StoreError(f"episode arrays must share a leading length T >= 1, got lengths {lengths}.")
+        if self.n_episodes == 0:
+            return out
+        if set(out) != set(self._arrays):
+            raise StoreError(f"episode keys {sorted(out)} do not match the store's arrays {self.keys}.")
+        for k, v in out.items():
+            arr = self._arrays[k]
+            if v.shape[1:] != arr.shape[1:] or not np.can_cast(v.dtype, arr.dtype, casting="same_kind"):
+                raise StoreError(
+                    f"episode array {k!r} is {v.shape[1:]} {v.dtype} per frame; "
+                    f"the store holds {arr.shape[1:]} {arr.dtype}."
+                )
+            out[k] = v.astype(arr.dtype, copy=False)
+        return out
+
+    def _define_arrays(self, episode: Mapping[str, np.ndarray]) -> None:
+        """(Re)create data arrays to match the first episode (an empty store may hold stale
+        arrays from an interrupted first append)."""
+        for key, value in episode.items():
+            arr = self._arrays.get(key)
+            if arr is not None and arr.shape[1:] == value.shape[1:] and arr.dtype == value.dtype:
+                continue
+            if arr is not None:
+                del self._data[key]
+            image_like = value.dtype == np.uint8 and value.ndim == 4
+            self._arrays[key] = self._data.create_array(
+                key,
+                shape=(0, *value.shape[1:]),
+                chunks=(chunk_frames(value.shape[1:], value.dtype), *value.shape[1:]),
+                dtype=value.dtype,
+                compressors=IMAGE_COMPRESSOR if image_like else LOWDIM_COMPRESSOR,
+                fill_value=0,
+            )
+        for key in set(self._arrays) - set(episode):
+            del self._data[key]
+            del self._arrays[key]
+
+    def _set_attr(self, key: str, value: Any) -> None:
+        self._root.attrs[key] = value  # rewrites .zattrs atomically
+        self._attrs[key] = value

@@ -1,0 +1,1 @@
+"""Evaluation: metrics, videos and plots of what the models and tasks do."""

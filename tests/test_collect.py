@@ -1,0 +1,205 @@
+"""``iwsim collect`` and ``iwsim data info``: tiny end-to-end runs and bad input."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iwsim.cli import main
+from iwsim.data.collect import store_attrs
+from iwsim.data.store import EpisodeStore
+
+IWSIM = Path(sys.executable).parent / "iwsim"  # the console script of this environment
+TINY = ["--task", "pusht", "--policy", "play", "--steps", "5", "--image-size", "64", "--seed", "3", "--no-progress"]
+
+
+def collect_args(out: Path, episodes: int, workers: int = 1, *extra: str) -> list[str]:
+    return ["collect", *TINY, "--episodes", str(episodes), "--workers", str(workers), "--out", str(out), *extra]
+
+
+def assert_same_stores(a: Path, b: Path) -> None:
+    sa, sb = EpisodeStore.open(a), EpisodeStore.open(b)
+    assert sa.attrs == sb.attrs
+    np.testing.assert_array_equal(sa.episode_ends, sb.episode_ends)
+    for i in range(sa.n_episodes):
+        ea, eb = sa.episode(i), sb.episode(i)
+        assert ea.keys() == eb.keys()
+        for k in ea:
+            assert ea[k].dtype == eb[k].dtype
+            np.testing.assert_array_equal(ea[k], eb[k], err_msg=f"episode {i} {k}")
+
+
+def snapshot(path: Path) -> dict[str, tuple[bytes, int]]:
+    """Every file under ``path`` with its bytes and mtime."""
+    return {str(p.relative_to(path)): (p.read_bytes(), p.stat().st_mtime_ns) for p in path.rglob("*") if p.is_file()}
+
+
+def one_error_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("iwsim: error: "), err
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def two_episodes(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """2 episodes x 5 steps, recorded in this process (1 worker)."""
+    out = tmp_path_factory.mktemp("one_worker") / "pusht.zarr"
+    assert main(collect_args(out, 2, 1)) == 0
+    return out
+
+
+def test_collect_writes_the_requested_episodes(two_episodes: Path) -> None:
+    store = EpisodeStore.open(two_episodes)
+    assert (store.n_episodes, store.n_frames) == (2, 10)
+    assert store.seeds == [3, 4]
+    attrs = store.attrs
+    assert (attrs["task"], attrs["policy"], attrs["image_size"], attrs["steps"], attrs["fps"]) == (
+        "pusht",
+        "play",
+        64,
+        5,
+        10,
+    )
+    assert len(attrs["action_low"]) == len(attrs["action_names"]) == 4 and "iwsim_version" in attrs
+    ep = store.episode(1)
+    assert ep["img"].shape == (5, 64, 64, 3) and ep["img"].dtype == np.uint8
+    assert ep["action"].shape == ep["state"].shape == (5, 4) and ep["block_pose"].shape == (5, 3)
+
+
+def test_console_script_with_two_workers_gives_identical_data(two_episodes: Path, tmp_path: Path) -> None:
+    out = tmp_path / "pusht.zarr"
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.run([str(IWSIM), *collect_args(out, 2, 2)], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "frames/s" in proc.stderr
+    assert_same_stores(out, two_episodes)
+
+
+def test_rerun_with_more_episodes_appends_only_the_missing(two_episodes: Path, tmp_path: Path) -> None:
+    out = tmp_path / "pusht.zarr"
+    assert main(collect_args(out, 1)) == 0
+    assert EpisodeStore.open(out).n_episodes == 1
+    assert main(collect_args(out, 2)) == 0
+    assert_same_stores(out, two_episodes)
+    before = snapshot(out)
+    assert main(collect_args(out, 2)) == 0  # nothing missing: nothing written
+    assert snapshot(out) == before
+
+
+def test_data_info(two_episodes: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["data", "info", str(two_episodes)]) == 0
+    out = capsys.readouterr().out
+    expected_rows = (
+        "episodes      2",
+        "frames        10",
+        "fps           10",
+        "image size    64",
+        "pusht (policy play)",
+    )
+    for expected in expected_rows:
+        assert expected in out, out
+    assert "(10, 64, 64, 3)" in out and "uint8" in out and "(10, 4)" in out and "float32" in out
+    assert "size on disk" in out and "KiB" in out
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--task", "pushq"], "unknown task 'pushq'"),
+        (["--policy", "random"], "unknown policy 'random'"),
+        (["--image-size", "50"], "image size must be one of [64, 96, 128], got 50"),
+        (["--episodes", "0"], "episodes must be a positive integer"),
+        (["--steps", "-1"], "steps must be a positive integer"),
+        (["--workers", "0"], "workers must be a positive integer"),
+    ],
+)
+def test_bad_flags_fail_with_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], flags: list[str], message: str
+) -> None:
+    out = tmp_path / "data" / "x.zarr"
+    assert main(collect_args(out, 2, 1, *flags)) == 1
+    assert message in one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "data").exists()
+
+
+def _existing_store(path: Path, **changes: object) -> Path:
+    """A store as `iwsim collect` would make it (seed 3), with ``changes`` to its attrs."""
+    attrs = {**store_attrs("pusht", "play", 5, 64), **changes}
+    store = EpisodeStore.create(path, attrs)
+    rng = np.random.default_rng(0)
+    size = attrs["image_size"]
+    store.append(
+        {
+            "img": rng.integers(0, 256, (5, size, size, 3), dtype=np.uint8),
+            "state": np.zeros((5, 4), np.float32),
+            "action": np.zeros((5, 4), np.float32),
+            "block_pose": np.zeros((5, 3), np.float32),
+            "iou": np.zeros(5, np.float32),
+            "n_contacts": np.zeros(5, np.int32),
+        },
+        seed=3,
+    )
+    return path
+
+
+@pytest.mark.parametrize(
+    ("changes", "extra", "message"),
+    [
+        ({"image_size": 96}, [], "image_size=96, not image_size=64"),
+        ({"task": "other"}, [], "task='other', not task='pusht'"),
+        ({"policy": "expert"}, [], "policy='expert', not policy='play'"),
+        ({"steps": 200}, [], "steps=200, not steps=5"),
+        ({}, ["--seed", "7"], "seed 3, which --seed 7 would not give"),
+    ],
+)
+def test_incompatible_existing_store_is_refused_untouched(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], changes: dict, extra: list[str], message: str
+) -> None:
+    out = _existing_store(tmp_path / "old.zarr", **changes)
+    before = snapshot(out)
+    assert main(collect_args(out, 3, 1, *extra)) == 1
+    line = one_error_line(capsys.readouterr().err)
+    assert message in line and str(out) in line
+    assert snapshot(out) == before
+
+
+@pytest.mark.parametrize("kind", ["under a regular file", "a regular file", "a directory that is not a store"])
+def test_unusable_out_path_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str) -> None:
+    blocker = tmp_path / "blocker"
+    if kind == "under a regular file":
+        blocker.write_text("x")
+        out = blocker / "sub" / "x.zarr"
+    elif kind == "a regular file":
+        blocker.write_text("x")
+        out = blocker
+    else:
+        blocker.mkdir()
+        (blocker / "notes.txt").write_text("x")
+        out = blocker
+    before = snapshot(tmp_path)
+    assert main(collect_args(out, 1, 1)) == 1
+    line = one_error_line(capsys.readouterr().err)
+    assert str(blocker) in line
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("kind", ["missing", "file"])
+def test_data_info_on_a_non_store(tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str) -> None:
+    path = tmp_path / "thing"
+    if kind == "file":
+        path.write_text("x")
+    assert main(["data", "info", str(path)]) == 1
+    captured = capsys.readouterr()
+    assert str(path) in one_error_line(captured.err) and captured.out == ""
+
+
+def test_argparse_errors_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(["collect", "--episodes", "two"])
+    assert e.value.code == 2
