@@ -30,4 +30,4 @@ def test_play_touches_the_block_and_is_deterministic():
 
 def test_unknown_policy():
     with pytest.raises(ValueError, match="unknown policy"):
-        make_policy("dance", None, 0)
+        make_policy("dance", 0)

@@ -41,7 +41,7 @@ def record_episode(task: str, policy: str, seed: int, steps: int, image_size: in
 
     env = make_env(task, image_size)
     try:
-        pol = make_policy(policy, env.unwrapped, seed=seed)
+        pol = make_policy(policy, seed)
         obs, info = env.reset(seed=seed)
         pol.reset(obs, info)
         rows: dict[str, list] = {k: [] for k in ("img", "state", "action", "block_pose", "iou", "n_contacts")}

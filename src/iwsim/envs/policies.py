@@ -160,12 +160,18 @@ class Pinch:
         self.phase = "approach"
         self.sides: np.ndarray | None = None  # +-1 per pusher: which side of the stem
         self.closing_steps = 0
+        self.stalled_steps = 0
+        self._prev: np.ndarray | None = None
 
     def _assign(self, pushers: np.ndarray, pose: np.ndarray) -> np.ndarray:
         grips = to_world(np.array([[-PRE_GRIP_X, GRIP_Y], [PRE_GRIP_X, GRIP_Y]]), pose)
         straight = np.linalg.norm(pushers - grips, axis=1).sum()
         crossed = np.linalg.norm(pushers - grips[::-1], axis=1).sum()
         return np.array([-1.0, 1.0]) if straight <= crossed else np.array([1.0, -1.0])
+
+    def _restart(self, pushers: np.ndarray, pose: np.ndarray) -> None:
+        self.reset()
+        self.sides = self._assign(pushers, pose)
 
     def _points(self, x: float) -> np.ndarray:
         return np.stack([self.sides * x, np.full(2, GRIP_Y)], axis=1)
@@ -176,8 +182,7 @@ class Pinch:
         if self.phase == "carry":
             contacts = to_world(self._points(CONTACT_X), pose)
             if np.max(np.linalg.norm(pushers - contacts, axis=1)) > 0.012:
-                self.reset()
-                self.sides = self._assign(pushers, pose)
+                self._restart(pushers, pose)
             else:
                 err = np.array([*(target[:2] - pose[:2]), geo.wrap_angle(target[2] - pose[2])])
                 # Command past the target (gain > 1): the grasp lags the command by what
@@ -194,13 +199,17 @@ class Pinch:
             if np.all(dist <= PUSHER_RADIUS + 0.003):
                 self.phase = "carry"
             elif self.closing_steps > 5:
-                self.reset()
-                self.sides = self._assign(pushers, pose)
+                self._restart(pushers, pose)
             return to_world(self._points(CONTACT_X - SQUEEZE), pose)
         pre = to_world(self._points(PRE_GRIP_X), pose)
         if np.max(np.linalg.norm(pushers - pre, axis=1)) < 0.004:
             self.phase, self.closing_steps = "close", 0
             return to_world(self._points(CONTACT_X - SQUEEZE), pose)
+        moved = np.inf if self._prev is None else np.max(np.linalg.norm(pushers - self._prev, axis=1))
+        self._prev = pushers.copy()
+        self.stalled_steps = self.stalled_steps + 1 if moved < 0.001 else 0
+        if self.stalled_steps >= 5:  # the pushers block each other's way: swap sides
+            self.sides, self.stalled_steps = -self.sides, 0
         return np.stack([plan_step(p, t, pose, self.speed) for p, t in zip(pushers, pre)])
 
 
@@ -211,7 +220,7 @@ class ExpertPolicy:
     ``"pixels"`` estimates it from ``obs["pixels"]`` alone (the teleoperator stand-in).
     """
 
-    def __init__(self, seed: int = 0, pose_source: str = "state", goal_pose: np.ndarray = GOAL_POSE) -> None:
+    def __init__(self, pose_source: str = "state", goal_pose: np.ndarray = GOAL_POSE) -> None:
         if pose_source not in ("state", "pixels"):
             raise ValueError(f"pose_source must be 'state' or 'pixels', got {pose_source!r}.")
         self.pose_source = pose_source
@@ -316,10 +325,9 @@ class PlayPolicy:
         return np.clip(targets, -WORKSPACE, WORKSPACE).astype(np.float32)
 
 
-def make_policy(name: str, env, seed: int):
-    """A scripted policy by name: ``play`` or ``expert`` (block pose from state)."""
+def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
+    """A scripted policy by name: ``play`` (randomised by ``seed``) or ``expert``
+    (deterministic, block pose from state)."""
     if name not in POLICIES:
         raise ValueError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
-    if name == "expert":
-        return ExpertPolicy(seed)
-    return PlayPolicy(seed)
+    return ExpertPolicy() if name == "expert" else PlayPolicy(seed)
