@@ -39,7 +39,7 @@ def main(args: argparse.Namespace) -> int:
     for i in range(args.episodes):
         ep = store.episode(i)
         frames = upscale(ep["img"], scale)
-        bar = score_bar(ep["iou"], frames.shape[2], 8 * scale // 2, SUCCESS_IOU)
+        bar = score_bar(ep["iou"], frames.shape[2], 8, SUCCESS_IOU)
         clips.append(np.concatenate([frames, bar], axis=1))
         log.info("episode %d (seed %d): max IoU %.3f", i, store.seeds[i], float(ep["iou"].max()))
     video = write_video(out / "pusht_expert.mp4", np.concatenate(clips), fps=2 * CONTROL_HZ)
