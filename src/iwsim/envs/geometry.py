@@ -24,31 +24,36 @@ T_AREA = _BAR_AREA + _STEM_AREA
 _CENTROID_Y = (_BAR_AREA * BAR_WIDTH / 2 - _STEM_AREA * STEM_LENGTH / 2) / T_AREA
 
 
-def _rect(cx: float, cy: float, hx: float, hy: float) -> np.ndarray:
-    return np.array([[cx - hx, cy - hy], [cx + hx, cy - hy], [cx + hx, cy + hy], [cx - hx, cy + hy]])
-
-
-# The T as two disjoint convex parts (counter-clockwise rectangles) in the block frame.
+# The T as two disjoint boxes in the block frame: (centre, half extents) of bar and stem.
 BAR_CENTER = (0.0, BAR_WIDTH / 2 - _CENTROID_Y)
 STEM_CENTER = (0.0, -STEM_LENGTH / 2 - _CENTROID_Y)
-T_PARTS = (
-    _rect(*BAR_CENTER, BAR_LENGTH / 2, BAR_WIDTH / 2),
-    _rect(*STEM_CENTER, STEM_WIDTH / 2, STEM_LENGTH / 2),
+T_BOXES = (
+    (np.array(BAR_CENTER), np.array([BAR_LENGTH / 2, BAR_WIDTH / 2])),
+    (np.array(STEM_CENTER), np.array([STEM_WIDTH / 2, STEM_LENGTH / 2])),
 )
+# The same two parts as counter-clockwise (4, 2) corner arrays.
+T_PARTS = tuple(c + h * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) for c, h in T_BOXES)
 # Distance from the centroid to the farthest corner: bounds the block's footprint.
 T_RADIUS = float(max(np.linalg.norm(p, axis=1).max() for p in T_PARTS))
 
 
-def transform(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """Map (N, 2) block-frame points to the world frame for pose (x, y, yaw)."""
-    x, y, yaw = (float(v) for v in pose)
-    c, s = np.cos(yaw), np.sin(yaw)
-    return points @ np.array([[c, s], [-s, c]]) + np.array([x, y])
+def to_world(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(..., 2) block-frame points -> world frame, for pose (x, y, yaw)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    q = np.asarray(points, dtype=np.float64)
+    return np.stack([c * q[..., 0] - s * q[..., 1], s * q[..., 0] + c * q[..., 1]], axis=-1) + pose[:2]
+
+
+def to_block(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(..., 2) world points -> block frame, for pose (x, y, yaw)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    d = np.asarray(points, dtype=np.float64) - pose[:2]
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
 def t_polygons(pose: np.ndarray) -> list[np.ndarray]:
     """The T's two convex parts, (4, 2) corner arrays each, placed at ``pose``."""
-    return [transform(p, pose) for p in T_PARTS]
+    return [to_world(p, pose) for p in T_PARTS]
 
 
 def polygon_area(poly: np.ndarray) -> float:
@@ -99,30 +104,27 @@ def t_iou(pose_a: np.ndarray, pose_b: np.ndarray) -> float:
     return inter / (2 * T_AREA - inter)
 
 
+def t_signed_distance(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(..., 2) world points -> (...) signed distance to the T's outline (< 0 inside)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    dx, dy = points[..., 0] - pose[0], points[..., 1] - pose[1]
+    u, v = c * dx + s * dy, c * dy - s * dx  # block frame, per axis (this is a hot loop)
+    out = None
+    for (cx, cy), (hx, hy) in T_BOXES:
+        ex, ey = np.abs(u - cx) - hx, np.abs(v - cy) - hy  # distance outside each slab
+        d = np.hypot(np.maximum(ex, 0), np.maximum(ey, 0)) + np.minimum(np.maximum(ex, ey), 0)
+        out = d if out is None else np.minimum(out, d)
+    return out
+
+
 def point_in_t(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """(..., 2) world points -> (...) bool, inside the T at ``pose``."""
-    x, y, yaw = (float(v) for v in pose)
-    c, s = np.cos(yaw), np.sin(yaw)
-    dx, dy = points[..., 0] - x, points[..., 1] - y
-    u, v = c * dx + s * dy, -s * dx + c * dy  # block frame
-    in_bar = (np.abs(u - BAR_CENTER[0]) <= BAR_LENGTH / 2) & (np.abs(v - BAR_CENTER[1]) <= BAR_WIDTH / 2)
-    in_stem = (np.abs(u - STEM_CENTER[0]) <= STEM_WIDTH / 2) & (np.abs(v - STEM_CENTER[1]) <= STEM_LENGTH / 2)
-    return in_bar | in_stem
+    """(..., 2) world points -> (...) bool, inside the T (or on its outline) at ``pose``."""
+    return t_signed_distance(points, pose) <= 0
 
 
 def distance_to_t(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """(..., 2) world points -> (...) Euclidean distance to the T (0 inside)."""
-    x, y, yaw = (float(v) for v in pose)
-    c, s = np.cos(yaw), np.sin(yaw)
-    dx, dy = points[..., 0] - x, points[..., 1] - y
-    u, v = c * dx + s * dy, -s * dx + c * dy
-    dists = []
-    for (cx, cy), (hx, hy) in ((BAR_CENTER, (BAR_LENGTH / 2, BAR_WIDTH / 2)),
-                               (STEM_CENTER, (STEM_WIDTH / 2, STEM_LENGTH / 2))):
-        ex = np.maximum(np.abs(u - cx) - hx, 0.0)
-        ey = np.maximum(np.abs(v - cy) - hy, 0.0)
-        dists.append(np.hypot(ex, ey))
-    return np.minimum(*dists)
+    return np.maximum(t_signed_distance(points, pose), 0.0)
 
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:

@@ -39,28 +39,13 @@ def world_to_pixel(xy: np.ndarray, image_size: int, view_half: float = VIEW_HALF
     return np.stack([(xy[..., 0] + view_half) / s - 0.5, (view_half - xy[..., 1]) / s - 0.5], axis=-1)
 
 
-def t_signed_distance(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """(..., 2) world points -> (...) signed distance to the T's outline (< 0 inside)."""
-    x, y, yaw = (float(v) for v in pose)
-    c, s = np.cos(yaw), np.sin(yaw)
-    dx, dy = points[..., 0] - x, points[..., 1] - y
-    u, v = c * dx + s * dy, -s * dx + c * dy
-    out = None
-    for (cx, cy), (hx, hy) in ((geo.BAR_CENTER, (geo.BAR_LENGTH / 2, geo.BAR_WIDTH / 2)),
-                               (geo.STEM_CENTER, (geo.STEM_WIDTH / 2, geo.STEM_LENGTH / 2))):
-        qx, qy = np.abs(u - cx) - hx, np.abs(v - cy) - hy
-        d = np.hypot(np.maximum(qx, 0), np.maximum(qy, 0)) + np.minimum(np.maximum(qx, qy), 0)
-        out = d if out is None else np.minimum(out, d)
-    return out
-
-
 def soft_t_mask(pose: np.ndarray, image_size: int, centers: np.ndarray | None = None) -> np.ndarray:
     """Approximate fraction of each pixel covered by the T at ``pose``: a one-pixel linear
     ramp across the outline (exact for edges aligned with the pixel grid), smooth in pose."""
     if centers is None:
         centers = pixel_centers(image_size)
     px = 2 * VIEW_HALF / image_size
-    return np.clip(0.5 - t_signed_distance(centers, pose) / px, 0.0, 1.0)
+    return np.clip(0.5 - geo.t_signed_distance(centers, pose) / px, 0.0, 1.0)
 
 
 @lru_cache(maxsize=16)

@@ -18,6 +18,7 @@ import numpy as np
 from iwsim.envs import POLICIES
 from iwsim.envs import geometry as geo
 from iwsim.envs.pixels import estimate_block_pose
+from iwsim.envs.geometry import to_block, to_world
 from iwsim.envs.pusht import GOAL_POSE, PUSHER_RADIUS, WORKSPACE
 
 # The pinch, in the block frame: grip level just under the bar, on both sides of the stem.
@@ -30,28 +31,9 @@ CLEARANCE = 0.005  # paths keep this much free space around the block
 WAYPOINT_CLEARANCE = 0.012  # graph nodes sit a little further out than paths need
 
 
-def to_block(p: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """(..., 2) world points -> block frame."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    d = np.asarray(p) - pose[:2]
-    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
-
-
-def to_world(q: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """(..., 2) block-frame points -> world."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    q = np.asarray(q)
-    return np.stack([c * q[..., 0] - s * q[..., 1], s * q[..., 0] + c * q[..., 1]], axis=-1) + pose[:2]
-
-
 def _boxes(grow: float) -> list[tuple[np.ndarray, np.ndarray]]:
     """The T's two rectangles in the block frame, grown by ``grow``: (lo, hi) corners."""
-    out = []
-    for (cx, cy), (hx, hy) in ((geo.BAR_CENTER, (geo.BAR_LENGTH / 2, geo.BAR_WIDTH / 2)),
-                               (geo.STEM_CENTER, (geo.STEM_WIDTH / 2, geo.STEM_LENGTH / 2))):
-        h = np.array([hx + grow, hy + grow])
-        out.append((np.array([cx, cy]) - h, np.array([cx, cy]) + h))
-    return out
+    return [(c - h - grow, c + h + grow) for c, h in geo.T_BOXES]
 
 
 _COLLIDE = _boxes(PUSHER_RADIUS + CLEARANCE)

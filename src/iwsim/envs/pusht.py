@@ -51,14 +51,10 @@ def _rgba(name: str) -> str:
 
 def _t_geoms(prefix: str, z: float, half_height: float, extra: str) -> str:
     """Two box geoms (bar, stem) making a T in its body frame."""
-    parts = (
-        ("bar", geo.BAR_CENTER, geo.BAR_LENGTH / 2, geo.BAR_WIDTH / 2),
-        ("stem", geo.STEM_CENTER, geo.STEM_WIDTH / 2, geo.STEM_LENGTH / 2),
-    )
     return "\n".join(
-        f'<geom name="{prefix}_{n}" type="box" pos="{c[0]:.6f} {c[1]:.6f} {z:g}" '
-        f'size="{hx:.6f} {hy:.6f} {half_height:g}" {extra}/>'
-        for n, c, hx, hy in parts
+        f'<geom name="{prefix}_{name}" type="box" pos="{c[0]:.6f} {c[1]:.6f} {z:g}" '
+        f'size="{h[0]:.6f} {h[1]:.6f} {half_height:g}" {extra}/>'
+        for name, (c, h) in zip(("bar", "stem"), geo.T_BOXES)
     )
 
 
