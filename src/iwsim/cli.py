@@ -8,6 +8,8 @@ import os
 import sys
 from collections.abc import Sequence
 
+from iwsim.errors import IwsimError
+
 log = logging.getLogger("iwsim")
 
 EXIT_USER_ERROR = 1  # bad values the library rejected (argparse's own usage errors exit 2)
@@ -48,6 +50,21 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("path", help="episode store (a .zarr directory)")
     q.set_defaults(func=_data_info)
 
+    p = sub.add_parser("train", help="train a stage of the world model")
+    train_sub = p.add_subparsers(dest="train_command", required=True, metavar="STAGE")
+    q = train_sub.add_parser("ae", help="stage 1: CNN encoder + consistency decoder")
+    q.add_argument("--data", required=True, help="episode store to train on")
+    q.add_argument("--preset", default="pusht-64", help="config preset: tiny, pusht-64, pusht-128 (default: %(default)s)")
+    q.add_argument("--out", required=True, help="run directory; rerunning the same command resumes it")
+    q.add_argument("--steps", type=int, help="override the preset's training steps")
+    q.add_argument("--batch-size", type=int, help="override the preset's global batch size")
+    q.add_argument("--seed", type=int, help="override the preset's seed")
+    q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
+    q.add_argument("--dry-run", action="store_true", help="print the resolved config and exit")
+    q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    q.set_defaults(func=_train_ae)
+
     p = sub.add_parser("demo", help="the scripted expert solving T-pushing, as a video")
     p.add_argument("--episodes", type=int, default=4, help="expert episodes (default: %(default)s)")
     p.add_argument("--steps", type=int, default=100, help="steps per episode (default: %(default)s)")
@@ -68,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `iwsim data info x | head`: the reader left, nothing to say
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_USER_ERROR
-    except (ValueError, OSError) as e:
+    except (ValueError, OSError, IwsimError) as e:
         print(f"iwsim: error: {_one_line(e)}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
@@ -131,6 +148,34 @@ def _human_bytes(n: int) -> str:
             return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
         size /= 1024
     raise AssertionError("unreachable")
+
+
+def _train_ae(args: argparse.Namespace) -> int:
+    import dataclasses
+    import json
+
+    from iwsim.config import AE_PRESETS, to_dict
+
+    if args.preset not in AE_PRESETS:
+        raise ValueError(f"unknown preset {args.preset!r}; expected one of {sorted(AE_PRESETS)}.")
+    cfg = AE_PRESETS[args.preset]
+    overrides = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed))
+                 if v is not None}
+    for k, v in overrides.items():
+        if k != "seed" and v < 1:
+            raise ValueError(f"--{k.replace('_', '-')} must be a positive integer, got {v}.")
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **overrides))
+    if args.dry_run:
+        print(json.dumps({"preset": args.preset, **to_dict(cfg)}, indent=2))
+        return 0
+    from iwsim.training.autoencoder import train_autoencoder
+    from iwsim.training.trainer import resolve_device
+
+    metrics = train_autoencoder(cfg, args.data, args.out, device=resolve_device(args.device), force=args.force,
+                                progress=not args.no_progress)
+    if metrics:
+        print(" ".join(f"{k}={v:.4f}" for k, v in metrics.items()))
+    return 0
 
 
 def _demo(args: argparse.Namespace) -> int:

@@ -228,6 +228,13 @@ class EpisodeStore:
     def __len__(self) -> int:
         return self.n_episodes
 
+    def array(self, key: str) -> zarr.Array:
+        """The (N, ...) Zarr array ``data/<key>`` for chunked reads; only its first
+        ``n_frames`` rows are committed."""
+        if key not in self._arrays:
+            raise StoreError(f"{self.path} has no array data/{key}; it has {self.keys}.")
+        return self._arrays[key]
+
     def __repr__(self) -> str:
         return f"EpisodeStore({str(self.path)!r}, episodes={self.n_episodes}, frames={self.n_frames})"
 

@@ -1,0 +1,79 @@
+"""The stage-1 autoencoder as one object: encode frames to latents, decode latents to frames.
+
+    ae = Autoencoder.load("runs/ae/checkpoints/last")
+    z = ae.encode(frames)                    # uint8 (B, H, W, 3) -> (B, C, H/4, W/4)
+    frames = ae.decode(z, jumps=1)           # -> uint8 (B, H, W, 3)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from iwsim.config import AEConfig, from_dict
+from iwsim.data.frames import to_model, to_uint8
+from iwsim.diffusion.consistency import sample
+from iwsim.diffusion.schedule import Schedule
+from iwsim.models.autoencoder import DecoderUNet, Encoder
+from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors
+
+
+class Autoencoder(nn.Module):
+    """Encoder + consistency decoder (+ its noise schedule)."""
+
+    def __init__(self, cfg: AEConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = Encoder(cfg.encoder)
+        self.decoder = DecoderUNet(cfg.decoder)
+        self.schedule = Schedule(cfg.schedule)
+
+    @property
+    def image_size(self) -> int:
+        return self.cfg.image_size
+
+    def encode_tensor(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) in [-1, 1] -> latents (B, C, H/4, W/4)."""
+        return self.encoder(x)
+
+    def decode_tensor(self, z: torch.Tensor, jumps: int = 1, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Latents (B, C, h, w) -> images (B, 3, 4h, 4w) in [-1, 1] by ``jumps`` consistency jumps."""
+        b, _, h, w = z.shape
+        shape = (b, self.cfg.decoder.image_channels, 4 * h, 4 * w)
+        return sample(self.decoder, self.schedule, z, shape, num_jumps=jumps, generator=generator).clamp(-1, 1)
+
+    @torch.inference_mode()
+    def encode(self, frames: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """uint8 frames (B, H, W, 3) -> latents (B, C, H/4, W/4)."""
+        x = to_model(frames).to(self._device())
+        if x.ndim != 4 or x.shape[-1] != self.image_size or x.shape[-2] != self.image_size:
+            raise ValueError(f"expected frames (B, {self.image_size}, {self.image_size}, 3), got {tuple(frames.shape)}.")
+        return self.encode_tensor(x)
+
+    @torch.inference_mode()
+    def decode(self, z: torch.Tensor, jumps: int = 1, generator: torch.Generator | None = None) -> np.ndarray:
+        """Latents (B, C, h, w) -> uint8 frames (B, 4h, 4w, 3)."""
+        return to_uint8(self.decode_tensor(z.to(self._device()), jumps, generator))
+
+    def _device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    @classmethod
+    def load(cls, path: str | Path, device: str | torch.device = "cpu") -> Autoencoder:
+        """From a checkpoint directory holding ``model.safetensors`` and ``config.json``."""
+        path = Path(path)
+        if not path.is_dir():
+            raise CheckpointError(f"{path} is not a checkpoint directory (model.safetensors + config.json).")
+        try:
+            cfg = from_dict(AEConfig, load_json(path / "config.json")["model"])
+        except (TypeError, ValueError, KeyError) as e:
+            raise CheckpointError(f"{path / 'config.json'} is not an autoencoder config: {e}") from None
+        model = cls(cfg)
+        try:
+            model.load_state_dict(load_tensors(path / "model.safetensors"))
+        except RuntimeError as e:
+            raise CheckpointError(f"{path / 'model.safetensors'} does not match its config: {e}") from None
+        return model.to(device).eval()

@@ -1,0 +1,1 @@
+"""Noise schedules, consistency-model losses and samplers: pure functions over any network."""

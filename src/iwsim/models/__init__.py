@@ -1,0 +1,1 @@
+"""Networks only: encoder, decoder and dynamics. Noise logic lives in ``iwsim.diffusion``."""

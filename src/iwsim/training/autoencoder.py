@@ -1,0 +1,119 @@
+"""Stage 1 training: the autoencoder task for the generic loop (``iwsim train ae``)."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import torch
+from torch import nn
+
+from iwsim.autoencoder import Autoencoder
+from iwsim.config import AEConfig, to_dict
+from iwsim.data.frames import FrameSource, split_episodes, to_model, to_uint8
+from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.diffusion.consistency import sample_levels, two_jump_loss
+from iwsim.diffusion.schedule import gaussian
+from iwsim.eval.metrics import psnr, ssim
+from iwsim.training import trainer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class AEBatch:
+    """x0 (B, 3, H, W) in [-1, 1]; levels t, s (B,); eps like x0."""
+
+    x0: torch.Tensor
+    t: torch.Tensor
+    s: torch.Tensor
+    eps: torch.Tensor
+
+    def to(self, device: torch.device) -> AEBatch:
+        return AEBatch(*(v.to(device) for v in (self.x0, self.t, self.s, self.eps)))
+
+
+class AETrainModule(nn.Module):
+    """forward(batch) -> the two-jump loss of the decoder on the encoder's latents."""
+
+    def __init__(self, ae: Autoencoder) -> None:
+        super().__init__()
+        self.ae = ae
+
+    def forward(self, batch: AEBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        z = self.ae.encoder(batch.x0)
+        return two_jump_loss(self.ae.decoder, self.ae.schedule, batch.x0, z, batch.t, batch.s, batch.eps)
+
+
+class AETask:
+    """Frames from the store's training episodes; held-out episodes for evaluation."""
+
+    def __init__(self, cfg: AEConfig, data: str | Path) -> None:
+        store = EpisodeStore.open(data, "r")
+        if "img" not in store.keys:
+            raise StoreError(f"{data} has no data/img frames to train on.")
+        size = store.array("img").shape[1]
+        if size != cfg.image_size:
+            raise ValueError(f"{data} holds {size}x{size} frames but the config expects {cfg.image_size}x"
+                             f"{cfg.image_size}; pick a preset for {size} px or collect {cfg.image_size} px data.")
+        if store.n_episodes < 2:
+            raise ValueError(f"{data} holds {store.n_episodes} episode(s); training needs at least 2 "
+                             "(one is held out for evaluation).")
+        self.cfg = cfg
+        self.train_episodes, self.heldout_episodes = split_episodes(store.n_episodes, cfg.holdout_every)
+        self.train_frames = FrameSource(store, self.train_episodes)
+        held = FrameSource(store, self.heldout_episodes)
+        pick = np.linspace(0, len(held) - 1, min(cfg.eval_images, len(held))).round().astype(int)
+        self.eval_frames = held.frames(pick)
+        with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
+            torch.manual_seed(cfg.train.seed)
+            self.module = AETrainModule(Autoencoder(cfg))
+
+    def split(self) -> dict[str, list[int]]:
+        return {"train_episodes": self.train_episodes, "heldout_episodes": self.heldout_episodes}
+
+    def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device) -> AEBatch:
+        b, size = self.cfg.train.batch_size, self.cfg.image_size
+        idx = torch.randint(0, len(self.train_frames), (b,), generator=generator)
+        t, s = sample_levels(b, self.cfg.schedule.num_levels, generator, self.cfg.top_fraction)
+        eps = gaussian((b, 3, size, size), generator)
+        x0 = to_model(self.train_frames.frames(idx[part].numpy()))
+        return AEBatch(x0, t[part], s[part], eps[part]).to(device)
+
+    @torch.no_grad()
+    def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
+        ae: Autoencoder = module.ae
+        device = next(ae.parameters()).device
+        out: dict[str, float] = {}
+        x = to_model(self.eval_frames).to(device)
+        recon = {}
+        for k in self.cfg.eval_jumps:
+            parts = []
+            for i in range(0, len(x), 64):
+                z = ae.encode_tensor(x[i:i + 64])
+                parts.append(ae.decode_tensor(z, k, torch.Generator(device).manual_seed(i)))
+            recon[k] = torch.cat(parts)
+            a, b = (x + 1) / 2, (recon[k] + 1) / 2
+            out[f"psnr_{k}jump"] = psnr(a, b).mean().item()
+            out[f"ssim_{k}jump"] = ssim(a, b).mean().item()
+        out_dir.mkdir(parents=True, exist_ok=True)
+        first = min(self.cfg.eval_jumps)
+        n = min(8, len(x))
+        grid = np.concatenate([np.concatenate(list(to_uint8(x[:n])), axis=1),
+                               np.concatenate(list(to_uint8(recon[first][:n])), axis=1)], axis=0)
+        imageio.imwrite(out_dir / f"recon_{step:08d}.png", grid)
+        return out
+
+    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+        return module.ae.state_dict()
+
+
+def train_autoencoder(cfg: AEConfig, data: str | Path, out: str | Path, *, device: torch.device,
+                      force: bool = False, progress: bool = True) -> dict[str, float]:
+    """Train (or resume) stage 1 into the run directory ``out``."""
+    task = AETask(cfg, data)
+    config = {"kind": "autoencoder", "model": to_dict(cfg), "data": str(data), "split": task.split()}
+    return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress)

@@ -1,0 +1,117 @@
+"""Checkpoints: safetensors + JSON directories, written atomically, never pickle.
+
+Layout of a run directory's checkpoints::
+
+    checkpoints/<step:08d>/model.safetensors        weights people load (the EMA weights)
+    checkpoints/<step:08d>/config.json              the resolved config of the run
+    checkpoints/<step:08d>/training_state/          raw weights, optimizer state, step
+    checkpoints/last -> <step:08d>                  symlink to the newest whole checkpoint
+
+A checkpoint is written under a temporary name and renamed into place, and ``last`` is
+replaced atomically afterwards, so a crash never leaves ``last`` pointing at a partial one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, incomplete or corrupt."""
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+def load_tensors(path: Path) -> dict[str, torch.Tensor]:
+    """Read a safetensors file, or raise CheckpointError naming it."""
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint file {path} is missing.")
+    try:
+        return load_file(path)
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CheckpointError(f"checkpoint file {path} is unreadable (truncated or corrupt): {e}.") from None
+
+
+def load_json(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint file {path} is missing.")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise CheckpointError(f"checkpoint file {path} is not valid JSON: {e}.") from None
+
+
+def optimizer_to_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Split an optimizer's state_dict into tensors (for safetensors) and JSON metadata."""
+    sd = opt.state_dict()
+    tensors, scalars = {}, {}
+    for pid, state in sd["state"].items():
+        for k, v in state.items():
+            if torch.is_tensor(v):
+                tensors[f"{pid}.{k}"] = v.contiguous()
+            else:
+                scalars[f"{pid}.{k}"] = v
+    return tensors, {"param_groups": sd["param_groups"], "scalars": scalars}
+
+
+def optimizer_from_tensors(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+    state: dict[int, dict[str, Any]] = {}
+    for key, v in tensors.items():
+        pid, k = key.split(".", 1)
+        state.setdefault(int(pid), {})[k] = v
+    for key, v in meta["scalars"].items():
+        pid, k = key.split(".", 1)
+        state.setdefault(int(pid), {})[k] = v
+    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def save_checkpoint(root: Path, step: int, model: dict[str, torch.Tensor], config: dict[str, Any],
+                    training_tensors: dict[str, dict[str, torch.Tensor]], training_meta: dict[str, Any]) -> Path:
+    """Write ``root/<step:08d>`` atomically and point ``root/last`` at it.
+
+    ``training_tensors`` maps a file stem to tensors (e.g. ``{"model": ..., "optimizer": ...}``),
+    each written to ``training_state/<stem>.safetensors``; ``training_meta`` goes to
+    ``training_state/state.json``.
+    """
+    root.mkdir(parents=True, exist_ok=True)
+    final = root / f"{step:08d}"
+    tmp = root / f".{step:08d}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "training_state").mkdir(parents=True)
+    save_file({k: v.detach().cpu().contiguous() for k, v in model.items()}, tmp / "model.safetensors")
+    write_json_atomic(tmp / "config.json", config)
+    for stem, tensors in training_tensors.items():
+        save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()},
+                  tmp / "training_state" / f"{stem}.safetensors")
+    write_json_atomic(tmp / "training_state" / "state.json", {**training_meta, "step": step})
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+    link_tmp = root / ".last.tmp"
+    link_tmp.unlink(missing_ok=True)
+    os.symlink(final.name, link_tmp)
+    os.replace(link_tmp, root / "last")
+    return final
+
+
+def last_checkpoint(root: Path) -> Path | None:
+    """The directory ``root/last`` points at, or None when there is none yet."""
+    link = root / "last"
+    if not link.is_symlink() and not link.exists():
+        return None
+    target = link.resolve()
+    if not target.is_dir():
+        raise CheckpointError(f"{link} points at {target}, which is not a checkpoint directory.")
+    return target

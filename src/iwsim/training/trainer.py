@@ -1,0 +1,249 @@
+"""The one training loop every stage uses.
+
+A stage supplies a :class:`TrainTask`: a module whose ``forward(batch)`` returns the loss,
+a way to build this rank's share of step k's batch, an evaluation and an export. The loop
+does the rest: AdamW with linear warm-up, gradient clipping, EMA weights, bf16 autocast on
+CUDA, DDP under torchrun, periodic evaluation and atomic checkpoints, logging to
+``log.txt`` and ``metrics.jsonl``, and exact resumption.
+
+Exact resumption without saving RNG states: everything random at step k (which samples,
+which noise) is drawn from a generator seeded by (seed, k) for the *global* batch, of
+which each rank takes its slice. So a resumed run, a single process and K ranks with the
+same global batch all see the same data at every step (EDM2 does the same with
+per-sample seeds).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any, Protocol
+
+import torch
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from iwsim.config import TrainConfig
+from iwsim.errors import IwsimError
+from iwsim.training import distributed
+from iwsim.training.checkpoint import (
+    load_json,
+    load_tensors,
+    last_checkpoint,
+    optimizer_from_tensors,
+    optimizer_to_tensors,
+    save_checkpoint,
+    write_json_atomic,
+)
+
+log = logging.getLogger(__name__)
+
+
+class TrainingError(IwsimError):
+    """Training cannot go on (e.g. the loss became non-finite)."""
+
+
+class TrainTask(Protocol):
+    """What a stage gives the loop."""
+
+    module: nn.Module  # forward(batch) -> (loss, {name: float})
+
+    def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device) -> Any:
+        """This rank's ``part`` of step ``step``'s global batch; draw everything random
+        for the whole global batch from ``generator`` first, then slice."""
+
+    def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
+        """Score ``module`` (the EMA weights) on held-out data; may write files to out_dir."""
+
+    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+        """The tensors of ``model.safetensors`` (what users load) from ``module``."""
+
+
+def step_generator(seed: int, step: int) -> torch.Generator:
+    """The generator of everything random at ``step``."""
+    return torch.Generator().manual_seed(seed * 1_000_003 + step)
+
+
+def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False) -> None:
+    """Create ``run_dir`` with ``config.json``, or check that an existing one holds the
+    same config (so rerunning the same command resumes). ``train.steps`` may differ:
+    training longer is a resume. ``force`` overwrites a different config."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / "config.json"
+    if path.exists():
+        old = load_json(path)
+        config = json.loads(json.dumps(config))  # tuples -> lists, as read back
+
+        def comparable(c: Any) -> Any:  # the config without any train.steps
+            if not isinstance(c, dict):
+                return c
+            return {k: ({kk: vv for kk, vv in v.items() if kk != "steps"} if k == "train" and isinstance(v, dict)
+                        else comparable(v)) for k, v in c.items()}
+
+        if comparable(old) != comparable(config) and not force:
+            diff = sorted(_diff_keys(comparable(old), comparable(config)))
+            raise ValueError(
+                f"{run_dir} holds a run with a different config (differs in {', '.join(diff)}); "
+                "use another --out, or --force to train it with the new config."
+            )
+    write_json_atomic(path, config)
+
+
+def _diff_keys(a: Any, b: Any, prefix: str = "") -> set[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out: set[str] = set()
+        for k in set(a) | set(b):
+            out |= _diff_keys(a.get(k), b.get(k), f"{prefix}{k}.")
+        return out
+    return set() if a == b else {prefix.rstrip(".")}
+
+
+def _lr(cfg: TrainConfig, step: int) -> float:
+    return cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup_steps))
+
+
+@torch.no_grad()
+def _ema_update(ema: nn.Module, model: nn.Module, decay: float) -> None:
+    for e, p in zip(ema.parameters(), model.parameters()):
+        e.lerp_(p, 1.0 - decay)
+
+
+def _setup_logging(run_dir: Path) -> logging.Handler:
+    handler = logging.FileHandler(run_dir / "log.txt")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logger = logging.getLogger("iwsim")
+    if logger.getEffectiveLevel() > logging.INFO:  # log.txt always gets INFO
+        logger.setLevel(logging.INFO)
+    logger.addHandler(handler)
+    return handler
+
+
+def train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, Any], *,
+          device: torch.device = torch.device("cpu"), force: bool = False, progress: bool = True) -> dict[str, float]:
+    """Train ``task`` to ``cfg.steps`` in ``run_dir``, resuming from its last checkpoint.
+
+    Returns the last evaluation's metrics (rank 0; empty elsewhere).
+    """
+    d = distributed.init(device)
+    if device.type == "cuda" and d.world > 1:
+        device = torch.device("cuda", d.local_rank)
+        torch.cuda.set_device(device)
+    if cfg.batch_size % d.world:
+        raise ValueError(f"batch size {cfg.batch_size} does not split evenly over {d.world} processes.")
+    run_dir = Path(run_dir)
+    if d.main:
+        prepare_run_dir(run_dir, config, force)
+    distributed.barrier(d)
+    handler = _setup_logging(run_dir) if d.main else None
+    try:
+        return _train(task, cfg, run_dir, config, device, d, progress)
+    finally:
+        if handler is not None:
+            logging.getLogger("iwsim").removeHandler(handler)
+            handler.close()
+
+
+def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, Any], device: torch.device,
+           d: distributed.Dist, progress: bool) -> dict[str, float]:
+    module = task.module.to(device)
+    ema = copy.deepcopy(module).requires_grad_(False).eval()
+    opt = torch.optim.AdamW(module.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+    ckpt_root = run_dir / "checkpoints"
+    start, elapsed = 0, 0.0
+    last = last_checkpoint(ckpt_root)
+    if last is not None:
+        state = load_json(last / "training_state" / "state.json")
+        module.load_state_dict(load_tensors(last / "training_state" / "model.safetensors"))
+        ema.load_state_dict(load_tensors(last / "training_state" / "ema.safetensors"))
+        optimizer_from_tensors(opt, load_tensors(last / "training_state" / "optimizer.safetensors"), state["optimizer"])
+        start, elapsed = int(state["step"]), float(state["elapsed_s"])
+        log.info("resuming from %s (step %d)", last, start)
+    if start >= cfg.steps:
+        log.info("%s is already trained to step %d (>= %d)", run_dir, start, cfg.steps)
+        return {}
+
+    net = DistributedDataParallel(module, device_ids=[device] if device.type == "cuda" else None) if d.world > 1 else module
+    per_rank = cfg.batch_size // d.world
+    part = slice(d.rank * per_rank, (d.rank + 1) * per_rank)
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(
+        "cpu", enabled=False)
+    metrics_file = (run_dir / "metrics.jsonl").open("a") if d.main else None
+    last_eval: dict[str, float] = {}
+
+    def checkpoint(step: int) -> None:
+        opt_tensors, opt_meta = optimizer_to_tensors(opt)
+        save_checkpoint(
+            ckpt_root, step, task.export(ema), config,
+            {"model": module.state_dict(), "ema": ema.state_dict(), "optimizer": opt_tensors},
+            {"optimizer": opt_meta, "elapsed_s": elapsed},
+        )
+
+    def record(row: dict[str, Any]) -> None:
+        metrics_file.write(json.dumps(row) + "\n")
+        metrics_file.flush()
+
+    module.train()
+    t_mark, images = time.perf_counter(), 0
+    bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not (progress and d.main))
+    try:
+        for step in bar:
+            t0 = time.perf_counter()
+            for group in opt.param_groups:
+                group["lr"] = _lr(cfg, step)
+            batch = task.batch(step, step_generator(cfg.seed, step), part, device)
+            with autocast:
+                loss, parts = net(batch)
+            loss_all = distributed.mean(loss.detach(), d)
+            if not torch.isfinite(loss_all):
+                where = last_checkpoint(ckpt_root)
+                raise TrainingError(
+                    f"the loss became non-finite ({loss_all.item()}) at step {step}; training stopped. "
+                    f"The last good checkpoint is {where if where else 'none (no checkpoint was written yet)'}."
+                )
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(module.parameters(), cfg.grad_clip)
+            opt.step()
+            # EMA warm-up: average over the steps seen so far until that exceeds the decay.
+            _ema_update(ema, module, min(cfg.ema_decay, (1 + step) / (10 + step)))
+            elapsed += time.perf_counter() - t0
+            images += cfg.batch_size
+            done = step + 1
+            if d.main and (done % cfg.log_every == 0 or done == cfg.steps):
+                rate = images / (time.perf_counter() - t_mark)
+                t_mark, images = time.perf_counter(), 0
+                row = {"step": done, "loss": loss_all.item(), **parts, "grad_norm": grad_norm.item(),
+                       "lr": _lr(cfg, step), "images_per_s": rate, "elapsed_s": elapsed}
+                record(row)
+                bar.set_postfix(loss=f"{row['loss']:.4f}", img_s=f"{rate:.0f}")
+            if d.main and (done % cfg.eval_every == 0 or done == cfg.steps):
+                t_eval = time.perf_counter()
+                last_eval = task.evaluate(ema, done, run_dir / "eval")
+                record({"step": done, "elapsed_s": elapsed, **{f"eval/{k}": v for k, v in last_eval.items()}})
+                log.info("step %d: %s", done, ", ".join(f"{k} {v:.4f}" for k, v in last_eval.items()))
+                t_mark += time.perf_counter() - t_eval  # evaluation time is not training throughput
+            if done % cfg.checkpoint_every == 0 or done == cfg.steps:
+                if d.main:
+                    checkpoint(done)
+                distributed.barrier(d)
+    finally:
+        bar.close()
+        if metrics_file is not None:
+            metrics_file.close()
+    return last_eval
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> cuda when available, else cpu (only the CLI resolves ``auto``)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        return torch.device(name)
+    except RuntimeError:
+        raise ValueError(f"unknown device {name!r}; expected auto, cpu, cuda or cuda:N.") from None
+
+

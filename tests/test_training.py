@@ -1,0 +1,180 @@
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from iwsim.autoencoder import Autoencoder
+from iwsim.cli import main
+from iwsim.config import AE_PRESETS, TrainConfig, to_dict
+from iwsim.data.collect import collect
+from iwsim.data.store import StoreError
+from iwsim.training import trainer
+from iwsim.training.autoencoder import AETask, train_autoencoder
+from iwsim.training.checkpoint import CheckpointError, last_checkpoint
+
+TINY = AE_PRESETS["tiny"]
+
+
+def tiny(steps: int = 6, **train) -> object:
+    return dataclasses.replace(TINY, train=dataclasses.replace(TINY.train, steps=steps, **train))
+
+
+def state(run: Path, step: int, part: str = "model") -> dict[str, torch.Tensor]:
+    return load_file(run / "checkpoints" / f"{step:08d}" / "training_state" / f"{part}.safetensors")
+
+
+def assert_same(a: dict, b: dict, **tol) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        if tol:
+            torch.testing.assert_close(a[k], b[k], **tol)
+        else:
+            assert torch.equal(a[k], b[k]), k
+
+
+def test_run_directory_layout(play_store, tmp_path):
+    run = tmp_path / "run"
+    metrics = train_autoencoder(tiny(), play_store, run, device=torch.device("cpu"), progress=False)
+    assert {"psnr_1jump", "ssim_1jump", "psnr_3jump"} <= set(metrics)
+    assert (run / "config.json").exists() and (run / "log.txt").read_text()
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows if "loss" in r] == [1, 2, 3, 4, 5, 6]
+    assert any("eval/psnr_1jump" in r for r in rows)
+    assert last_checkpoint(run / "checkpoints") == (run / "checkpoints" / "00000006").resolve()
+    assert sorted(p.name for p in (run / "eval").iterdir()) == ["recon_00000003.png", "recon_00000006.png"]
+    split = json.loads((run / "config.json").read_text())["split"]
+    assert split["heldout_episodes"] == [3] and split["train_episodes"] == [0, 1, 2]
+    # The exported checkpoint loads as an Autoencoder with the EMA weights.
+    ae = Autoencoder.load(run / "checkpoints" / "last")
+    ema = state(run, 6, "ema")
+    assert_same({k: v for k, v in ae.state_dict().items()}, {k.removeprefix("ae."): v for k, v in ema.items()})
+
+
+def test_resume_equals_uninterrupted(play_store, tmp_path):
+    cpu = torch.device("cpu")
+    train_autoencoder(tiny(6), play_store, tmp_path / "a", device=cpu, progress=False)
+    train_autoencoder(tiny(3), play_store, tmp_path / "b", device=cpu, progress=False)
+    train_autoencoder(tiny(6), play_store, tmp_path / "b", device=cpu, progress=False)  # resumes at 3
+    for part in ("model", "ema", "optimizer"):
+        assert_same(state(tmp_path / "a", 6, part), state(tmp_path / "b", 6, part))
+
+
+def test_two_process_ddp_matches_single_process(play_store, tmp_path):
+    out = tmp_path / "ranks"
+    out.mkdir()
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+           str(Path(__file__).parent / "ddp_train.py"), str(play_store), str(tmp_path / "ddp"), str(out), "3"]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=300)
+    r0, r1 = load_file(out / "rank0.safetensors"), load_file(out / "rank1.safetensors")
+    assert_same(r0, r1)  # DDP keeps the ranks identical
+    train_autoencoder(tiny(3), play_store, tmp_path / "single", device=torch.device("cpu"), progress=False)
+    single = state(tmp_path / "single", 3)
+    # Same global batch, samples and noise: only the order of floating-point sums differs.
+    # Adam turns a near-zero gradient into a step of up to lr whatever its size, so single
+    # elements may differ by a few lr; on average they agree to float precision.
+    init = AETask(TINY, play_store).module.state_dict()  # the seeded initial weights
+    diffs = torch.cat([(r0[k] - single[k]).abs().flatten() for k in single])
+    moved = torch.cat([(single[k] - init[k]).abs().flatten() for k in single])
+    assert diffs.max() <= 6 * TINY.train.lr and diffs.mean() < 1e-6, (diffs.max(), diffs.mean())
+    assert moved.mean() > 100 * diffs.mean()  # training did move the weights
+
+
+class _NaNAt(torch.nn.Module):
+    def __init__(self, bad_step: int) -> None:
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.ones(3))
+        self.bad_step = bad_step
+
+    def forward(self, step: int):
+        loss = (self.w**2).sum() * (float("nan") if step == self.bad_step else 1.0)
+        return loss, {}
+
+
+class _NaNTask:
+    def __init__(self, bad_step: int) -> None:
+        self.module = _NaNAt(bad_step)
+
+    def batch(self, step, generator, part, device):
+        return step
+
+    def evaluate(self, module, step, out_dir):
+        return {}
+
+    def export(self, module):
+        return module.state_dict()
+
+
+def test_non_finite_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
+    cfg = TrainConfig(steps=8, batch_size=1, checkpoint_every=2, eval_every=100, log_every=1)
+    with pytest.raises(trainer.TrainingError, match=r"non-finite.*step 5.*00000004"):
+        trainer.train(_NaNTask(5), cfg, tmp_path, {"x": 1}, progress=False)
+    assert last_checkpoint(tmp_path / "checkpoints").name == "00000004"
+    assert not (tmp_path / "checkpoints" / "00000006").exists()
+    assert torch.isfinite(load_file(tmp_path / "checkpoints" / "last" / "model.safetensors")["w"]).all()
+
+
+def test_cli_dry_run_and_overrides(capsys):
+    assert main(["train", "ae", "--data", "x", "--out", "y", "--preset", "pusht-64", "--steps", "7",
+                 "--batch-size", "8", "--dry-run"]) == 0
+    cfg = json.loads(capsys.readouterr().out)
+    assert cfg["preset"] == "pusht-64" and cfg["train"]["steps"] == 7 and cfg["train"]["batch_size"] == 8
+    assert cfg["encoder"] == json.loads(json.dumps(to_dict(AE_PRESETS["pusht-64"].encoder)))
+
+
+def _error(capsys, argv) -> str:
+    assert main(argv) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("iwsim: error:") and "\n" not in err
+    return err
+
+
+def test_bad_inputs(play_store, tmp_path, capsys):
+    base = ["train", "ae", "--preset", "tiny", "--no-progress"]
+    assert "does not exist" in _error(capsys, base + ["--data", str(tmp_path / "none.zarr"), "--out", str(tmp_path / "r")])
+    junk = tmp_path / "junk.zarr"
+    junk.mkdir()
+    (junk / "x").write_text("not zarr")
+    assert "not an episode store" in _error(capsys, base + ["--data", str(junk), "--out", str(tmp_path / "r")])
+    assert "unknown preset" in _error(capsys, ["train", "ae", "--data", "x", "--out", "y", "--preset", "huge"])
+    assert "positive" in _error(capsys, ["train", "ae", "--data", "x", "--out", "y", "--steps", "0"])
+    # A 96 px store for a 64 px preset.
+    big = tmp_path / "big.zarr"
+    collect("pusht", "play", 2, out=big, steps=3, image_size=96, workers=1, seed=0, progress=False)
+    assert "96x96" in _error(capsys, base + ["--data", str(big), "--out", str(tmp_path / "r")])
+    # A run directory holding another config is refused, unless --force.
+    run = tmp_path / "run"
+    assert main(base + ["--data", str(play_store), "--out", str(run), "--steps", "1"]) == 0
+    before = (run / "config.json").read_text()
+    assert "different config" in _error(capsys, base + ["--data", str(play_store), "--out", str(run), "--seed", "5"])
+    assert (run / "config.json").read_text() == before
+    assert main(base + ["--data", str(play_store), "--out", str(run), "--seed", "5", "--force", "--steps", "2"]) == 0
+
+
+def test_truncated_or_incomplete_checkpoint(play_store, tmp_path):
+    run = tmp_path / "run"
+    train_autoencoder(tiny(3), play_store, run, device=torch.device("cpu"), progress=False)
+    ckpt = run / "checkpoints" / "00000003"
+    weights = ckpt / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
+        Autoencoder.load(ckpt)
+    (ckpt / "config.json").unlink()
+    with pytest.raises(CheckpointError, match="config.json is missing"):
+        Autoencoder.load(ckpt)
+    with pytest.raises(CheckpointError, match="not a checkpoint directory"):
+        Autoencoder.load(tmp_path / "nowhere")
+
+
+def test_store_without_frames_is_refused(tmp_path):
+    from iwsim.data.store import EpisodeStore
+
+    s = EpisodeStore.create(tmp_path / "s.zarr", {"task": "pusht"})
+    s.append({"action": torch.zeros(3, 4).numpy()}, seed=0)
+    s.append({"action": torch.zeros(3, 4).numpy()}, seed=1)
+    with pytest.raises(StoreError, match="no data/img"):
+        AETask(TINY, tmp_path / "s.zarr")
