@@ -60,3 +60,16 @@ def test_decode_frames_api():
     assert out.shape == (2, 64, 64, 3) and out.dtype == np.uint8
     with pytest.raises(ValueError, match="frames"):
         ae.encode(np.zeros((2, 32, 32, 3), np.uint8))
+
+
+def test_frozen_inference_matches_eager():
+    torch.manual_seed(0)
+    ae = Autoencoder(AE_PRESETS["tiny"]).eval()
+    torch.nn.init.normal_(ae.decoder.conv_out.weight, std=0.1)  # zero-initialised: give it an output
+    frames = np.random.default_rng(0).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    z = ae.encode(frames)
+    eager = ae.decode(z, jumps=2, generator=torch.Generator().manual_seed(1))
+    ae.freeze_for_inference()
+    torch.testing.assert_close(ae.encode(frames), z, rtol=1e-4, atol=1e-4)
+    frozen = ae.decode(z, jumps=2, generator=torch.Generator().manual_seed(1))
+    assert np.abs(frozen.astype(int) - eager.astype(int)).max() <= 1

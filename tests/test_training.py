@@ -62,6 +62,17 @@ def test_resume_equals_uninterrupted(play_store, tmp_path):
     train_autoencoder(tiny(6), play_store, tmp_path / "b", device=cpu, progress=False)  # resumes at 3
     for part in ("model", "ema", "optimizer"):
         assert_same(state(tmp_path / "a", 6, part), state(tmp_path / "b", 6, part))
+    # A crash after step 4 logged rows the checkpoint at 3 does not have: resuming drops them.
+    b = tmp_path / "b"
+    def logged() -> list[tuple]:
+        rows = [json.loads(line) for line in (b / "metrics.jsonl").read_text().splitlines()]
+        return [(r["step"], r.get("loss"), r.get("eval/psnr_1jump")) for r in rows]
+
+    before = logged()
+    (b / "checkpoints" / "last").unlink()
+    (b / "checkpoints" / "last").symlink_to("00000003")
+    train_autoencoder(tiny(6), play_store, b, device=cpu, progress=False)
+    assert logged() == before
 
 
 def test_two_process_ddp_matches_single_process(play_store, tmp_path):

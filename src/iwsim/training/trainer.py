@@ -18,6 +18,8 @@ from __future__ import annotations
 import copy
 import json
 import logging
+import math
+import os
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -31,6 +33,7 @@ from iwsim.config import TrainConfig
 from iwsim.errors import IwsimError
 from iwsim.training import distributed
 from iwsim.training.checkpoint import (
+    CheckpointError,
     load_json,
     load_tensors,
     last_checkpoint,
@@ -102,8 +105,23 @@ def _diff_keys(a: Any, b: Any, prefix: str = "") -> set[str]:
     return set() if a == b else {prefix.rstrip(".")}
 
 
+def _truncate_metrics(path: Path, step: int) -> None:
+    """Drop rows logged after the checkpoint a run resumes from (they will be redone)."""
+    if path.exists():
+        rows = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text("".join(f"{r}\n" for r in rows))
+        os.replace(tmp, path)
+
+
 def _lr(cfg: TrainConfig, step: int) -> float:
-    return cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup_steps))
+    """Linear warm-up, then constant or a cosine decay to 0 at ``cfg.steps``."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    if cfg.lr_decay == "constant":
+        return cfg.lr
+    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return cfg.lr * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
 
 
 @torch.no_grad()
@@ -132,6 +150,8 @@ def train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, An
     if device.type == "cuda" and d.world > 1:
         device = torch.device("cuda", d.local_rank)
         torch.cuda.set_device(device)
+    if cfg.lr_decay not in ("cosine", "constant"):
+        raise ValueError(f"lr_decay must be 'cosine' or 'constant', got {cfg.lr_decay!r}.")
     if cfg.batch_size % d.world:
         raise ValueError(f"batch size {cfg.batch_size} does not split evenly over {d.world} processes.")
     run_dir = Path(run_dir)
@@ -157,11 +177,18 @@ def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, A
     last = last_checkpoint(ckpt_root)
     if last is not None:
         state = load_json(last / "training_state" / "state.json")
-        module.load_state_dict(load_tensors(last / "training_state" / "model.safetensors"))
-        ema.load_state_dict(load_tensors(last / "training_state" / "ema.safetensors"))
-        optimizer_from_tensors(opt, load_tensors(last / "training_state" / "optimizer.safetensors"), state["optimizer"])
+        try:
+            module.load_state_dict(load_tensors(last / "training_state" / "model.safetensors"))
+            ema.load_state_dict(load_tensors(last / "training_state" / "ema.safetensors"))
+            optimizer_from_tensors(opt, load_tensors(last / "training_state" / "optimizer.safetensors"),
+                                   state["optimizer"])
+        except (RuntimeError, KeyError, ValueError) as e:
+            raise CheckpointError(f"checkpoint {last} does not fit this model ({' '.join(str(e).split())[:200]}); "
+                                  "train into a new --out.") from None
         start, elapsed = int(state["step"]), float(state["elapsed_s"])
         log.info("resuming from %s (step %d)", last, start)
+        if d.main:
+            _truncate_metrics(run_dir / "metrics.jsonl", start)
     if start >= cfg.steps:
         log.info("%s is already trained to step %d (>= %d)", run_dir, start, cfg.steps)
         return {}
