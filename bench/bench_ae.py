@@ -34,11 +34,7 @@ def quality(ae: Autoencoder, frames: np.ndarray, jumps: tuple[int, ...]) -> tupl
     out, recon = {}, {}
     with torch.inference_mode():
         for k in jumps:
-            parts = []
-            for i in range(0, len(x), 100):
-                z = ae.encode_tensor(x[i:i + 100])
-                parts.append(ae.decode_tensor(z, k, torch.Generator().manual_seed(i)))
-            recon[k] = torch.cat(parts)
+            recon[k] = ae.reconstruct_tensor(x, k, chunk=100)
             a, b = (x + 1) / 2, (recon[k] + 1) / 2
             p, s = psnr(a, b), ssim(a, b)
             out[k] = {"psnr": p.mean().item(), "psnr_p5": p.quantile(0.05).item(), "ssim": s.mean().item()}

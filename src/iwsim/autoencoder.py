@@ -46,6 +46,15 @@ class Autoencoder(nn.Module):
         shape = (b, self.cfg.decoder.image_channels, 4 * h, 4 * w)
         return sample(self.decoder, self.schedule, z, shape, num_jumps=jumps, generator=generator).clamp(-1, 1)
 
+    def reconstruct_tensor(self, x: torch.Tensor, jumps: int = 1, chunk: int = 64) -> torch.Tensor:
+        """Encode then decode (B, 3, H, W) images in chunks; chunk i's noise is seeded by
+        its first index, so results do not depend on what else is in the batch."""
+        parts = []
+        for i in range(0, len(x), chunk):
+            z = self.encode_tensor(x[i:i + chunk])
+            parts.append(self.decode_tensor(z, jumps, torch.Generator(x.device).manual_seed(i)))
+        return torch.cat(parts)
+
     @torch.inference_mode()
     def encode(self, frames: np.ndarray | torch.Tensor) -> torch.Tensor:
         """uint8 frames (B, H, W, 3) -> latents (B, C, H/4, W/4)."""

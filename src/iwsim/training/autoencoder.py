@@ -91,11 +91,7 @@ class AETask:
         x = to_model(self.eval_frames).to(device)
         recon = {}
         for k in self.cfg.eval_jumps:
-            parts = []
-            for i in range(0, len(x), 64):
-                z = ae.encode_tensor(x[i:i + 64])
-                parts.append(ae.decode_tensor(z, k, torch.Generator(device).manual_seed(i)))
-            recon[k] = torch.cat(parts)
+            recon[k] = ae.reconstruct_tensor(x, k, chunk=64)
             a, b = (x + 1) / 2, (recon[k] + 1) / 2
             out[f"psnr_{k}jump"] = psnr(a, b).mean().item()
             out[f"ssim_{k}jump"] = ssim(a, b).mean().item()
