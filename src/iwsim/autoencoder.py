@@ -40,11 +40,14 @@ class Autoencoder(nn.Module):
         """(B, 3, H, W) in [-1, 1] -> latents (B, C, H/4, W/4)."""
         return self.encoder(x)
 
-    def decode_tensor(self, z: torch.Tensor, jumps: int = 1, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Latents (B, C, h, w) -> images (B, 3, 4h, 4w) in [-1, 1] by ``jumps`` consistency jumps."""
+    def decode_tensor(self, z: torch.Tensor, jumps: int = 1, generator: torch.Generator | None = None,
+                      noise: torch.Tensor | None = None) -> torch.Tensor:
+        """Latents (B, C, h, w) -> images (B, 3, 4h, 4w) in [-1, 1] by ``jumps`` consistency
+        jumps from ``noise`` (B, 3, 4h, 4w) or, when not given, noise drawn from ``generator``."""
         b, _, h, w = z.shape
         shape = (b, self.cfg.decoder.image_channels, 4 * h, 4 * w)
-        return sample(self.decoder, self.schedule, z, shape, num_jumps=jumps, generator=generator).clamp(-1, 1)
+        return sample(self.decoder, self.schedule, z, shape, num_jumps=jumps, generator=generator,
+                      noise=noise).clamp(-1, 1)
 
     def reconstruct_tensor(self, x: torch.Tensor, jumps: int = 1, chunk: int = 64) -> torch.Tensor:
         """Encode then decode (B, 3, H, W) images in chunks; chunk i's noise is seeded by

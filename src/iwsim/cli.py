@@ -53,17 +53,31 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train a stage of the world model")
     train_sub = p.add_subparsers(dest="train_command", required=True, metavar="STAGE")
     q = train_sub.add_parser("ae", help="stage 1: CNN encoder + consistency decoder")
-    q.add_argument("--data", required=True, help="episode store to train on")
-    q.add_argument("--preset", default="pusht-64", help="config preset: tiny, pusht-64, pusht-128 (default: %(default)s)")
-    q.add_argument("--out", required=True, help="run directory; rerunning the same command resumes it")
-    q.add_argument("--steps", type=int, help="override the preset's training steps")
-    q.add_argument("--batch-size", type=int, help="override the preset's global batch size")
-    q.add_argument("--seed", type=int, help="override the preset's seed")
-    q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
-    q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
-    q.add_argument("--dry-run", action="store_true", help="print the resolved config and exit")
-    q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    _train_flags(q, "tiny, pusht-64, pusht-128")
     q.set_defaults(func=_train_ae)
+    q = train_sub.add_parser("dynamics", help="stage 2: latent consistency dynamics on a frozen stage 1")
+    q.add_argument("--ae", required=True, help="stage-1 run directory or checkpoint (e.g. runs/ae)")
+    _train_flags(q, "tiny, pusht-64")
+    q.set_defaults(func=_train_dynamics)
+
+    p = sub.add_parser("export-model", help="write a world-model checkpoint from a stage-2 run")
+    p.add_argument("--dynamics", required=True, help="stage-2 run directory or one of its checkpoints")
+    p.add_argument("--ae", help="stage-1 run or checkpoint to take the decoder from (e.g. after "
+                                "decoder fine-tuning); its encoder must be the one the dynamics was trained on")
+    p.add_argument("--out", required=True, help="checkpoint directory to write (e.g. checkpoints/NAME)")
+    p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.set_defaults(func=_export_model)
+
+    p = sub.add_parser("rollout", help="open-loop rollout of a recorded episode: truth | prediction video")
+    p.add_argument("--checkpoint", required=True, help="world-model checkpoint directory")
+    p.add_argument("--data", required=True, help="episode store")
+    p.add_argument("--episode", type=int, default=0, help="episode index (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=192, help="predicted steps (default: %(default)s)")
+    p.add_argument("--context", type=int, default=1, help="context frames (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default: %(default)s)")
+    p.add_argument("--out", required=True, help="video path (.mp4); scores go to .json and _psnr.png beside it")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    p.set_defaults(func=_rollout)
 
     p = sub.add_parser("demo", help="the scripted expert solving T-pushing, as a video")
     p.add_argument("--episodes", type=int, default=4, help="expert episodes (default: %(default)s)")
@@ -152,15 +166,30 @@ def _human_bytes(n: int) -> str:
     raise AssertionError("unreachable")
 
 
-def _train_ae(args: argparse.Namespace) -> int:
+def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
+    q.add_argument("--data", required=True, help="episode store to train on")
+    q.add_argument("--preset", default="pusht-64", help=f"config preset: {presets} (default: %(default)s)")
+    q.add_argument("--out", required=True, help="run directory; rerunning the same command resumes it")
+    q.add_argument("--steps", type=int, help="override the preset's training steps")
+    q.add_argument("--batch-size", type=int, help="override the preset's global batch size")
+    q.add_argument("--seed", type=int, help="override the preset's seed")
+    q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
+    q.add_argument("--dry-run", action="store_true", help="print the resolved config and exit")
+    q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
+    """The preset named by --preset with --steps/--batch-size/--seed applied; prints it
+    and returns None under --dry-run."""
     import dataclasses
     import json
 
-    from iwsim.config import AE_PRESETS, to_dict
+    from iwsim.config import to_dict
 
-    if args.preset not in AE_PRESETS:
-        raise ValueError(f"unknown preset {args.preset!r}; expected one of {sorted(AE_PRESETS)}.")
-    cfg = AE_PRESETS[args.preset]
+    if args.preset not in presets:
+        raise ValueError(f"unknown preset {args.preset!r}; expected one of {sorted(presets)}.")
+    cfg = presets[args.preset]
     overrides = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed))
                  if v is not None}
     for k, v in overrides.items():
@@ -169,14 +198,66 @@ def _train_ae(args: argparse.Namespace) -> int:
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **overrides))
     if args.dry_run:
         print(json.dumps({"preset": args.preset, **to_dict(cfg)}, indent=2))
+        return None
+    return cfg
+
+
+def _print_metrics(metrics: dict[str, float]) -> None:
+    if metrics:
+        print(" ".join(f"{k}={v:.4f}" for k, v in metrics.items()))
+
+
+def _train_ae(args: argparse.Namespace) -> int:
+    from iwsim.config import AE_PRESETS
+
+    cfg = _resolve_preset(args, AE_PRESETS)
+    if cfg is None:
         return 0
     from iwsim.training.autoencoder import train_autoencoder
     from iwsim.training.trainer import resolve_device
 
-    metrics = train_autoencoder(cfg, args.data, args.out, device=resolve_device(args.device), force=args.force,
-                                progress=not args.no_progress)
-    if metrics:
-        print(" ".join(f"{k}={v:.4f}" for k, v in metrics.items()))
+    _print_metrics(train_autoencoder(cfg, args.data, args.out, device=resolve_device(args.device),
+                                     force=args.force, progress=not args.no_progress))
+    return 0
+
+
+def _train_dynamics(args: argparse.Namespace) -> int:
+    from iwsim.config import DYNAMICS_PRESETS
+
+    cfg = _resolve_preset(args, DYNAMICS_PRESETS)
+    if cfg is None:
+        return 0
+    from iwsim.training.dynamics import train_dynamics
+    from iwsim.training.trainer import resolve_device
+
+    _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
+                                  force=args.force, progress=not args.no_progress))
+    return 0
+
+
+def _export_model(args: argparse.Namespace) -> int:
+    from iwsim.world_model import export_model
+
+    path = export_model(args.dynamics, args.out, ae=args.ae, force=args.force)
+    print(path)
+    return 0
+
+
+def _rollout(args: argparse.Namespace) -> int:
+    from iwsim.data.store import EpisodeStore
+    from iwsim.eval.rollout import open_loop, write_side_by_side
+    from iwsim.training.trainer import resolve_device
+    from iwsim.world_model import WorldModel
+
+    if not str(args.out).endswith(".mp4"):
+        raise ValueError(f"--out must be an .mp4 path, got {args.out!r}.")
+    wm = WorldModel.load(args.checkpoint, resolve_device(args.device))
+    store = EpisodeStore.open(args.data, "r")
+    result = open_loop(wm, store, [args.episode], args.steps, args.context, args.seed, progress=True)
+    path = write_side_by_side(result, args.out)
+    s = result.summary()
+    print(f"{path}: mean PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.3f}, last-step PSNR {s['psnr_last']:.2f} dB, "
+          f"mean |IoU error| {s['iou_abs_err']:.3f}")
     return 0
 
 

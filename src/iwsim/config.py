@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 
 from iwsim.diffusion.schedule import ScheduleConfig
 from iwsim.models.autoencoder import DecoderConfig, EncoderConfig
+from iwsim.models.dynamics import DynamicsConfig
 
 T = TypeVar("T")
 
@@ -74,6 +75,44 @@ AE_PRESETS: dict[str, AEConfig] = {
     # Paper scale (128 px, 64 base channels), for GPUs.
     "pusht-128": _ae(128, (64, 128, 256), 2, 256, steps=200_000, batch_size=64, lr=2e-4, warmup_steps=2000,
                      eval_every=5000, checkpoint_every=5000, ema_decay=0.9999),
+}
+
+
+@dataclass(frozen=True)
+class DynamicsStageConfig:
+    """Stage 2: the latent dynamics on a frozen stage-1 autoencoder."""
+
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    seq_len: int = 12  # L: a training sequence is L context frames and the L frames they predict
+    context_levels: tuple[int, int] = (1, 100)  # training context noise levels, uniform in [lo, hi)
+    context_level: int = 15  # the level context frames are labelled with at inference
+    jumps: int = 1  # consistency jumps per predicted frame at inference
+    top_fraction: float = 0.5  # share of training jumps from level T - 1, where inference starts
+    zero_fraction: float = 0.5  # share of training jumps that land on level 0, as inference does
+    start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
+    holdout_every: int = 20
+    eval_episodes: int = 4  # held-out episodes rolled out open-loop at each evaluation
+    eval_steps: int = 64
+
+
+def _dyn(window: int, channels: tuple[int, int], heads: int, emb: int, seq_len: int, **train: Any
+         ) -> DynamicsStageConfig:
+    return DynamicsStageConfig(dynamics=DynamicsConfig(window=window, channels=channels, heads=heads, emb_dim=emb),
+                               seq_len=seq_len, train=TrainConfig(**train))
+
+
+DYNAMICS_PRESETS: dict[str, DynamicsStageConfig] = {
+    # Seconds on a CPU: for tests.
+    "tiny": dataclasses.replace(
+        _dyn(4, (8, 16), 2, 16, 5, steps=6, batch_size=4, warmup_steps=2, log_every=1, eval_every=3,
+             checkpoint_every=3, ema_decay=0.9),
+        eval_episodes=2, eval_steps=6,
+    ),
+    # The CPU default for 64 px latents (4 x 16 x 16): trains in about 90 minutes on 2 cores.
+    "pusht-64": _dyn(8, (64, 128), 4, 128, 10, steps=1500, batch_size=12, lr=5e-4, warmup_steps=100,
+                     eval_every=250, checkpoint_every=250, ema_decay=0.995),
 }
 
 

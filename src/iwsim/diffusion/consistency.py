@@ -42,30 +42,41 @@ def loss_weight(schedule: Schedule, t: torch.Tensor) -> torch.Tensor:
     return schedule.snr(t).clamp(SNR_MIN, SNR_MAX)
 
 
+def jump_loss(net: JumpNet, schedule: Schedule, x0: torch.Tensor, cond: torch.Tensor, t: torch.Tensor,
+              s: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """Per-sample weighted error (B,) of the jump t -> s from x_t onto the same-noise x_s,
+    for x0 (B, ...), levels 0 <= s < t <= T (B,) and one noise draw eps shaped like x0."""
+    x_t, x_s = schedule.noise(x0, t, eps), schedule.noise(x0, s, eps)
+    err = ((jump(net, schedule, x_t, t, s, cond) - x_s) ** 2).mean(tuple(range(1, x0.ndim)))
+    return err * loss_weight(schedule, t)
+
+
 def two_jump_loss(net: JumpNet, schedule: Schedule, x0: torch.Tensor, cond: torch.Tensor,
                   t: torch.Tensor, s: torch.Tensor, eps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
-    """The decoder's objective for a batch x0 (B, ...), levels 0 <= s < t <= T (B,) and one
-    noise draw eps shaped like x0: jump t -> s onto the same-noise x_s, then s -> 0 onto x0.
+    """The decoder's objective: the jump t -> s onto the same-noise x_s (:func:`jump_loss`),
+    then s -> 0 onto x0.
 
     Returns the scalar loss and its two terms (floats, for logging).
     """
-    x_t, x_s = schedule.noise(x0, t, eps), schedule.noise(x0, s, eps)
-    zero = torch.zeros_like(s)
-    dims = tuple(range(1, x0.ndim))
-    first = ((jump(net, schedule, x_t, t, s, cond) - x_s) ** 2).mean(dims) * loss_weight(schedule, t)
-    second = ((jump(net, schedule, x_s, s, zero, cond) - x0) ** 2).mean(dims) * loss_weight(schedule, s)
-    first, second = first.mean(), second.mean()
+    x_s = schedule.noise(x0, s, eps)
+    first = jump_loss(net, schedule, x0, cond, t, s, eps).mean()
+    second = ((jump(net, schedule, x_s, s, torch.zeros_like(s), cond) - x0) ** 2).mean(tuple(range(1, x0.ndim)))
+    second = (second * loss_weight(schedule, s)).mean()
     return first + second, {"loss_jump": first.item(), "loss_to_zero": second.item()}
 
 
 def sample_levels(batch: int, num_levels: int, generator: torch.Generator | None, top_fraction: float = 0.0,
-                  device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+                  device: torch.device | str = "cpu", zero_fraction: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Training levels: t uniform in [1, T], except that a ``top_fraction`` of the batch
-    starts from T - 1, where decoding starts; s uniform in [0, t)."""
+    starts from T - 1, where sampling starts; s uniform in [0, t), except that a
+    ``zero_fraction`` jumps straight to s = 0."""
     t = torch.randint(1, num_levels + 1, (batch,), generator=generator, device=device)
     top = torch.rand(batch, generator=generator, device=device) < top_fraction
     t = torch.where(top, torch.full_like(t, num_levels - 1), t)
     s = (torch.rand(batch, generator=generator, device=device) * t).long()
+    if zero_fraction > 0:
+        zero = torch.rand(batch, generator=generator, device=device) < zero_fraction
+        s = torch.where(zero, torch.zeros_like(s), s)
     return t, s
 
 
@@ -79,12 +90,13 @@ def jump_levels(num_jumps: int, start: int) -> list[int]:
 
 @torch.no_grad()
 def sample(net: JumpNet, schedule: Schedule, cond: torch.Tensor, shape: tuple[int, ...], num_jumps: int = 1,
-           generator: torch.Generator | None = None, disable: bool = True) -> torch.Tensor:
+           generator: torch.Generator | None = None, disable: bool = True,
+           noise: torch.Tensor | None = None) -> torch.Tensor:
     """Draw x0 (shape, batch first) given ``cond`` by ``num_jumps`` deterministic jumps
-    from clipped Gaussian noise at level T - 1. The same generator state gives the same
-    output."""
+    from clipped Gaussian noise at level T - 1 (drawn from ``generator``, or ``noise``
+    when given). The same generator state gives the same output."""
     levels = jump_levels(num_jumps, schedule.T - 1)
-    x = gaussian(shape, generator, device=cond.device, dtype=cond.dtype)
+    x = gaussian(shape, generator, device=cond.device, dtype=cond.dtype) if noise is None else noise
     b = shape[0]
     for t, s in tqdm(list(zip(levels[:-1], levels[1:])), desc="jumps", disable=disable):
         x = jump(net, schedule, x, torch.full((b,), t, device=x.device), torch.full((b,), s, device=x.device), cond)

@@ -13,6 +13,13 @@ if "iwsim/BimanualPushT-v0" not in registry:
         max_episode_steps=600,  # the paper's evaluation horizon
     )
 
+if "iwsim/WorldModel-v0" not in registry:
+    register(
+        id="iwsim/WorldModel-v0",
+        entry_point="iwsim.envs.world_model_env:WorldModelEnv",
+        max_episode_steps=600,
+    )
+
 TASKS = {"pusht": "iwsim/BimanualPushT-v0"}
 POLICIES = ("play", "expert")
 

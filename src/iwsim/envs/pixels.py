@@ -72,12 +72,16 @@ def _check_frame(frame: np.ndarray) -> np.ndarray:
     return frame
 
 
-def block_fraction(frame: np.ndarray) -> np.ndarray:
-    """(..., H, W, 3) uint8 frames -> (..., H, W) float32 fraction of each pixel that is block.
+def colour_fraction(frame: np.ndarray, name: str = "block") -> np.ndarray:
+    """(..., H, W, 3) uint8 frames -> (..., H, W) float32 fraction of each pixel that shows
+    the palette surface ``name`` (block, left, right, goal, table, wall).
 
     Each pixel is explained as the best mix of two palette colours (anti-aliased edges
-    blend two surfaces); the block's share of that mix is the answer.
+    blend two surfaces); the surface's share of that mix is the answer.
     """
+    if name not in _NAMES:
+        raise ValueError(f"unknown surface {name!r}; expected one of {_NAMES}.")
+    k = _NAMES.index(name)
     p = _check_frame(frame).astype(np.float32)
     best_err = np.full(p.shape[:-1], np.inf, np.float32)
     best_frac = np.zeros(p.shape[:-1], np.float32)
@@ -86,11 +90,33 @@ def block_fraction(frame: np.ndarray) -> np.ndarray:
         d = b - a
         gamma = np.zeros(p.shape[:-1], np.float32) if i == j else np.clip(((p - a) @ d) / (d @ d), 0, 1)
         err = np.sum((p - a - gamma[..., None] * d) ** 2, axis=-1)
-        frac = (1 - gamma) * (i == 0) + gamma * (j == 0)
+        frac = (1 - gamma) * (i == k) + gamma * (j == k)
         better = err < best_err
         best_err = np.where(better, err, best_err)
         best_frac = np.where(better, frac, best_frac)
     return best_frac
+
+
+def block_fraction(frame: np.ndarray) -> np.ndarray:
+    """(..., H, W, 3) uint8 frames -> (..., H, W) float32 fraction of each pixel that is block."""
+    return colour_fraction(frame, "block")
+
+
+def pusher_positions(frame: np.ndarray, min_pixels: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pusher centres from (..., H, W, 3) frames: positions (..., 4) float32 ``[lx, ly, rx,
+    ry]`` in metres (the centroid of each pusher's colour) and found (..., 2) bool (at
+    least ``min_pixels`` of that colour; else the position is NaN)."""
+    frame = _check_frame(frame)
+    centers = pixel_centers(frame.shape[-2])
+    out, found = [], []
+    for name in ("left", "right"):
+        w = colour_fraction(frame, name)
+        total = w.sum(axis=(-2, -1))
+        xy = np.einsum("...hw,hwc->...c", w, centers) / np.maximum(total, 1e-9)[..., None]
+        ok = total >= min_pixels
+        out.append(np.where(ok[..., None], xy, np.nan))
+        found.append(ok)
+    return np.concatenate(out, axis=-1).astype(np.float32), np.stack(found, axis=-1)
 
 
 def pixel_iou(frame: np.ndarray, goal_pose: np.ndarray = GOAL_POSE) -> np.ndarray | float:

@@ -106,6 +106,33 @@ def save_checkpoint(root: Path, step: int, model: dict[str, torch.Tensor], confi
     return final
 
 
+def save_model_dir(path: Path, tensors: dict[str, torch.Tensor], config: dict[str, Any], force: bool = False,
+                   json_files: dict[str, Any] | None = None) -> Path:
+    """Write a standalone checkpoint directory (``model.safetensors`` + ``config.json``
+    and any ``json_files``) atomically. An existing directory is replaced only with
+    ``force``, and only once the new one is complete."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise FileExistsError(f"{path} already exists; choose another --out or pass --force to replace it.")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, tmp / "model.safetensors")
+    write_json_atomic(tmp / "config.json", config)
+    for name, obj in (json_files or {}).items():
+        write_json_atomic(tmp / name, obj)
+    if path.exists():
+        old = path.with_name(f".{path.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, path)
+    return path
+
+
 def last_checkpoint(root: Path) -> Path | None:
     """The directory ``root/last`` points at, or None when there is none yet."""
     link = root / "last"

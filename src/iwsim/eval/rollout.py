@@ -1,0 +1,121 @@
+"""Open-loop rollouts of recorded episodes: the world model under the recorded actions,
+against the recorded frames (the paper's video-prediction protocol)."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from iwsim.data.frames import to_model
+from iwsim.data.store import EpisodeStore
+from iwsim.eval.metrics import psnr, ssim
+from iwsim.eval.video import score_bar, upscale, write_video
+from iwsim.world_model import WorldModel
+
+
+@dataclass
+class OpenLoop:
+    """Truth and prediction (E, S, H, W, 3) uint8 for E episodes and S steps, with
+    per-step PSNR and SSIM (E, S) and the pixel IoU of both videos (E, S)."""
+
+    episodes: list[int]
+    truth: np.ndarray
+    pred: np.ndarray
+    psnr: np.ndarray
+    ssim: np.ndarray
+    iou_true: np.ndarray
+    iou_pred: np.ndarray
+
+    def select(self, i: int) -> OpenLoop:
+        """Episode ``i`` of this result alone."""
+        return OpenLoop([self.episodes[i]], *(getattr(self, k)[i:i + 1] for k in
+                                              ("truth", "pred", "psnr", "ssim", "iou_true", "iou_pred")))
+
+    def summary(self) -> dict[str, float]:
+        return {"psnr": float(self.psnr.mean()), "ssim": float(self.ssim.mean()),
+                "psnr_last": float(self.psnr[:, -1].mean()), "ssim_last": float(self.ssim[:, -1].mean()),
+                "iou_abs_err": float(np.abs(self.iou_pred - self.iou_true).mean())}
+
+
+def frame_scores(truth: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """PSNR and SSIM of uint8 frames (..., H, W, 3) on [0, 1] images; each shaped (...)."""
+    lead = truth.shape[:-3]
+    a = (to_model(truth.reshape(-1, *truth.shape[-3:])) + 1) / 2
+    b = (to_model(pred.reshape(-1, *pred.shape[-3:])) + 1) / 2
+    return psnr(a, b).numpy().reshape(lead), ssim(a, b).numpy().reshape(lead)
+
+
+def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: int, context: int = 1,
+              seed: int = 0, progress: bool = False) -> OpenLoop:
+    """Roll ``wm`` out on ``episodes`` of ``store`` (batched): the first ``context`` frames
+    (and the actions between them) are the context; then ``steps`` recorded actions."""
+    from iwsim.envs.pixels import pixel_iou
+
+    if context < 1 or steps < 1:
+        raise ValueError(f"context and steps must be >= 1, got {context} and {steps}.")
+    eps = [store.episode(e) for e in episodes]  # raises on a bad index
+    for e, ep in zip(episodes, eps):
+        if len(ep["img"]) < context + steps:
+            raise ValueError(f"episode {e} of {store.path} has {len(ep['img'])} frames; {context} context frames "
+                             f"and {steps} steps need {context + steps} (use --steps {len(ep['img']) - context}).")
+    frames = np.stack([ep["img"][:context] for ep in eps])
+    actions = np.stack([ep["action"][context - 1:context - 1 + steps] for ep in eps])
+    ctx_actions = np.stack([ep["action"][:context - 1] for ep in eps]) if context > 1 else None
+    truth = np.stack([ep["img"][context:context + steps] for ep in eps])
+    pred = wm.rollout(frames, actions, ctx_actions, seed=seed, progress=progress)
+    p, s = frame_scores(truth, pred)
+    return OpenLoop(list(episodes), truth, pred, p, s, np.asarray(pixel_iou(truth)), np.asarray(pixel_iou(pred)))
+
+
+def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10.0, scale: int = 4) -> Path:
+    """Video of episode 0 of ``result``: truth | prediction, with a PSNR bar (10-40 dB,
+    green from 25 dB) under each frame; per-step scores in ``<out>.json`` and a plot in
+    ``<out>_psnr.png``."""
+    out = Path(out)
+    truth, pred = upscale(result.truth[0], scale), upscale(result.pred[0], scale)
+    gap = np.full((*truth.shape[:2], 4, 3), 255, np.uint8)
+    video = np.concatenate([truth, gap, pred], axis=2)
+    bar = score_bar((result.psnr[0] - 10) / 30, video.shape[2], 8, 0.5)
+    write_video(out, np.concatenate([video, bar], axis=1), fps)
+    first = result.select(0)
+    scores = {"episode": first.episodes[0], "steps": int(first.psnr.shape[1]), **first.summary(),
+              "psnr_per_step": first.psnr[0].round(3).tolist(), "ssim_per_step": first.ssim[0].round(4).tolist(),
+              "iou_true": first.iou_true[0].round(4).tolist(), "iou_pred": first.iou_pred[0].round(4).tolist()}
+    tmp = out.with_name(f".{out.stem}.json.tmp")
+    tmp.write_text(json.dumps(scores, indent=1) + "\n")
+    os.replace(tmp, out.with_suffix(".json"))
+    plot_psnr({"episode " + str(result.episodes[0]): result.psnr[0]}, out.with_name(f"{out.stem}_psnr.png"))
+    return out
+
+
+def plot_psnr(curves: dict[str, np.ndarray], path: Path, bands: dict[str, np.ndarray] | None = None,
+              target: float | None = None) -> Path:
+    """PSNR (dB) against rollout step, one line per curve (optional +-std bands)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for name, y in curves.items():
+        x = np.arange(1, len(y) + 1)
+        ax.plot(x, y, label=name)
+        if bands and name in bands:
+            ax.fill_between(x, y - bands[name], y + bands[name], alpha=0.2)
+    if target is not None:
+        ax.axhline(target, color="grey", linestyle="--", linewidth=1, label=f"target {target:g} dB")
+    ax.set_xlabel("rollout step")
+    ax.set_ylabel("PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
+

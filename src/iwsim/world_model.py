@@ -1,0 +1,304 @@
+"""The world model: stage-1 autoencoder + stage-2 dynamics behind reset / step / rollout.
+
+    wm = WorldModel.load("checkpoints/pusht-64")
+    wm.reset(frames)                    # uint8 (B, H, W, 3), or (B, K, H, W, 3) with actions (B, K-1, A)
+    frame = wm.step(actions)            # actions (B, A) in the data's units -> uint8 (B, H, W, 3)
+    video = wm.rollout(frames, actions) # actions (B, N, A) -> uint8 (B, N, H, W, 3)
+
+Streaming inference: the latest context frame and the new frame go through the dynamics
+network together; the keys and values of the last N - 1 context frames are cached, so a
+step costs the same at step 10 and at step 10,000, and memory stays flat.
+
+Randomness: the noise of batch item i comes from its own generator, seeded by
+``seed + i`` (or ``seeds[i]``) at reset, so a batched rollout equals per-item rollouts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from iwsim.autoencoder import Autoencoder
+from iwsim.config import AEConfig, DynamicsStageConfig, from_dict
+from iwsim.data.frames import to_model, to_uint8
+from iwsim.diffusion.consistency import jump, jump_levels
+from iwsim.diffusion.schedule import Schedule, gaussian
+from iwsim.models.dynamics import Cache, Dynamics
+from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors, save_model_dir
+
+KIND = "world_model"
+
+
+class WorldModel(nn.Module):
+    """Encoder, consistency decoder and latent dynamics, with action normalisation."""
+
+    def __init__(self, ae: Autoencoder, dynamics: Dynamics, cfg: DynamicsStageConfig,
+                 action_low: Sequence[float], action_high: Sequence[float]) -> None:
+        super().__init__()
+        self.ae, self.dynamics, self.cfg = ae, dynamics, cfg
+        self.schedule = Schedule(cfg.schedule)
+        low = torch.as_tensor(action_low, dtype=torch.float32)
+        high = torch.as_tensor(action_high, dtype=torch.float32)
+        if low.shape != (cfg.dynamics.action_dim,) or high.shape != low.shape or not bool((high > low).all()):
+            raise ValueError(f"action bounds must be two vectors of {cfg.dynamics.action_dim} values with "
+                             f"high > low, got {low.tolist()} and {high.tolist()}.")
+        self.register_buffer("action_low", low)
+        self.register_buffer("action_high", high)
+        self._cache: Cache | None = None
+        self._pending: tuple[torch.Tensor, torch.Tensor, torch.Tensor, int] | None = None
+        self._generators: list[torch.Generator] = []
+
+    # -- properties -------------------------------------------------------------------------
+    @property
+    def image_size(self) -> int:
+        return self.ae.image_size
+
+    @property
+    def action_dim(self) -> int:
+        return self.cfg.dynamics.action_dim
+
+    @property
+    def device(self) -> torch.device:
+        return self.action_low.device
+
+    @property
+    def batch_size(self) -> int:
+        """The batch of the current rollout (0 before ``reset``)."""
+        return 0 if self._pending is None else self._pending[0].shape[0]
+
+    # -- frames and actions -----------------------------------------------------------------
+    def check_frames(self, frames: np.ndarray | torch.Tensor, ndim: int) -> torch.Tensor:
+        """uint8 frames of rank ``ndim`` ending in (H, W, 3) at this model's size, as a tensor."""
+        x = torch.as_tensor(frames)
+        s = self.image_size
+        if x.dtype != torch.uint8:
+            raise ValueError(f"frames must be uint8, got {x.dtype}.")
+        if x.ndim != ndim or tuple(x.shape[-3:]) != (s, s, 3):
+            want = "(B, H, W, 3)" if ndim == 4 else "(B, T, H, W, 3)"
+            raise ValueError(f"expected frames {want} with H = W = {s}, got shape {tuple(x.shape)}.")
+        return x
+
+    def normalize_actions(self, actions: np.ndarray | torch.Tensor, batch: int | None = None) -> torch.Tensor:
+        """Actions (..., A) in the data's units -> [-1, 1] (clipped, as the task clips its
+        targets to the workspace). Non-finite values and wrong shapes are a ValueError."""
+        a = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
+        if a.ndim < 1 or a.shape[-1] != self.action_dim or (batch is not None and a.shape[0] != batch):
+            lead = "B" if batch is None else str(batch)
+            raise ValueError(f"expected actions of shape ({lead}, ..., {self.action_dim}), got {tuple(a.shape)}.")
+        bad = ~torch.isfinite(a)
+        if bad.any():
+            raise ValueError(f"actions must be finite, got {a[bad][0].item()} at index "
+                             f"{tuple(i.item() for i in bad.nonzero()[0])}.")
+        return ((a - self.action_low) / (self.action_high - self.action_low) * 2 - 1).clamp(-1, 1)
+
+    @torch.inference_mode()
+    def encode(self, frames: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """uint8 frames (B, H, W, 3) -> latents (B, C, H/4, W/4)."""
+        x = self.check_frames(frames, 4)
+        return self.ae.encode_tensor(to_model(x).to(self.device))
+
+    @torch.inference_mode()
+    def decode(self, latents: torch.Tensor, seed: int = 0) -> np.ndarray:
+        """Latents (B, C, h, w) -> uint8 frames (B, 4h, 4w, 3) by one consistency jump."""
+        g = torch.Generator(self.device).manual_seed(seed)
+        return to_uint8(self.ae.decode_tensor(latents.to(self.device), 1, g))
+
+    # -- streaming rollout on latents ---------------------------------------------------------
+    @torch.inference_mode()
+    def reset_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
+                      seed: int | Sequence[int] = 0) -> None:
+        """Start rollouts from context latents (B, K, C, h, w) and the normalised actions
+        (B, K-1, A) between them. Frames before the last fill the cache; the last one
+        joins the context together with the first predicted frame."""
+        b, k = latents.shape[:2]
+        z = latents.to(self.device)
+        if k > 1 and (actions is None or actions.shape[:2] != (b, k - 1)):
+            raise ValueError(f"{k} context frames need actions (B, {k - 1}, A) between them.")
+        zero = torch.zeros(b, 1, self.action_dim, device=self.device)
+        acts = zero if k == 1 else torch.cat([zero, actions.to(self.device)], 1)
+        known = torch.ones(b, k, device=self.device)
+        known[:, 0] = 0  # the first frame's producing action is unknown
+        # Only the last N - 1 context frames matter, but frames before them shape their
+        # activations (as in a long rollout), so all of them run through the network.
+        cache = None
+        if k > 1:
+            lv = torch.full((b, k - 1), self.cfg.context_level, device=self.device)
+            times = torch.arange(k - 1, device=self.device)
+            _, cache = self.dynamics(z[:, :-1], lv, lv, acts[:, :-1], known[:, :-1], times,
+                                     torch.ones(k - 1, dtype=torch.bool, device=self.device))
+        self._cache = cache
+        self._pending = (z[:, -1], acts[:, -1], known[:, -1], k - 1)
+        seeds = [seed + i for i in range(b)] if isinstance(seed, int) else list(seed)
+        if len(seeds) != b:
+            raise ValueError(f"got {len(seeds)} seeds for a batch of {b}.")
+        self._generators = [torch.Generator(self.device).manual_seed(int(s)) for s in seeds]
+
+    def _noise(self, shape: tuple[int, ...]) -> torch.Tensor:
+        """Clipped Gaussian noise (B, *shape), item i from its own generator."""
+        return torch.cat([gaussian((1, *shape), g, self.device) for g in self._generators])
+
+    @torch.inference_mode()
+    def step_latent(self, actions: torch.Tensor) -> torch.Tensor:
+        """Normalised actions (B, A) -> the next latents (B, C, h, w)."""
+        if self._pending is None:
+            raise RuntimeError("call reset() before step().")
+        z_ctx, a_ctx, k_ctx, tau = self._pending
+        b = z_ctx.shape[0]
+        if actions.shape != (b, self.action_dim):
+            raise ValueError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
+        levels = jump_levels(self.cfg.jumps, self.schedule.T - 1)
+        x = self._noise(tuple(z_ctx.shape[1:]))
+        dev = self.device
+        ctx_level = torch.full((b,), self.cfg.context_level, device=dev)
+        one = torch.ones(b, device=dev)
+        cache = self._cache
+        for i, (t, s) in enumerate(zip(levels[:-1], levels[1:])):
+            t_b, s_b = torch.full((b,), t, device=dev), torch.full((b,), s, device=dev)
+            if i == 0:  # the pending context frame joins the cache in the same pass
+                v, new_cache = self.dynamics(
+                    torch.stack([z_ctx, x], 1), torch.stack([ctx_level, t_b], 1), torch.stack([ctx_level, s_b], 1),
+                    torch.stack([a_ctx, actions], 1), torch.stack([k_ctx, one], 1),
+                    torch.tensor([tau, tau + 1], device=dev), torch.tensor([True, False], device=dev), cache)
+            else:
+                v, _ = self.dynamics(x[:, None], t_b[:, None], s_b[:, None], actions[:, None], one[:, None],
+                                     torch.tensor([tau + 1], device=dev), torch.tensor([False], device=dev),
+                                     new_cache)
+            x = jump(lambda *_: v[:, -1], self.schedule, x, t_b, s_b, None)
+        self._cache = new_cache
+        self._pending = (x, actions, one, tau + 1)
+        return x
+
+    # -- the public, uint8 API ----------------------------------------------------------------
+    def reset(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
+              seed: int | Sequence[int] = 0) -> None:
+        """Start B rollouts from one context frame each, uint8 (B, H, W, 3), or from K
+        frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them."""
+        x = torch.as_tensor(frames)
+        x = self.check_frames(x[:, None] if x.ndim == 4 else x, 5)
+        b, k = x.shape[:2]
+        a = None
+        if k > 1:
+            if actions is None:
+                raise ValueError(f"{k} context frames need the {k - 1} actions (B, {k - 1}, A) between them.")
+            a = self.normalize_actions(actions, b)
+            if a.shape != (b, k - 1, self.action_dim):
+                raise ValueError(f"expected actions ({b}, {k - 1}, {self.action_dim}), got {tuple(a.shape)}.")
+        with torch.inference_mode():
+            z = self.ae.encode_tensor(to_model(x.flatten(0, 1)).to(self.device)).unflatten(0, (b, k))
+        self.reset_latents(z, a, seed)
+
+    @torch.inference_mode()
+    def step(self, actions: np.ndarray | torch.Tensor) -> np.ndarray:
+        """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)."""
+        if self._pending is None:
+            raise RuntimeError("call reset() before step().")
+        z = self.step_latent(self.normalize_actions(actions, self.batch_size))
+        return to_uint8(self.decode_latents(z))
+
+    @torch.inference_mode()
+    def decode_latents(self, z: torch.Tensor) -> torch.Tensor:
+        """Latents (B, ..., C, h, w) -> images (B, ..., 3, H, W) in [-1, 1], item i's
+        noise from its own generator."""
+        lead = tuple(z.shape[1:-3])
+        size = self.image_size
+        noise = self._noise((*lead, self.ae.cfg.decoder.image_channels, size, size)).flatten(0, len(lead))
+        return self.ae.decode_tensor(z.flatten(0, len(lead)), 1, noise=noise).view(*z.shape[:-3], *noise.shape[1:])
+
+    def rollout(self, context_frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor,
+                context_actions: np.ndarray | torch.Tensor | None = None, seed: int | Sequence[int] = 0,
+                progress: bool = False) -> np.ndarray:
+        """Open-loop rollout: context frames (B, [K,] H, W, 3), actions (B, N, A) ->
+        predicted frames uint8 (B, N, H, W, 3)."""
+        from tqdm import tqdm
+
+        a = self.normalize_actions(actions)
+        if a.ndim != 3:
+            raise ValueError(f"expected actions (B, N, {self.action_dim}), got {tuple(a.shape)}.")
+        self.reset(context_frames, context_actions, seed)
+        if a.shape[0] != self.batch_size:
+            raise ValueError(f"{self.batch_size} context frames but actions for {a.shape[0]} rollouts.")
+        out = []
+        with torch.inference_mode():
+            for i in tqdm(range(a.shape[1]), desc="rollout", disable=not progress):
+                out.append(to_uint8(self.decode_latents(self.step_latent(a[:, i]))))
+        return np.stack(out, 1) if out else np.zeros((self.batch_size, 0, self.image_size, self.image_size, 3),
+                                                     np.uint8)
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def export(self) -> dict[str, torch.Tensor]:
+        """The tensors of a world-model ``model.safetensors``."""
+        return {**{f"ae.{k}": v for k, v in self.ae.state_dict().items()},
+                **{f"dynamics.{k}": v for k, v in self.dynamics.state_dict().items()}}
+
+    def describe(self) -> dict:
+        """The parts of ``config.json`` that ``load`` reads."""
+        from iwsim.config import to_dict
+
+        return {"kind": KIND, "ae": to_dict(self.ae.cfg), "stage2": to_dict(self.cfg),
+                "action_norm": {"low": self.action_low.tolist(), "high": self.action_high.tolist()}}
+
+    def save(self, path: str | Path, extra: dict | None = None, force: bool = False) -> Path:
+        """Write a self-contained checkpoint directory atomically; ``extra`` entries
+        (provenance) are added to ``config.json``."""
+        return save_model_dir(Path(path), self.export(), {**(extra or {}), **self.describe()}, force)
+
+    @classmethod
+    def load(cls, path: str | Path, device: str | torch.device = "cpu") -> WorldModel:
+        """From a checkpoint directory (``model.safetensors`` + ``config.json``), e.g. one
+        written by ``iwsim train dynamics`` or ``iwsim export-model``."""
+        path = Path(path)
+        if not path.is_dir():
+            raise CheckpointError(f"{path} is not a checkpoint directory (model.safetensors + config.json).")
+        config = load_json(path / "config.json")
+        if config.get("kind") != KIND:
+            raise CheckpointError(f"{path} is not a world-model checkpoint (config kind {config.get('kind')!r}, "
+                                  f"expected {KIND!r}).")
+        for part in ("ae", "stage2", "action_norm"):
+            if part not in config:
+                raise CheckpointError(f"{path / 'config.json'} is missing the {part!r} part of the world model.")
+        try:
+            ae_cfg = from_dict(AEConfig, config["ae"])
+            cfg = from_dict(DynamicsStageConfig, config["stage2"])
+        except (TypeError, ValueError, KeyError) as e:
+            raise CheckpointError(f"{path / 'config.json'} does not describe a world model: {e}") from None
+        tensors = load_tensors(path / "model.safetensors")
+        parts = {}
+        for part in ("ae", "dynamics"):
+            parts[part] = {k[len(part) + 1:]: v for k, v in tensors.items() if k.startswith(part + ".")}
+            if not parts[part]:
+                raise CheckpointError(f"{path / 'model.safetensors'} has no {part} weights ({part}.*).")
+        ae, dyn = Autoencoder(ae_cfg), Dynamics(cfg.dynamics)
+        try:
+            ae.load_state_dict(parts["ae"])
+            dyn.load_state_dict(parts["dynamics"])
+        except RuntimeError as e:
+            raise CheckpointError(f"{path / 'model.safetensors'} does not match its config: "
+                                  f"{' '.join(str(e).split())[:200]}") from None
+        norm = config["action_norm"]
+        return cls(ae, dyn, cfg, norm["low"], norm["high"]).to(device).eval()
+
+
+def export_model(dynamics: str | Path, out: str | Path, ae: str | Path | None = None, force: bool = False) -> Path:
+    """A standalone world-model checkpoint from a stage-2 run (``iwsim export-model``),
+    optionally with the decoder of another stage-1 checkpoint (same encoder)."""
+    from iwsim.training.dynamics import resolve_checkpoint
+
+    src = resolve_checkpoint(dynamics)
+    wm = WorldModel.load(src)
+    provenance = {"source": str(src)}
+    if ae is not None:
+        ae_src = resolve_checkpoint(ae)
+        other = Autoencoder.load(ae_src)
+        same_cfg = (other.cfg.encoder, other.cfg.decoder, other.image_size) == (wm.ae.cfg.encoder, wm.ae.cfg.decoder,
+                                                                                 wm.image_size)
+        if not same_cfg or any(not torch.equal(a, b) for a, b in zip(
+                other.encoder.state_dict().values(), wm.ae.encoder.state_dict().values())):
+            raise ValueError(f"{ae_src} has another encoder than the one {src} was trained on; only its decoder "
+                             "may differ (e.g. after iwsim train decoder-finetune).")
+        wm.ae.load_state_dict(other.state_dict())
+        provenance["ae_source"] = str(ae_src)
+    return wm.save(out, {"provenance": provenance}, force)
