@@ -34,10 +34,18 @@ KIND = "world_model"
 
 
 class WorldModel(nn.Module):
-    """Encoder, consistency decoder and latent dynamics, with action normalisation."""
+    """Encoder, consistency decoder and latent dynamics, with action and latent normalisation.
+
+    The dynamics works on standardised latents ``(z - latent_mean) / latent_scale``: the
+    per-element mean over the training frames and one scale, the root-mean-square of the
+    frame-to-frame variation. Scene latents barely change from frame to frame (a static
+    background, small moving objects), and without this the context noise of stage 2
+    (levels up to 100, noise std up to 0.14) would drown the differences that matter.
+    """
 
     def __init__(self, ae: Autoencoder, dynamics: Dynamics, cfg: DynamicsStageConfig,
-                 action_low: Sequence[float], action_high: Sequence[float]) -> None:
+                 action_low: Sequence[float], action_high: Sequence[float],
+                 latent_mean: torch.Tensor | None = None, latent_scale: float = 1.0) -> None:
         super().__init__()
         self.ae, self.dynamics, self.cfg = ae, dynamics, cfg
         self.schedule = Schedule(cfg.schedule)
@@ -48,6 +56,16 @@ class WorldModel(nn.Module):
                              f"high > low, got {low.tolist()} and {high.tolist()}.")
         self.register_buffer("action_low", low)
         self.register_buffer("action_high", high)
+        c = cfg.dynamics.latent_channels
+        mean = torch.zeros(c, 1, 1) if latent_mean is None else torch.as_tensor(latent_mean, dtype=torch.float32)
+        if mean.ndim != 3 or mean.shape[0] != c or not latent_scale > 0:
+            raise ValueError(f"latent mean must be ({c}, h, w) or ({c}, 1, 1) and the scale positive, got "
+                             f"{tuple(mean.shape)} and {latent_scale}.")
+        self.register_buffer("latent_mean", mean)
+        self.latent_scale = float(latent_scale)
+        # Inference knobs, from the config and settable: consistency jumps per new frame and
+        # the noise level the context frames are labelled with.
+        self.jumps, self.context_level = cfg.jumps, cfg.context_level
         self._cache: Cache | None = None
         self._pending: tuple[torch.Tensor, torch.Tensor, torch.Tensor, int] | None = None
         self._generators: list[torch.Generator] = []
@@ -108,14 +126,21 @@ class WorldModel(nn.Module):
         return to_uint8(self.ae.decode_tensor(latents.to(self.device), 1, g))
 
     # -- streaming rollout on latents ---------------------------------------------------------
+    def standardize(self, z: torch.Tensor) -> torch.Tensor:
+        """Autoencoder latents (..., C, h, w) -> the dynamics' standardised latents."""
+        return (z - self.latent_mean) / self.latent_scale
+
+    def unstandardize(self, z: torch.Tensor) -> torch.Tensor:
+        return z * self.latent_scale + self.latent_mean
+
     @torch.inference_mode()
     def reset_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
                       seed: int | Sequence[int] = 0) -> None:
-        """Start rollouts from context latents (B, K, C, h, w) and the normalised actions
-        (B, K-1, A) between them. Frames before the last fill the cache; the last one
-        joins the context together with the first predicted frame."""
+        """Start rollouts from context latents (B, K, C, h, w) (as ``encode`` returns them)
+        and the normalised actions (B, K-1, A) between them. Frames before the last fill
+        the cache; the last one joins the context together with the first predicted frame."""
         b, k = latents.shape[:2]
-        z = latents.to(self.device)
+        z = self.standardize(latents.to(self.device))
         if k > 1 and (actions is None or actions.shape[:2] != (b, k - 1)):
             raise ValueError(f"{k} context frames need actions (B, {k - 1}, A) between them.")
         zero = torch.zeros(b, 1, self.action_dim, device=self.device)
@@ -126,7 +151,7 @@ class WorldModel(nn.Module):
         # activations (as in a long rollout), so all of them run through the network.
         cache = None
         if k > 1:
-            lv = torch.full((b, k - 1), self.cfg.context_level, device=self.device)
+            lv = torch.full((b, k - 1), self.context_level, device=self.device)
             times = torch.arange(k - 1, device=self.device)
             _, cache = self.dynamics(z[:, :-1], lv, lv, acts[:, :-1], known[:, :-1], times,
                                      torch.ones(k - 1, dtype=torch.bool, device=self.device))
@@ -143,17 +168,17 @@ class WorldModel(nn.Module):
 
     @torch.inference_mode()
     def step_latent(self, actions: torch.Tensor) -> torch.Tensor:
-        """Normalised actions (B, A) -> the next latents (B, C, h, w)."""
+        """Normalised actions (B, A) -> the next latents (B, C, h, w), as ``encode`` gives them."""
         if self._pending is None:
             raise RuntimeError("call reset() before step().")
         z_ctx, a_ctx, k_ctx, tau = self._pending
         b = z_ctx.shape[0]
         if actions.shape != (b, self.action_dim):
             raise ValueError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
-        levels = jump_levels(self.cfg.jumps, self.schedule.T - 1)
+        levels = jump_levels(self.jumps, self.schedule.T - 1)
         x = self._noise(tuple(z_ctx.shape[1:]))
         dev = self.device
-        ctx_level = torch.full((b,), self.cfg.context_level, device=dev)
+        ctx_level = torch.full((b,), self.context_level, device=dev)
         one = torch.ones(b, device=dev)
         cache = self._cache
         for i, (t, s) in enumerate(zip(levels[:-1], levels[1:])):
@@ -170,7 +195,7 @@ class WorldModel(nn.Module):
             x = jump(lambda *_: v[:, -1], self.schedule, x, t_b, s_b, None)
         self._cache = new_cache
         self._pending = (x, actions, one, tau + 1)
-        return x
+        return self.unstandardize(x)
 
     # -- the public, uint8 API ----------------------------------------------------------------
     def reset(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
@@ -232,14 +257,16 @@ class WorldModel(nn.Module):
     def export(self) -> dict[str, torch.Tensor]:
         """The tensors of a world-model ``model.safetensors``."""
         return {**{f"ae.{k}": v for k, v in self.ae.state_dict().items()},
-                **{f"dynamics.{k}": v for k, v in self.dynamics.state_dict().items()}}
+                **{f"dynamics.{k}": v for k, v in self.dynamics.state_dict().items()},
+                "latent_mean": self.latent_mean}
 
     def describe(self) -> dict:
         """The parts of ``config.json`` that ``load`` reads."""
         from iwsim.config import to_dict
 
         return {"kind": KIND, "ae": to_dict(self.ae.cfg), "stage2": to_dict(self.cfg),
-                "action_norm": {"low": self.action_low.tolist(), "high": self.action_high.tolist()}}
+                "action_norm": {"low": self.action_low.tolist(), "high": self.action_high.tolist()},
+                "latent_norm": {"scale": self.latent_scale}}
 
     def save(self, path: str | Path, extra: dict | None = None, force: bool = False) -> Path:
         """Write a self-contained checkpoint directory atomically; ``extra`` entries
@@ -257,7 +284,7 @@ class WorldModel(nn.Module):
         if config.get("kind") != KIND:
             raise CheckpointError(f"{path} is not a world-model checkpoint (config kind {config.get('kind')!r}, "
                                   f"expected {KIND!r}).")
-        for part in ("ae", "stage2", "action_norm"):
+        for part in ("ae", "stage2", "action_norm", "latent_norm"):
             if part not in config:
                 raise CheckpointError(f"{path / 'config.json'} is missing the {part!r} part of the world model.")
         try:
@@ -271,6 +298,8 @@ class WorldModel(nn.Module):
             parts[part] = {k[len(part) + 1:]: v for k, v in tensors.items() if k.startswith(part + ".")}
             if not parts[part]:
                 raise CheckpointError(f"{path / 'model.safetensors'} has no {part} weights ({part}.*).")
+        if "latent_mean" not in tensors:
+            raise CheckpointError(f"{path / 'model.safetensors'} has no latent normalisation (latent_mean).")
         ae, dyn = Autoencoder(ae_cfg), Dynamics(cfg.dynamics)
         try:
             ae.load_state_dict(parts["ae"])
@@ -279,7 +308,8 @@ class WorldModel(nn.Module):
             raise CheckpointError(f"{path / 'model.safetensors'} does not match its config: "
                                   f"{' '.join(str(e).split())[:200]}") from None
         norm = config["action_norm"]
-        return cls(ae, dyn, cfg, norm["low"], norm["high"]).to(device).eval()
+        return cls(ae, dyn, cfg, norm["low"], norm["high"], tensors["latent_mean"],
+                   config["latent_norm"]["scale"]).to(device).eval()
 
 
 def export_model(dynamics: str | Path, out: str | Path, ae: str | Path | None = None, force: bool = False) -> Path:

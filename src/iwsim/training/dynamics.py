@@ -14,12 +14,15 @@ action normalisation + config), loadable with :meth:`iwsim.WorldModel.load`.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import imageio.v2 as imageio
 import numpy as np
 import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
 from torch import nn
 from tqdm import tqdm
 
@@ -104,7 +107,8 @@ class DynamicsTask:
     episodes, open-loop rollouts of held-out episodes for evaluation."""
 
     def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path,
-                 device: torch.device = torch.device("cpu"), progress: bool = True) -> None:
+                 device: torch.device = torch.device("cpu"), progress: bool = True,
+                 latent_cache: Path | None = None) -> None:
         store = EpisodeStore.open(data, "r")
         for key in ("img", "action"):
             if key not in store.keys:
@@ -142,19 +146,39 @@ class DynamicsTask:
         self.actions = torch.from_numpy((actions - self.action_low) / span * 2 - 1)
         self.known = torch.ones(len(actions), dtype=torch.float32)
         self.known[torch.from_numpy(starts)] = 0.0
-        self.latents = self._encode(store, device, progress)
+        self.latents = self._encode(store, device, progress, latent_cache)
+        # Standardisation of the latents for the dynamics (see WorldModel): per-element
+        # mean over the training frames, and the RMS of the per-element standard deviation.
+        train_z = self.latents[torch.from_numpy(train_idx)]
+        self.latent_mean = train_z.mean(0)
+        self.latent_scale = float(train_z.var(0).mean().sqrt().clamp_min(1e-6))
         self.store, self.starts, self.ends = store, starts, ends
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
             self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule))
 
     @torch.no_grad()
-    def _encode(self, store: EpisodeStore, device: torch.device, progress: bool, chunk: int = 512) -> torch.Tensor:
+    def _encode(self, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
+                chunk: int = 512) -> torch.Tensor:
+        """Latents of every frame of the store, reused from ``cache`` when it was written
+        for the same frames and the same encoder weights."""
         img = store.array("img")
+        key = f"{store.path}|{img.shape[0]}|" + ",".join(
+            f"{v.double().sum().item():.10e}" for v in self.ae.encoder.state_dict().values())
+        if cache is not None and cache.is_file():
+            with safe_open(cache, "pt") as f:
+                if (f.metadata() or {}).get("key") == key:
+                    return f.get_tensor("latents")
         out = []
         for i in tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress):
             out.append(self.ae.encode_tensor(to_model(img[i:i + chunk]).to(device)).cpu())
-        return torch.cat(out)
+        latents = torch.cat(out)
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cache.with_name(f".{cache.name}.tmp")
+            save_file({"latents": latents.contiguous()}, tmp, metadata={"key": key})
+            os.replace(tmp, cache)
+        return latents
 
     def split(self) -> dict[str, list[int]]:
         return {"train_episodes": self.train_episodes, "heldout_episodes": self.heldout_episodes}
@@ -176,11 +200,13 @@ class DynamicsTask:
         eps = gaussian((b, n, *shape), generator)
         idx = idx[part]
         producing = (idx - 1).clamp_min(0)  # frame k was produced by action k - 1 (unknown at k = 0)
-        return DynBatch(self.latents[idx], self.actions[producing], self.known[idx], ctx_levels[part],
+        z = (self.latents[idx] - self.latent_mean) / self.latent_scale
+        return DynBatch(z, self.actions[producing], self.known[idx], ctx_levels[part],
                         ctx_eps[part], t.view(b, n)[part], s.view(b, n)[part], eps[part]).to(device)
 
     def world_model(self, dynamics: Dynamics) -> WorldModel:
-        return WorldModel(self.ae, dynamics, self.cfg, self.action_low.tolist(), self.action_high.tolist())
+        return WorldModel(self.ae, dynamics, self.cfg, self.action_low.tolist(), self.action_high.tolist(),
+                          self.latent_mean, self.latent_scale)
 
     @torch.no_grad()
     def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
@@ -200,7 +226,8 @@ class DynamicsTask:
         truth = to_model(np.asarray(self.store.array("img").oindex[true_idx.flatten().numpy()])).to(wm.device)
         truth = truth.unflatten(0, (len(eps), steps))
         p = psnr((frames.flatten(0, 1) + 1) / 2, (truth.flatten(0, 1) + 1) / 2).view(len(eps), steps)
-        out = {"latent_mse": ((pred - true) ** 2).mean().item(), "psnr": p.mean().item(),
+        out = {"latent_mse": ((pred - true) ** 2).mean().item() / self.latent_scale ** 2,  # standardised units
+               "psnr": p.mean().item(),
                f"psnr_step{steps}": p[:, -1].mean().item()}
         out_dir.mkdir(parents=True, exist_ok=True)
         cols = np.linspace(0, steps - 1, min(8, steps)).round().astype(int)
@@ -220,7 +247,8 @@ class DynamicsTask:
 def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path, out: str | Path, *,
                    device: torch.device, force: bool = False, progress: bool = True) -> dict[str, float]:
     """Train (or resume) stage 2 into the run directory ``out``."""
-    task = DynamicsTask(cfg, data, ae, device, progress)
+    # The frozen encoder's latents are cached in the run directory for resumption.
+    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=Path(out) / "latents.safetensors")
     config = task.config(data)
     assert config["kind"] == KIND
     return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress)
