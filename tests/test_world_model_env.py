@@ -5,6 +5,7 @@ import json
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 
 from iwsim.cli import main
@@ -91,6 +92,15 @@ def test_stage2_cli_end_to_end(play_store, tmp_path, capsys):
     WorldModel.load(dyn / "checkpoints" / "last")  # every run checkpoint is a world model
     assert main(["export-model", "--dynamics", str(dyn), "--out", str(wm_dir)]) == 0
     assert main(["export-model", "--dynamics", str(dyn), "--out", str(wm_dir)]) == 1  # exists
+    # stage 3: the decoder changes, the encoder and the dynamics do not
+    ft = tmp_path / "ft"
+    assert main(["train", "decoder-finetune", "--world-model", str(wm_dir), "--data", str(play_store),
+                 "--out", str(ft), "--steps", "2", "--no-progress"]) == 0
+    assert main(["export-model", "--run", str(ft), "--out", str(tmp_path / "wm_ft")]) == 0
+    before, after = WorldModel.load(wm_dir).state_dict(), WorldModel.load(tmp_path / "wm_ft").state_dict()
+    assert before.keys() == after.keys()
+    changed = {k.split(".")[0] + "." + k.split(".")[1] for k in before if not torch.equal(before[k], after[k])}
+    assert changed == {"ae.decoder"}
     video = tmp_path / "r.mp4"
     capsys.readouterr()
     assert main(["rollout", "--checkpoint", str(wm_dir), "--data", str(play_store), "--episode", "3",

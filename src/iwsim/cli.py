@@ -59,11 +59,22 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--ae", required=True, help="stage-1 run directory or checkpoint (e.g. runs/ae)")
     _train_flags(q, "tiny, pusht-64")
     q.set_defaults(func=_train_dynamics)
+    q = train_sub.add_parser("decoder-finetune", help="stage 3: fine-tune a world model's decoder on noisy latents")
+    q.add_argument("--world-model", required=True, help="world-model run (e.g. runs/dyn) or checkpoint")
+    q.add_argument("--data", required=True, help="episode store to train on")
+    q.add_argument("--out", required=True, help="run directory; rerunning the same command resumes it")
+    q.add_argument("--steps", type=int, default=500, help="training steps (default: %(default)s)")
+    q.add_argument("--lr", type=float, default=1e-4, help="learning rate (default: %(default)s)")
+    q.add_argument("--batch-size", type=int, help="global batch size (default: the autoencoder's)")
+    q.add_argument("--seed", type=int, help="seed (default: the autoencoder's)")
+    q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
+    q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    q.set_defaults(func=_train_decoder_finetune)
 
-    p = sub.add_parser("export-model", help="write a world-model checkpoint from a stage-2 run")
-    p.add_argument("--dynamics", required=True, help="stage-2 run directory or one of its checkpoints")
-    p.add_argument("--ae", help="stage-1 run or checkpoint to take the decoder from (e.g. after "
-                                "decoder fine-tuning); its encoder must be the one the dynamics was trained on")
+    p = sub.add_parser("export-model", help="write a standalone world-model checkpoint from a training run")
+    p.add_argument("--run", "--dynamics", dest="run", required=True,
+                   help="run directory of train dynamics or train decoder-finetune, or one of its checkpoints")
     p.add_argument("--out", required=True, help="checkpoint directory to write (e.g. checkpoints/NAME)")
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.set_defaults(func=_export_model)
@@ -235,10 +246,26 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_decoder_finetune(args: argparse.Namespace) -> int:
+    from iwsim.training.autoencoder import finetune_decoder
+    from iwsim.training.trainer import resolve_device
+
+    for name in ("steps", "batch_size"):
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
+    if not args.lr > 0:
+        raise ValueError(f"--lr must be positive, got {args.lr}.")
+    _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
+                                    steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
+                                    force=args.force, progress=not args.no_progress))
+    return 0
+
+
 def _export_model(args: argparse.Namespace) -> int:
     from iwsim.world_model import export_model
 
-    path = export_model(args.dynamics, args.out, ae=args.ae, force=args.force)
+    path = export_model(args.run, args.out, force=args.force)
     print(path)
     return 0
 

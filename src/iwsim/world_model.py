@@ -212,9 +212,7 @@ class WorldModel(nn.Module):
             a = self.normalize_actions(actions, b)
             if a.shape != (b, k - 1, self.action_dim):
                 raise ValueError(f"expected actions ({b}, {k - 1}, {self.action_dim}), got {tuple(a.shape)}.")
-        with torch.inference_mode():
-            z = self.ae.encode_tensor(to_model(x.flatten(0, 1)).to(self.device)).unflatten(0, (b, k))
-        self.reset_latents(z, a, seed)
+        self.reset_latents(self.encode(x.flatten(0, 1)).unflatten(0, (b, k)), a, seed)
 
     @torch.inference_mode()
     def step(self, actions: np.ndarray | torch.Tensor) -> np.ndarray:
@@ -312,23 +310,13 @@ class WorldModel(nn.Module):
                    config["latent_norm"]["scale"]).to(device).eval()
 
 
-def export_model(dynamics: str | Path, out: str | Path, ae: str | Path | None = None, force: bool = False) -> Path:
-    """A standalone world-model checkpoint from a stage-2 run (``iwsim export-model``),
-    optionally with the decoder of another stage-1 checkpoint (same encoder)."""
+def export_model(run: str | Path, out: str | Path, force: bool = False) -> Path:
+    """A standalone world-model checkpoint (``model.safetensors`` + ``config.json``) from a
+    run of ``train dynamics`` or ``train decoder-finetune`` (its last checkpoint) or from
+    one of its checkpoints (``iwsim export-model``)."""
     from iwsim.training.dynamics import resolve_checkpoint
 
-    src = resolve_checkpoint(dynamics)
-    wm = WorldModel.load(src)
-    provenance = {"source": str(src)}
-    if ae is not None:
-        ae_src = resolve_checkpoint(ae)
-        other = Autoencoder.load(ae_src)
-        same_cfg = (other.cfg.encoder, other.cfg.decoder, other.image_size) == (wm.ae.cfg.encoder, wm.ae.cfg.decoder,
-                                                                                 wm.image_size)
-        if not same_cfg or any(not torch.equal(a, b) for a, b in zip(
-                other.encoder.state_dict().values(), wm.ae.encoder.state_dict().values())):
-            raise ValueError(f"{ae_src} has another encoder than the one {src} was trained on; only its decoder "
-                             "may differ (e.g. after iwsim train decoder-finetune).")
-        wm.ae.load_state_dict(other.state_dict())
-        provenance["ae_source"] = str(ae_src)
-    return wm.save(out, {"provenance": provenance}, force)
+    src = resolve_checkpoint(run)
+    config = load_json(src / "config.json")
+    provenance = {k: config[k] for k in ("data", "ae_checkpoint", "finetuned_from") if k in config}
+    return WorldModel.load(src).save(out, {"provenance": {"source": str(src), **provenance}}, force)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,21 +20,25 @@ from iwsim.diffusion.consistency import sample_levels, two_jump_loss
 from iwsim.diffusion.schedule import gaussian
 from iwsim.eval.metrics import psnr, ssim
 from iwsim.training import trainer
+from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class AEBatch:
-    """x0 (B, 3, H, W) in [-1, 1]; levels t, s (B,); eps like x0."""
+    """x0 (B, 3, H, W) in [-1, 1]; levels t, s (B,); eps like x0; for stage 3, the latent
+    noise: its std (B,) and its draw (B, C, h, w)."""
 
     x0: torch.Tensor
     t: torch.Tensor
     s: torch.Tensor
     eps: torch.Tensor
+    z_std: torch.Tensor | None = None
+    z_eps: torch.Tensor | None = None
 
     def to(self, device: torch.device) -> AEBatch:
-        return AEBatch(*(v.to(device) for v in (self.x0, self.t, self.s, self.eps)))
+        return AEBatch(*(None if v is None else v.to(device) for v in vars(self).values()))
 
 
 class AETrainModule(nn.Module):
@@ -44,14 +49,18 @@ class AETrainModule(nn.Module):
         self.ae = ae
 
     def forward(self, batch: AEBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        z = self.ae.encoder(batch.x0)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.ae.cfg.freeze_encoder):
+            z = self.ae.encoder(batch.x0)
+        if batch.z_eps is not None:  # stage 3: render imperfect (noised) latents cleanly
+            z = z + batch.z_std.view(-1, 1, 1, 1) * batch.z_eps
         return two_jump_loss(self.ae.decoder, self.ae.schedule, batch.x0, z, batch.t, batch.s, batch.eps)
 
 
 class AETask:
     """Frames from the store's training episodes; held-out episodes for evaluation."""
 
-    def __init__(self, cfg: AEConfig, data: str | Path) -> None:
+    def __init__(self, cfg: AEConfig, data: str | Path, init: dict[str, torch.Tensor] | None = None) -> None:
+        """``init``: start from these weights (stage 3) instead of fresh ones."""
         store = EpisodeStore.open(data, "r")
         if "img" not in store.keys:
             raise StoreError(f"{data} has no data/img frames to train on.")
@@ -71,6 +80,10 @@ class AETask:
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
             self.module = AETrainModule(Autoencoder(cfg))
+        if init is not None:
+            self.module.ae.load_state_dict(init)
+        if cfg.freeze_encoder:
+            self.module.ae.encoder.requires_grad_(False)
 
     def split(self) -> dict[str, list[int]]:
         return {"train_episodes": self.train_episodes, "heldout_episodes": self.heldout_episodes}
@@ -81,7 +94,14 @@ class AETask:
         t, s = sample_levels(b, self.cfg.schedule.num_levels, generator, self.cfg.top_fraction)
         eps = gaussian((b, 3, size, size), generator)
         x0 = to_model(self.train_frames.frames(idx[part].numpy()))
-        return AEBatch(x0, t[part], s[part], eps[part]).to(device)
+        lo, hi = self.cfg.latent_noise
+        if hi <= 0:
+            return AEBatch(x0, t[part], s[part], eps[part]).to(device)
+        # stage 3: latent noise of the dynamics' context levels, in the dynamics' units
+        levels = torch.randint(lo, hi, (b,), generator=generator)
+        z_std = self.module.ae.schedule.coefficients(levels, levels.float())[1] * self.cfg.latent_noise_scale
+        z_eps = gaussian((b, self.cfg.encoder.latent_channels, size // 4, size // 4), generator)
+        return AEBatch(x0, t[part], s[part], eps[part], z_std[part], z_eps[part]).to(device)
 
     @torch.no_grad()
     def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
@@ -112,4 +132,45 @@ def train_autoencoder(cfg: AEConfig, data: str | Path, out: str | Path, *, devic
     """Train (or resume) stage 1 into the run directory ``out``."""
     task = AETask(cfg, data)
     config = {"kind": "autoencoder", "model": to_dict(cfg), "data": str(data), "split": task.split()}
+    return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress)
+
+
+class DecoderFinetuneTask(AETask):
+    """Stage 3 on a world model: its decoder learns to render noised latents; every
+    checkpoint is the world model with the fine-tuned decoder."""
+
+    def __init__(self, wm: WorldModel, cfg: AEConfig, data: str | Path) -> None:
+        super().__init__(cfg, data, init=wm.ae.state_dict())
+        self.wm = wm
+
+    def world_model(self, ae: Autoencoder) -> WorldModel:
+        wm = self.wm
+        return WorldModel(ae, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean, wm.latent_scale)
+
+    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+        return self.world_model(module.ae).export()
+
+
+def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path, *, device: torch.device,
+                     steps: int = 500, batch_size: int | None = None, lr: float = 1e-4,
+                     latent_noise: tuple[int, int] = (1, 100), seed: int | None = None, force: bool = False,
+                     progress: bool = True) -> dict[str, float]:
+    """Stage 3: fine-tune a world model's decoder on noised latents (``iwsim train
+    decoder-finetune``), at a lower learning rate, with the encoder frozen. The noise has
+    the scale of the stage-2 context noise in the dynamics' standardised units, so the
+    decoder learns to render latents as imperfect as predicted ones."""
+    from iwsim.training.dynamics import resolve_checkpoint
+
+    src = resolve_checkpoint(world_model)
+    wm = WorldModel.load(src, device)
+    base = wm.ae.cfg
+    train = dataclasses.replace(base.train, steps=steps, lr=lr, warmup_steps=min(50, steps), lr_decay="cosine",
+                                batch_size=batch_size or base.train.batch_size,
+                                seed=base.train.seed if seed is None else seed,
+                                eval_every=min(100, steps), checkpoint_every=min(100, steps))
+    cfg = dataclasses.replace(base, train=train, freeze_encoder=True, latent_noise=tuple(latent_noise),
+                              latent_noise_scale=wm.latent_scale)
+    task = DecoderFinetuneTask(wm, cfg, data)
+    config = {**task.world_model(task.module.ae).describe(), "data": str(data), "finetuned_from": str(src),
+              "split": task.split()}
     return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress)
