@@ -135,7 +135,9 @@ class Dynamics(nn.Module):
         self.level_mlp = nn.Sequential(nn.Linear(e, e), nn.SiLU(), nn.Linear(e, e))
         # action + "known" flag (the first frame of an episode has no producing action)
         self.action_mlp = nn.Sequential(nn.Linear(cfg.action_dim + 1, e), nn.SiLU(), nn.Linear(e, e))
-        self.conv_in = nn.Conv2d(cfg.latent_channels, c1, 3, padding=1)
+        # + 2 coordinate channels (CoordConv, Liu et al. 2018): actions are absolute pusher
+        # targets, and FiLM's per-channel modulation can only place them with positions at hand.
+        self.conv_in = nn.Conv2d(cfg.latent_channels + 2, c1, 3, padding=1)
         self.block1 = ResBlock(c1, c1, e)
         self.tattn1 = TemporalAttention(c1, cfg.heads, cfg.window)
         self.down = nn.Conv2d(c1, c2, 3, stride=2, padding=1)
@@ -186,7 +188,8 @@ class Dynamics(nn.Module):
             new_values.append(v if pv is None else torch.cat([pv, v], 2))
             return out.flatten(0, 1)
 
-        h = self.conv_in(x.flatten(0, 1))
+        flat = x.flatten(0, 1)
+        h = self.conv_in(torch.cat([flat, coordinates(flat)], 1))
         h1 = temporal(self.tattn1, 0, self.block1(h, emb))
         h = self.down(h1)
         h = self.sattn(self.block2(h, emb))
@@ -202,6 +205,15 @@ class Dynamics(nn.Module):
         all_times = ctx_times if past_times is None else torch.cat([past_times, ctx_times])
         new = Cache([k[:, :, -keep:] for k in new_keys], [v_[:, :, -keep:] for v_ in new_values], all_times[-keep:])
         return v, new
+
+
+def coordinates(x: torch.Tensor) -> torch.Tensor:
+    """(N, 2, h, w) maps of the pixel-centre x (left to right) and y (bottom to top) in (-1, 1)."""
+    n, _, h, w = x.shape
+    xs = (torch.arange(w, device=x.device, dtype=x.dtype) + 0.5) / w * 2 - 1
+    ys = 1 - (torch.arange(h, device=x.device, dtype=x.dtype) + 0.5) / h * 2
+    grid = torch.stack([xs[None, :].expand(h, w), ys[:, None].expand(h, w)])
+    return grid[None].expand(n, 2, h, w)
 
 
 def sequence_layout(length: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
