@@ -33,6 +33,11 @@ from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors, 
 KIND = "world_model"
 
 
+def scale_actions(a: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """Actions in the data's units -> [-1, 1] over [low, high] (not clipped)."""
+    return (a - low) / (high - low) * 2 - 1
+
+
 class WorldModel(nn.Module):
     """Encoder, consistency decoder and latent dynamics, with action and latent normalisation.
 
@@ -111,7 +116,7 @@ class WorldModel(nn.Module):
         if bad.any():
             raise ValueError(f"actions must be finite, got {a[bad][0].item()} at index "
                              f"{tuple(i.item() for i in bad.nonzero()[0])}.")
-        return ((a - self.action_low) / (self.action_high - self.action_low) * 2 - 1).clamp(-1, 1)
+        return scale_actions(a, self.action_low, self.action_high).clamp(-1, 1)
 
     @torch.inference_mode()
     def encode(self, frames: np.ndarray | torch.Tensor) -> torch.Tensor:

@@ -36,7 +36,7 @@ from iwsim.eval.metrics import psnr
 from iwsim.models.dynamics import Dynamics, sequence_layout
 from iwsim.training import trainer
 from iwsim.training.checkpoint import CheckpointError, last_checkpoint
-from iwsim.world_model import KIND, WorldModel
+from iwsim.world_model import KIND, WorldModel, scale_actions
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +143,8 @@ class DynamicsTask:
         low, high = actions[train_idx].min(0), actions[train_idx].max(0)
         span = np.maximum(high - low, 1e-3)  # a constant action dimension still normalises
         self.action_low, self.action_high = (low + high) / 2 - span / 2, (low + high) / 2 + span / 2
-        self.actions = torch.from_numpy((actions - self.action_low) / span * 2 - 1)
+        self.actions = scale_actions(torch.from_numpy(actions), torch.from_numpy(self.action_low),
+                                     torch.from_numpy(self.action_high))
         self.known = torch.ones(len(actions), dtype=torch.float32)
         self.known[torch.from_numpy(starts)] = 0.0
         self.latents = self._encode(store, device, progress, latent_cache)
