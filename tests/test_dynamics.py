@@ -7,7 +7,7 @@ import torch
 
 from iwsim.autoencoder import Autoencoder
 from iwsim.config import AE_PRESETS, DYNAMICS_PRESETS
-from iwsim.models.dynamics import Dynamics, DynamicsConfig, sequence_layout
+from iwsim.models.dynamics import Dynamics, DynamicsConfig, attention_layout, sequence_layout
 from iwsim.training.checkpoint import CheckpointError, load_tensors, save_model_dir
 from iwsim.world_model import WorldModel
 
@@ -73,10 +73,10 @@ def test_window_bounds_the_context():
     n = 8
     times, is_ctx = sequence_layout(n)
     y = torch.randn(1, 2 * n, 8, 16, 16)
-    out, _, _ = attn(y, times, is_ctx, None, None, None)
+    out, _, _ = attn(y, attention_layout(times, is_ctx, None, CFG.window), None, None)
     y2 = y.clone()
     y2[:, 0] += torch.randn(8, 16, 16)  # context frame 0 (a constant shift would be normalised away)
-    out2, _, _ = attn(y2, times, is_ctx, None, None, None)
+    out2, _, _ = attn(y2, attention_layout(times, is_ctx, None, CFG.window), None, None)
     moved = (out2 - out).flatten(2).abs().amax(-1)[0] > 1e-6
     # context queries 0..N-1 and targets at times 1..N-1 see frame 0; later ones do not
     expect = [t < CFG.window if c else 1 <= t <= CFG.window - 1 for t, c in zip(times.tolist(), is_ctx.tolist())]

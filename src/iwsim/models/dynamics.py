@@ -71,37 +71,45 @@ class TemporalAttention(nn.Module):
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
 
-    def forward(self, x: torch.Tensor, times: torch.Tensor, is_ctx: torch.Tensor, past_k: torch.Tensor | None,
-                past_v: torch.Tensor | None, past_times: torch.Tensor | None
+    def forward(self, x: torch.Tensor, layout: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                past_k: torch.Tensor | None, past_v: torch.Tensor | None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """x (B, F, c, h, w) for F frames at ``times`` (F,) with ``is_ctx`` (F,) bool;
-        past keys/values (B*h*w, heads, M, d) of context frames at ``past_times`` (M,).
-        Returns the output like x and this call's context keys and values (to cache)."""
+        """x (B, F, c, h, w) for F frames; ``layout`` from :func:`attention_layout`; past
+        keys/values (B*h*w, heads, M, d) of M earlier context frames. Returns the output
+        like x and this call's context keys and values (to cache)."""
         b, f, c, h, w = x.shape
+        is_ctx, offset, allowed = layout
         hd = c // self.heads
         y = self.norm(x.flatten(0, 1)).view(b, f, c, h * w).permute(0, 3, 1, 2).reshape(b * h * w, f, c)
         q, k, v = self.qkv(y).view(b * h * w, f, 3, self.heads, hd).permute(2, 0, 3, 1, 4)
         new_k, new_v = k[:, :, is_ctx], v[:, :, is_ctx]
-        key_times, key_ctx = times, is_ctx
-        if past_k is not None and past_k.shape[2] > 0:
+        if past_k is not None:
             k, v = torch.cat([past_k, k], 2), torch.cat([past_v, v], 2)
-            key_times = torch.cat([past_times, times])
-            key_ctx = torch.cat([torch.ones_like(past_times, dtype=torch.bool), is_ctx])
-        offset = times[:, None] - key_times[None, :]  # (F, M + F)
-        is_self = torch.zeros_like(offset, dtype=torch.bool)
-        is_self[:, -f:] = torch.eye(f, dtype=torch.bool, device=x.device)
-        # context query at k: context keys k-N+1 .. k; target query at k: context keys
-        # k-N+1 .. k-1, and itself.
-        ctx_q = is_ctx[:, None]
-        lo = offset >= 0
-        hi = offset <= self.window - 1
-        allowed = key_ctx[None, :] & lo & hi & (ctx_q | (offset >= 1))
-        allowed |= is_self & ~ctx_q
         bias = self.bias[:, offset.clamp(0, self.window - 1)]  # (heads, F, M + F)
         mask = bias.masked_fill(~allowed, float("-inf")).to(q.dtype)
         o = F.scaled_dot_product_attention(q, k, v, attn_mask=mask[None])
         o = o.permute(0, 2, 1, 3).reshape(b, h * w, f, c).permute(0, 2, 3, 1).reshape(b, f, c, h, w)
         return x + self.out(o.movedim(2, -1)).movedim(-1, 2), new_k, new_v
+
+
+def attention_layout(times: torch.Tensor, is_ctx: torch.Tensor, past_times: torch.Tensor | None,
+                     window: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Who attends to whom, shared by all temporal-attention layers of a pass: F query
+    frames at ``times`` (F,) of kinds ``is_ctx`` (F,), keys = the M cached context frames
+    at ``past_times`` then the F frames. Returns is_ctx, the time offsets (F, M + F) and
+    the allowed pairs (F, M + F): a context query at k sees context keys k-N+1 .. k; a
+    target query at k sees context keys k-N+1 .. k-1, and itself."""
+    f = len(times)
+    key_times, key_ctx = times, is_ctx
+    if past_times is not None:
+        key_times = torch.cat([past_times, times])
+        key_ctx = torch.cat([torch.ones_like(past_times, dtype=torch.bool), is_ctx])
+    offset = times[:, None] - key_times[None, :]
+    is_self = torch.zeros_like(offset, dtype=torch.bool)
+    is_self[:, -f:] = torch.eye(f, dtype=torch.bool, device=times.device)
+    ctx_q = is_ctx[:, None]
+    allowed = key_ctx[None, :] & (offset >= 0) & (offset <= window - 1) & (ctx_q | (offset >= 1))
+    return is_ctx, offset, allowed | (is_self & ~ctx_q)
 
 
 class SpatialAttention(nn.Module):
@@ -178,12 +186,13 @@ class Dynamics(nn.Module):
         emb = self.embed(levels.flatten(), jump_to.flatten(), actions.flatten(0, 1), known.flatten().to(x.dtype))
         cache = cache or Cache()
         past_times = cache.times
+        layout = attention_layout(times, is_ctx, past_times, self.cfg.window)
         new_keys, new_values = [], []
 
         def temporal(layer: TemporalAttention, i: int, h: torch.Tensor) -> torch.Tensor:
             pk = cache.keys[i] if cache.keys else None
             pv = cache.values[i] if cache.values else None
-            out, k, v = layer(h.unflatten(0, (b, f)), times, is_ctx, pk, pv, past_times)
+            out, k, v = layer(h.unflatten(0, (b, f)), layout, pk, pv)
             new_keys.append(k if pk is None else torch.cat([pk, k], 2))
             new_values.append(v if pv is None else torch.cat([pv, v], 2))
             return out.flatten(0, 1)
