@@ -135,6 +135,15 @@ class TaskSpec:
     view_half: float = VIEW_HALF
 
 
+def spaces(image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
+    """The task's action and observation spaces (shared with ``iwsim/WorldModel-v0``)."""
+    low = np.full(4, -WORKSPACE, np.float32)
+    action = gym.spaces.Box(low, -low, dtype=np.float32)
+    obs = gym.spaces.Dict({"pixels": gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
+                           "agent_pos": gym.spaces.Box(low, -low, dtype=np.float32)})
+    return action, obs
+
+
 class BimanualPushTEnv(gym.Env):
     """Push the T block onto the goal with two pushers.
 
@@ -174,14 +183,7 @@ class BimanualPushTEnv(gym.Env):
         self._pusher_geoms = {m.geom("left").id, m.geom("right").id}
         self._block_z0 = 0.0  # slide joints are offsets from the body position
 
-        low = np.full(4, -WORKSPACE, np.float32)
-        self.action_space = gym.spaces.Box(low, -low, dtype=np.float32)
-        self.observation_space = gym.spaces.Dict(
-            {
-                "pixels": gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
-                "agent_pos": gym.spaces.Box(low, -low, dtype=np.float32),
-            }
-        )
+        self.action_space, self.observation_space = spaces(image_size)
 
     # --- state -------------------------------------------------------------------------
     @property

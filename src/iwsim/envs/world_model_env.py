@@ -26,18 +26,10 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from iwsim.envs.pixels import pixel_iou, pusher_positions
-from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE
+from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, spaces
 from iwsim.world_model import WorldModel
 
 SOURCES = ("mujoco", "store")
-
-
-def _spaces(image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
-    low = np.full(4, -WORKSPACE, np.float32)
-    action = gym.spaces.Box(low, -low, dtype=np.float32)
-    obs = gym.spaces.Dict({"pixels": gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
-                           "agent_pos": gym.spaces.Box(low, -low, dtype=np.float32)})
-    return action, obs
 
 
 class _Starts:
@@ -119,7 +111,7 @@ class WorldModelEnv(gym.Env):
         if self.model.action_dim != 4:
             raise ValueError(f"the world model takes {self.model.action_dim}-D actions; {task} needs 4.")
         self.render_mode, self.terminate_on_success = render_mode, terminate_on_success
-        self.action_space, self.observation_space = _spaces(self.model.image_size)
+        self.action_space, self.observation_space = spaces(self.model.image_size)
         self._starts = _Starts(reset_source, self.model.image_size, store, task)
         self._frame: np.ndarray | None = None
         self._agent_pos = np.zeros(4, np.float32)
@@ -184,7 +176,7 @@ class WorldModelVectorEnv(VectorEnv):
             raise ValueError(f"num_envs and max_episode_steps must be >= 1, got {num_envs}, {max_episode_steps}.")
         self.model = _load(model, checkpoint, device)
         self.num_envs, self.max_episode_steps = num_envs, max_episode_steps
-        self.single_action_space, self.single_observation_space = _spaces(self.model.image_size)
+        self.single_action_space, self.single_observation_space = spaces(self.model.image_size)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.render_mode = "rgb_array"
