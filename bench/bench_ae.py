@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ import torch
 from iwsim.autoencoder import Autoencoder
 from iwsim.data.frames import FrameSource, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
+from iwsim.eval.benchmark import latency_ms
 from iwsim.eval.metrics import psnr, ssim
 
 RESULTS = Path(__file__).parent / "results"
@@ -39,17 +39,6 @@ def quality(ae: Autoencoder, frames: np.ndarray, jumps: tuple[int, ...]) -> tupl
             p, s = psnr(a, b), ssim(a, b)
             out[k] = {"psnr": p.mean().item(), "psnr_p5": p.quantile(0.05).item(), "ssim": s.mean().item()}
     return out, recon
-
-
-def latency_ms(fn, n: int = 200) -> float:
-    for _ in range(10):
-        fn()
-    times = []
-    for _ in range(n):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return 1000 * float(np.median(times))
 
 
 def plot_curve(rows: list[dict], path: Path) -> None:

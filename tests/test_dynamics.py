@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from iwsim.autoencoder import Autoencoder
-from iwsim.config import AE_PRESETS, DYNAMICS_PRESETS
+from iwsim.config import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant
 from iwsim.models.dynamics import Dynamics, DynamicsConfig, attention_layout, sequence_layout
 from iwsim.training.checkpoint import CheckpointError, load_tensors, save_model_dir
 from iwsim.world_model import WorldModel
@@ -24,9 +24,10 @@ def randomise(module: torch.nn.Module, seed: int = 0, std: float = 0.2) -> torch
     return module.eval()
 
 
-def tiny_world_model(seed: int = 0) -> WorldModel:
+def tiny_world_model(seed: int = 0, name: str = "ours") -> WorldModel:
+    """A tiny randomly initialised world model, ours or a benchmark variant (see VARIANTS)."""
     torch.manual_seed(seed)
-    cfg = DYNAMICS_PRESETS["tiny"]
+    cfg = variant(DYNAMICS_PRESETS["tiny"], name)
     ae = Autoencoder(AE_PRESETS["tiny"])
     return WorldModel(ae, randomise(Dynamics(cfg.dynamics), seed), cfg, LOW, HIGH).eval()
 
@@ -174,8 +175,9 @@ def test_sliding_window_keeps_a_constant_state():
     assert shapes[n][0][2] == n - 1  # the cache holds N - 1 context frames
 
 
-def test_batched_step_equals_per_item_steps():
-    wm = tiny_world_model()
+@pytest.mark.parametrize("name", VARIANTS)
+def test_batched_step_equals_per_item_steps(name):
+    wm = tiny_world_model(name=name)
     rng = np.random.default_rng(0)
     frames = rng.integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
     actions = rng.uniform(-0.2, 0.2, (3, 5, 4)).astype(np.float32)
@@ -195,8 +197,9 @@ def test_reset_with_several_context_frames():
         wm.reset(frames)
 
 
-def test_save_load_round_trip(tmp_path):
-    wm = tiny_world_model()
+@pytest.mark.parametrize("name", ["ours", "deterministic", "diffusion"])
+def test_save_load_round_trip(tmp_path, name):
+    wm = tiny_world_model(name=name)
     rng = np.random.default_rng(0)
     frames = rng.integers(0, 256, (1, 64, 64, 3), dtype=np.uint8)
     actions = rng.uniform(-0.2, 0.2, (1, 4, 4)).astype(np.float32)
@@ -246,3 +249,45 @@ def test_checkpoint_missing_a_part(tmp_path):
     (tmp_path / "no_file").mkdir()
     with pytest.raises(CheckpointError, match="missing"):
         WorldModel.load(tmp_path / "no_file")
+
+
+@pytest.mark.parametrize("name", VARIANTS)
+def test_every_objective_trains(name):
+    """The loss of each benchmark variant is finite, reaches every parameter, and a few
+    steps on one batch lower it."""
+    from iwsim.diffusion.edm import training_sigmas
+    from iwsim.diffusion.schedule import Schedule
+    from iwsim.training.dynamics import DynamicsTrainModule, DynBatch
+
+    cfg = variant(DYNAMICS_PRESETS["tiny"], name)
+    torch.manual_seed(0)
+    module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule), cfg.objective)
+    g = torch.Generator().manual_seed(0)
+    b, n = 2, 4
+    lo, hi = cfg.context_levels
+    z = torch.randn(b, n + 1, 4, 16, 16, generator=g)
+    batch = DynBatch(z, torch.rand(b, n + 1, 4, generator=g) * 2 - 1, torch.ones(b, n + 1),
+                     torch.randint(lo, hi, (b, n), generator=g), torch.randn(b, n, 4, 16, 16, generator=g),
+                     torch.full((b, n), 999), torch.zeros(b, n, dtype=torch.long),
+                     torch.randn(b, n, 4, 16, 16, generator=g), training_sigmas(b * n, g).view(b, n))
+    opt = torch.optim.Adam(module.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(5):
+        loss, _ = module(batch)
+        opt.zero_grad()
+        loss.backward()
+        losses.append(loss.item())
+        if len(losses) == 1:
+            assert all(p.grad is not None for p in module.parameters())
+        opt.step()
+    assert np.isfinite(losses).all() and losses[-1] < losses[0]
+
+
+def test_unknown_objective_is_rejected():
+    import dataclasses
+
+    cfg = dataclasses.replace(DYNAMICS_PRESETS["tiny"], objective="gan")
+    with pytest.raises(ValueError, match="unknown objective 'gan'"):
+        WorldModel(Autoencoder(AE_PRESETS["tiny"]), Dynamics(cfg.dynamics), cfg, LOW, HIGH)
+    with pytest.raises(ValueError, match="unknown variant"):
+        variant(cfg, "best")

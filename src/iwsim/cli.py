@@ -57,6 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=_train_ae)
     q = train_sub.add_parser("dynamics", help="stage 2: latent consistency dynamics on a frozen stage 1")
     q.add_argument("--ae", required=True, help="stage-1 run directory or checkpoint (e.g. runs/ae)")
+    q.add_argument("--variant", default="ours",
+                   help="ours, or a benchmark baseline: deterministic, diffusion, no-context-noise "
+                        "(default: %(default)s)")
     _train_flags(q, "tiny, pusht-64")
     q.set_defaults(func=_train_dynamics)
     q = train_sub.add_parser("decoder-finetune", help="stage 3: fine-tune a world model's decoder on noisy latents")
@@ -90,12 +93,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
     p.set_defaults(func=_rollout)
 
-    p = sub.add_parser("demo", help="the scripted expert solving T-pushing, as a video")
-    p.add_argument("--episodes", type=int, default=4, help="expert episodes (default: %(default)s)")
-    p.add_argument("--steps", type=int, default=100, help="steps per episode (default: %(default)s)")
-    p.add_argument("--image-size", type=int, default=128, help="square image size (default: %(default)s)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=100000, help="first episode's seed (default: %(default)s)")
+    p = sub.add_parser("bench", help="world models side by side: video metrics, IoU error, speed, stability")
+    p.add_argument("--checkpoint", required=True, help="our world model (checkpoint or run directory)")
+    p.add_argument("--name", default="ours", help="its name in the report (default: %(default)s)")
+    p.add_argument("--baselines", default="",
+                   help="comma-separated NAME=CHECKPOINT pairs, e.g. deterministic=runs/bench/deterministic")
+    p.add_argument("--data", help="episode store (default: the one the checkpoint was trained on)")
+    p.add_argument("--out", required=True, help="results directory (e.g. bench/results/NAME)")
+    p.add_argument("--episodes", type=int, default=20, help="held-out episodes (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=192, help="open-loop steps (default: %(default)s)")
+    p.add_argument("--stability-steps", type=int, default=9000,
+                   help="long-rollout steps per model, 0 to skip (default: %(default)s)")
+    p.add_argument("--stability-every", type=int, default=1,
+                   help="decode and score every N-th step of the long rollout (default: %(default)s)")
+    p.add_argument("--speed-batch", type=int, default=64, help="batch of the batched speed test (default: %(default)s)")
+    p.add_argument("--speed-calls", type=int, default=100, help="timed steps per speed test (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="rollout noise seed (default: %(default)s)")
+    p.add_argument("--weights", help="LPIPS/FID/FVD weights directory (default: $IWSIM_WEIGHTS, else the cache)")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    p.set_defaults(func=_bench)
+
+    p = sub.add_parser("demo", help="the shipped world model next to MuJoCo under the scripted expert, as a video")
+    p.add_argument("--checkpoint", default="checkpoints/pusht-64", help="world model (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=100000,
+                   help="MuJoCo initial state; training data uses seeds below 100000 (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=192, help="steps (default: %(default)s)")
+    p.add_argument("--policy", default="expert", help="scripted policy: expert or play (default: %(default)s)")
     p.add_argument("--out", default="outputs/demo", help="output directory (default: %(default)s)")
     p.set_defaults(func=_demo)
     return parser
@@ -191,7 +215,7 @@ def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
 
 
 def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
-    """The preset named by --preset with --steps/--batch-size/--seed applied; prints it
+    """The preset named by --preset with --steps/--batch-size/--seed (and --variant) applied; prints it
     and returns None under --dry-run."""
     import dataclasses
     import json
@@ -207,6 +231,10 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
         if k != "seed" and v < 1:
             raise ValueError(f"--{k.replace('_', '-')} must be a positive integer, got {v}.")
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **overrides))
+    if getattr(args, "variant", None) is not None:
+        from iwsim.config import variant
+
+        cfg = variant(cfg, args.variant)
     if args.dry_run:
         print(json.dumps({"preset": args.preset, **to_dict(cfg)}, indent=2))
         return None
@@ -285,6 +313,34 @@ def _rollout(args: argparse.Namespace) -> int:
     s = result.summary()
     print(f"{path}: mean PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.3f}, last-step PSNR {s['psnr_last']:.2f} dB, "
           f"mean |IoU error| {s['iou_abs_err']:.3f}")
+    return 0
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from iwsim.eval.benchmark import run_benchmark
+    from iwsim.training.trainer import resolve_device
+
+    models = {args.name: args.checkpoint}
+    for item in filter(None, (x.strip() for x in args.baselines.split(","))):
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"--baselines entries must be NAME=CHECKPOINT, got {item!r}.")
+        if name in models:
+            raise ValueError(f"model name {name!r} is given twice.")
+        models[name] = path
+    for flag in ("episodes", "steps", "stability_every", "speed_batch", "speed_calls"):
+        if getattr(args, flag) < 1:
+            raise ValueError(f"--{flag.replace('_', '-')} must be a positive integer, got {getattr(args, flag)}.")
+    if args.stability_steps < 0:
+        raise ValueError(f"--stability-steps must be >= 0, got {args.stability_steps}.")
+    run_benchmark(models, args.out, args.data, episodes=args.episodes, steps=args.steps,
+                  stability_steps=args.stability_steps, stability_every=args.stability_every,
+                  speed_batch=args.speed_batch, speed_calls=args.speed_calls, seed=args.seed,
+                  weights=Path(args.weights) if args.weights else None, device=resolve_device(args.device),
+                  progress=not args.no_progress)
+    print(Path(args.out) / "results.md")
     return 0
 
 

@@ -94,6 +94,10 @@ class DynamicsStageConfig:
     context_levels: tuple[int, int] = (1, 100)  # training context noise levels, uniform in [lo, hi)
     context_level: int = 15  # the level context frames are labelled with at inference
     jumps: int = 1  # consistency jumps per predicted frame at inference
+    # "consistency" (ours); the baselines: "edm" (multi-step diffusion, DIAMOND-style) and
+    # "regression" (a deterministic next-latent predictor, DINO-WM-style); see VARIANTS.
+    objective: str = "consistency"
+    euler_steps: int = 3  # the "edm" objective's Euler steps per predicted frame
     top_fraction: float = 0.5  # share of training jumps from level T - 1, where inference starts
     zero_fraction: float = 0.5  # share of training jumps that land on level 0, as inference does
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
@@ -122,6 +126,28 @@ DYNAMICS_PRESETS: dict[str, DynamicsStageConfig] = {
         top_fraction=0.9,  # inference is one jump from pure noise: train mostly that
     ),
 }
+
+
+OBJECTIVES = ("consistency", "edm", "regression")
+
+# The baselines of the benchmark: the same network, data and budget as ours, trained
+# differently (``iwsim train dynamics --variant NAME``).
+VARIANTS: dict[str, dict[str, Any]] = {
+    "ours": {},
+    # Ablation: ours without context-noise augmentation (clean context in training and inference).
+    "no-context-noise": {"context_levels": (0, 1), "context_level": 0},
+    # Next latent by MSE regression from a clean context (like DINO-WM's predictor).
+    "deterministic": {"objective": "regression", "context_levels": (0, 1), "context_level": 0},
+    # EDM denoiser sampled by 3 Euler steps (like DIAMOND), with our context noise.
+    "diffusion": {"objective": "edm"},
+}
+
+
+def variant(cfg: DynamicsStageConfig, name: str) -> DynamicsStageConfig:
+    """``cfg`` changed into the named benchmark variant (see VARIANTS)."""
+    if name not in VARIANTS:
+        raise ValueError(f"unknown variant {name!r}; expected one of {', '.join(VARIANTS)}.")
+    return dataclasses.replace(cfg, **VARIANTS[name])
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -1,47 +1,41 @@
-"""``iwsim demo`` (``make demo``): the scripted expert solving the T-pushing task.
+"""``iwsim demo`` (``make demo``): the shipped world model next to MuJoCo.
 
-Collects a few expert episodes into an episode store and writes them as one video with an
-IoU bar under each frame. Later stages replace this with the world model.
+From a fresh MuJoCo initial state, the scripted expert pushes the T in MuJoCo while the
+world model, given only the first frame and the same actions, imagines the episode. The
+two are written side by side as a video, with the per-step scores.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from pathlib import Path
 
-import numpy as np
-
-from iwsim.data.collect import collect
-from iwsim.data.store import EpisodeStore
-from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU
-from iwsim.eval.video import score_bar, upscale, write_video
+from iwsim.eval.rollout import against_mujoco, write_side_by_side
+from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
 
+DEFAULT_CHECKPOINT = "checkpoints/pusht-64"
+
 
 def main(args: argparse.Namespace) -> int:
+    if args.steps < 1:
+        raise ValueError(f"--steps must be a positive integer, got {args.steps}.")
+    wm = WorldModel.load(args.checkpoint)
+    result = against_mujoco(wm, args.seed, args.steps, args.policy, progress=True)
     out = Path(args.out)
-    store_path = out / "pusht_expert.zarr"
-    collect(
-        "pusht",
-        "expert",
-        args.episodes,
-        out=store_path,
-        steps=args.steps,
-        image_size=args.image_size,
-        workers=args.workers,
-        seed=args.seed,
-    )
-    store = EpisodeStore.open(store_path)
-    scale = max(1, 256 // args.image_size)
-    clips = []
-    for i in range(args.episodes):
-        ep = store.episode(i)
-        frames = upscale(ep["img"], scale)
-        bar = score_bar(ep["iou"], frames.shape[2], 8, SUCCESS_IOU)
-        clips.append(np.concatenate([frames, bar], axis=1))
-        log.info("episode %d (seed %d): max IoU %.3f", i, store.seeds[i], float(ep["iou"].max()))
-    video = write_video(out / "pusht_expert.mp4", np.concatenate(clips), fps=2 * CONTROL_HZ)
-    print(f"Expert demo video: {video.resolve()}")
+    video = write_side_by_side(result, out / "world_model_vs_mujoco.mp4")
+    s = result.summary()
+    summary = {"checkpoint": str(args.checkpoint), "seed": args.seed, "policy": args.policy, "steps": args.steps,
+               **{k: round(v, 4) for k, v in s.items()}}
+    print(f"MuJoCo (left) | world model (right), seed {args.seed}, {args.steps} steps of the {args.policy}: "
+          f"{video.resolve()}")
+    print(json.dumps(summary))
+    print(f"Per-step scores: {video.with_suffix('.json').resolve()}")
+    print("Drive the world model yourself (Gymnasium):\n"
+          "  import gymnasium as gym, iwsim.envs\n"
+          f"  env = gym.make('iwsim/WorldModel-v0', checkpoint='{args.checkpoint}')\n"
+          "  obs, info = env.reset(seed=0); obs, reward, term, trunc, info = env.step(env.action_space.sample())")
     return 0

@@ -15,7 +15,7 @@ Randomness: the noise of batch item i comes from its own generator, seeded by
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -23,14 +23,23 @@ import torch
 from torch import nn
 
 from iwsim.autoencoder import Autoencoder
-from iwsim.config import AEConfig, DynamicsStageConfig, from_dict
+from iwsim.config import OBJECTIVES, AEConfig, DynamicsStageConfig, from_dict
 from iwsim.data.frames import to_model, to_uint8
+from iwsim.diffusion import edm
 from iwsim.diffusion.consistency import jump, jump_levels
 from iwsim.diffusion.schedule import Schedule, gaussian
 from iwsim.models.dynamics import Cache, Dynamics
 from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors, save_model_dir
 
 KIND = "world_model"
+
+
+def level_input(objective: str, schedule: Schedule, levels: torch.Tensor) -> torch.Tensor:
+    """What the dynamics network is told about frames at DDPM noise ``levels``: the level
+    itself, or for the "edm" objective the EDM noise input of the same noise."""
+    if objective == "edm":
+        return edm.noise_input(edm.level_sigma(schedule, levels))
+    return levels.float()
 
 
 def scale_actions(a: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
@@ -52,6 +61,8 @@ class WorldModel(nn.Module):
                  action_low: Sequence[float], action_high: Sequence[float],
                  latent_mean: torch.Tensor | None = None, latent_scale: float = 1.0) -> None:
         super().__init__()
+        if cfg.objective not in OBJECTIVES:
+            raise ValueError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
         self.ae, self.dynamics, self.cfg = ae, dynamics, cfg
         self.schedule = Schedule(cfg.schedule)
         low = torch.as_tensor(action_low, dtype=torch.float32)
@@ -68,9 +79,9 @@ class WorldModel(nn.Module):
                              f"{tuple(mean.shape)} and {latent_scale}.")
         self.register_buffer("latent_mean", mean)
         self.latent_scale = float(latent_scale)
-        # Inference knobs, from the config and settable: consistency jumps per new frame and
-        # the noise level the context frames are labelled with.
-        self.jumps, self.context_level = cfg.jumps, cfg.context_level
+        # Inference knobs, from the config and settable: consistency jumps (or Euler steps
+        # of the "edm" objective) per new frame and the level context frames are labelled with.
+        self.jumps, self.euler_steps, self.context_level = cfg.jumps, cfg.euler_steps, cfg.context_level
         self._cache: Cache | None = None
         self._pending: tuple[torch.Tensor, torch.Tensor, torch.Tensor, int] | None = None
         self._generators: list[torch.Generator] = []
@@ -156,7 +167,8 @@ class WorldModel(nn.Module):
         # activations (as in a long rollout), so all of them run through the network.
         cache = None
         if k > 1:
-            lv = torch.full((b, k - 1), self.context_level, device=self.device)
+            lv = level_input(self.cfg.objective, self.schedule,
+                             torch.full((b, k - 1), self.context_level, device=self.device))
             times = torch.arange(k - 1, device=self.device)
             _, cache = self.dynamics(z[:, :-1], lv, lv, acts[:, :-1], known[:, :-1], times,
                                      torch.ones(k - 1, dtype=torch.bool, device=self.device))
@@ -180,27 +192,56 @@ class WorldModel(nn.Module):
         b = z_ctx.shape[0]
         if actions.shape != (b, self.action_dim):
             raise ValueError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
-        levels = jump_levels(self.jumps, self.schedule.T - 1)
-        x = self._noise(tuple(z_ctx.shape[1:]))
         dev = self.device
-        ctx_level = torch.full((b,), self.context_level, device=dev)
+        ctx_in = level_input(self.cfg.objective, self.schedule, torch.full((b,), self.context_level, device=dev))
         one = torch.ones(b, device=dev)
-        cache = self._cache
-        for i, (t, s) in enumerate(zip(levels[:-1], levels[1:])):
-            t_b, s_b = torch.full((b,), t, device=dev), torch.full((b,), s, device=dev)
-            if i == 0:  # the pending context frame joins the cache in the same pass
+        new_cache: Cache | None = None
+
+        def net(x: torch.Tensor, t: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+            """The network's output for the new frame x (B, C, h, w) told levels t, s (B,)."""
+            nonlocal new_cache
+            if new_cache is None:  # the first pass: the pending context frame joins the cache
                 v, new_cache = self.dynamics(
-                    torch.stack([z_ctx, x], 1), torch.stack([ctx_level, t_b], 1), torch.stack([ctx_level, s_b], 1),
+                    torch.stack([z_ctx, x], 1), torch.stack([ctx_in, t], 1), torch.stack([ctx_in, s], 1),
                     torch.stack([a_ctx, actions], 1), torch.stack([k_ctx, one], 1),
-                    torch.tensor([tau, tau + 1], device=dev), torch.tensor([True, False], device=dev), cache)
+                    torch.tensor([tau, tau + 1], device=dev), torch.tensor([True, False], device=dev), self._cache)
             else:
-                v, _ = self.dynamics(x[:, None], t_b[:, None], s_b[:, None], actions[:, None], one[:, None],
+                v, _ = self.dynamics(x[:, None], t[:, None], s[:, None], actions[:, None], one[:, None],
                                      torch.tensor([tau + 1], device=dev), torch.tensor([False], device=dev),
                                      new_cache)
-            x = jump(lambda *_: v[:, -1], self.schedule, x, t_b, s_b, None)
+            return v[:, -1]
+
+        x = self._sample(net, tuple(z_ctx.shape[1:]), b)
         self._cache = new_cache
         self._pending = (x, actions, one, tau + 1)
         return self.unstandardize(x)
+
+    def _sample(self, net: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
+                shape: tuple[int, ...], b: int) -> torch.Tensor:
+        """The new standardised latent (B, *shape) by the config's objective."""
+        dev = self.device
+
+        def full(v: float) -> torch.Tensor:
+            return torch.full((b,), float(v), device=dev)
+
+        if self.cfg.objective == "regression":
+            return net(torch.zeros(b, *shape, device=dev), full(self.schedule.T), full(0))
+        x = self._noise(shape)
+        if self.cfg.objective == "edm":  # Euler steps along the Karras sigmas
+            sigmas = edm.karras_sigmas(self.euler_steps)
+            x = x * sigmas[0]
+            for sigma, nxt in zip(sigmas[:-1], sigmas[1:]):
+                c_skip, c_in, c_out = edm.precondition(full(sigma), x)
+                c = edm.noise_input(full(sigma))
+                denoised = c_skip * x + c_out * net(c_in * x, c, c)
+                x = denoised if nxt == 0 else x + (nxt - sigma) / sigma * (x - denoised)
+            return x
+        levels = jump_levels(self.jumps, self.schedule.T - 1)
+        for t, s in zip(levels[:-1], levels[1:]):
+            t_b, s_b = full(t), full(s)
+            v = net(x, t_b, s_b)
+            x = jump(lambda *_: v, self.schedule, x, t_b.long(), s_b.long(), None)
+        return x
 
     # -- the public, uint8 API ----------------------------------------------------------------
     def reset(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,

@@ -71,6 +71,34 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
     return OpenLoop(list(episodes), truth, pred, p, s, np.asarray(pixel_iou(truth)), np.asarray(pixel_iou(pred)))
 
 
+def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert", noise_seed: int = 0,
+                   progress: bool = False) -> OpenLoop:
+    """Roll ``wm`` out from the MuJoCo task's initial frame for ``seed`` under a scripted
+    policy's actions (the policy sees MuJoCo), against MuJoCo's frames of the same actions."""
+    from iwsim.envs import make_env
+    from iwsim.envs.pixels import pixel_iou
+    from iwsim.envs.policies import make_policy
+
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}.")
+    env = make_env("pusht", wm.image_size)
+    try:
+        pol = make_policy(policy, seed)
+        obs, info = env.reset(seed=seed)
+        pol.reset(obs, info)
+        first, truth, actions = obs["pixels"], [], []
+        for _ in range(steps):
+            actions.append(np.asarray(pol(obs, info), dtype=np.float32))
+            obs, _, _, _, info = env.step(actions[-1])
+            truth.append(obs["pixels"])
+    finally:
+        env.close()
+    truth_v = np.stack(truth)[None]
+    pred = wm.rollout(first[None], np.stack(actions)[None], seed=noise_seed, progress=progress)
+    p, s = frame_scores(truth_v, pred)
+    return OpenLoop([seed], truth_v, pred, p, s, np.asarray(pixel_iou(truth_v)), np.asarray(pixel_iou(pred)))
+
+
 def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10.0, scale: int = 4) -> Path:
     """Video of episode 0 of ``result``: truth | prediction, with a PSNR bar (10-40 dB,
     green from 25 dB) under each frame; per-step scores in ``<out>.json`` and a plot in

@@ -27,16 +27,17 @@ from torch import nn
 from tqdm import tqdm
 
 from iwsim.autoencoder import Autoencoder
-from iwsim.config import DynamicsStageConfig, to_dict
+from iwsim.config import OBJECTIVES, DynamicsStageConfig, to_dict
 from iwsim.data.frames import split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.diffusion import edm
 from iwsim.diffusion.consistency import jump_loss, sample_levels
 from iwsim.diffusion.schedule import Schedule, gaussian
 from iwsim.eval.metrics import psnr
 from iwsim.models.dynamics import Dynamics, sequence_layout
 from iwsim.training import trainer
 from iwsim.training.checkpoint import CheckpointError, last_checkpoint
-from iwsim.world_model import KIND, WorldModel, scale_actions
+from iwsim.world_model import KIND, WorldModel, level_input, scale_actions
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +58,7 @@ def resolve_checkpoint(path: str | Path) -> Path:
 class DynBatch:
     """Latents z (B, L+1, C, h, w); normalised producing actions (B, L+1, A) and whether
     they are known (B, L+1); context levels (B, L) and noise (B, L, C, h, w); target
-    levels t, s (B, L) and noise (B, L, C, h, w)."""
+    levels t, s (B, L), or sigmas (B, L), and noise (B, L, C, h, w)."""
 
     z: torch.Tensor
     actions: torch.Tensor
@@ -67,17 +68,21 @@ class DynBatch:
     t: torch.Tensor
     s: torch.Tensor
     eps: torch.Tensor
+    sigma: torch.Tensor  # (B, L) EDM noise levels (the "edm" objective's targets)
 
     def to(self, device: torch.device) -> DynBatch:
         return DynBatch(*(v.to(device) for v in vars(self).values()))
 
 
 class DynamicsTrainModule(nn.Module):
-    """forward(batch) -> the jump loss of the L targets of each sequence."""
+    """forward(batch) -> the loss of the L targets of each sequence under the config's
+    objective: the consistency jump loss (ours), EDM denoising or MSE regression."""
 
-    def __init__(self, dynamics: Dynamics, schedule: Schedule) -> None:
+    def __init__(self, dynamics: Dynamics, schedule: Schedule, objective: str = "consistency") -> None:
         super().__init__()
-        self.dynamics, self.schedule = dynamics, schedule
+        if objective not in OBJECTIVES:
+            raise ValueError(f"unknown objective {objective!r}; expected one of {', '.join(OBJECTIVES)}.")
+        self.dynamics, self.schedule, self.objective = dynamics, schedule, objective
 
     def forward(self, batch: DynBatch) -> tuple[torch.Tensor, dict[str, float]]:
         b, l1 = batch.z.shape[:2]
@@ -85,18 +90,30 @@ class DynamicsTrainModule(nn.Module):
         times, is_ctx = sequence_layout(n, batch.z.device)
         ctx = self.schedule.noise(batch.z[:, :n].flatten(0, 1), batch.ctx_levels.flatten(),
                                   batch.ctx_eps.flatten(0, 1)).unflatten(0, (b, n))
+        ctx_in = level_input(self.objective, self.schedule, batch.ctx_levels)
         actions = torch.cat([batch.actions[:, :n], batch.actions[:, 1:]], 1)
         known = torch.cat([batch.known[:, :n], batch.known[:, 1:]], 1)
 
-        def net(x_t: torch.Tensor, t: torch.Tensor, s: torch.Tensor, cond: None) -> torch.Tensor:
+        def net(x_t: torch.Tensor, t: torch.Tensor, s: torch.Tensor, cond: None = None) -> torch.Tensor:
             x = torch.cat([ctx, x_t.unflatten(0, (b, n))], 1)
-            levels = torch.cat([batch.ctx_levels, t.view(b, n)], 1)
-            jump_to = torch.cat([batch.ctx_levels, s.view(b, n)], 1)
+            levels = torch.cat([ctx_in, t.view(b, n)], 1)
+            jump_to = torch.cat([ctx_in, s.view(b, n)], 1)
             v, _ = self.dynamics(x, levels, jump_to, actions, known, times, is_ctx)
             return v[:, n:].flatten(0, 1)
 
-        per = jump_loss(net, self.schedule, batch.z[:, 1:].flatten(0, 1), None, batch.t.flatten(),
-                        batch.s.flatten(), batch.eps.flatten(0, 1))
+        x0, eps = batch.z[:, 1:].flatten(0, 1), batch.eps.flatten(0, 1)
+        if self.objective == "regression":
+            t = torch.full((b * n,), float(self.schedule.T), device=x0.device)
+            per = ((net(torch.zeros_like(x0), t, torch.zeros_like(t)) - x0) ** 2).mean((1, 2, 3))
+            return per.mean(), {}
+        if self.objective == "edm":
+            sigma = batch.sigma.flatten()
+            x_noisy = x0 + sigma.view(-1, 1, 1, 1) * eps
+            _, c_in, _ = edm.precondition(sigma, x0)
+            c = edm.noise_input(sigma)
+            per = edm.loss(net(c_in * x_noisy, c, c), x0, x_noisy, sigma)
+            return per.mean(), {}
+        per = jump_loss(net, self.schedule, x0, None, batch.t.flatten(), batch.s.flatten(), eps)
         top = batch.t.flatten() == self.schedule.T - 1
         parts = {"loss_from_noise": per[top].mean().item() if top.any() else float("nan")}
         return per.mean(), parts
@@ -156,7 +173,7 @@ class DynamicsTask:
         self.store, self.starts, self.ends = store, starts, ends
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
-            self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule))
+            self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule), cfg.objective)
 
     @torch.no_grad()
     def _encode(self, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
@@ -199,11 +216,13 @@ class DynamicsTask:
         shape = tuple(self.latents.shape[1:])
         ctx_eps = gaussian((b, n, *shape), generator)
         eps = gaussian((b, n, *shape), generator)
+        sigma = edm.training_sigmas(b * n, generator).view(b, n)
         idx = idx[part]
         producing = (idx - 1).clamp_min(0)  # frame k was produced by action k - 1 (unknown at k = 0)
         z = (self.latents[idx] - self.latent_mean) / self.latent_scale
         return DynBatch(z, self.actions[producing], self.known[idx], ctx_levels[part],
-                        ctx_eps[part], t.view(b, n)[part], s.view(b, n)[part], eps[part]).to(device)
+                        ctx_eps[part], t.view(b, n)[part], s.view(b, n)[part], eps[part],
+                        sigma[part]).to(device)
 
     def world_model(self, dynamics: Dynamics) -> WorldModel:
         return WorldModel(self.ae, dynamics, self.cfg, self.action_low.tolist(), self.action_high.tolist(),

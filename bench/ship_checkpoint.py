@@ -1,0 +1,70 @@
+"""Record the shipped checkpoint's metrics.json (what tests/test_shipped_checkpoint.py checks).
+
+    MUJOCO_GL=egl .venv/bin/python bench/ship_checkpoint.py --checkpoint checkpoints/pusht-64 \
+        [--bench bench/results/pusht-64/results.json --bench-model shipped]
+
+- ``mujoco_rollout``: 32-step rollouts from the MuJoCo initial frames of seeds 100000..100003
+  under the scripted expert's actions, PSNR/SSIM against MuJoCo's frames (noise seed 0).
+- ``open_loop_192``: copied from an ``iwsim bench`` result, when given.
+- ``training``: steps and wall-clock of both stages, from the runs named in the provenance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from iwsim.eval.rollout import against_mujoco
+from iwsim.world_model import WorldModel
+
+SEEDS = (100000, 100001, 100002, 100003)
+STEPS = 32
+TOLERANCE_DB = 0.5  # CPU builds and BLAS libraries may differ in the last bits
+
+
+def mujoco_rollout(wm: WorldModel, seeds: tuple[int, ...] = SEEDS, steps: int = STEPS) -> dict:
+    results = [against_mujoco(wm, s, steps, "expert") for s in seeds]
+    psnr = [float(r.psnr.mean()) for r in results]
+    return {"policy": "expert", "steps": steps, "seeds": list(seeds), "noise_seed": 0,
+            "psnr": float(np.mean(psnr)), "psnr_per_seed": psnr, "ssim": float(np.mean([r.ssim.mean() for r in results])),
+            "tolerance_db": TOLERANCE_DB}
+
+
+def run_info(checkpoint: Path) -> dict:
+    state = checkpoint / "training_state" / "state.json"
+    if not state.is_file():
+        return {}
+    s = json.loads(state.read_text())
+    return {"steps": int(s["step"]), "minutes": round(float(s["elapsed_s"]) / 60, 1)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", type=Path, default=Path("checkpoints/pusht-64"))
+    ap.add_argument("--bench", type=Path, help="an iwsim bench results.json holding this checkpoint")
+    ap.add_argument("--bench-model", default="shipped", help="the checkpoint's name in that result")
+    args = ap.parse_args()
+    wm = WorldModel.load(args.checkpoint)
+    config = json.loads((args.checkpoint / "config.json").read_text())
+    prov = config.get("provenance", {})
+    metrics = {"mujoco_rollout": mujoco_rollout(wm),
+               "training": {"stage1": run_info(Path(prov.get("ae_checkpoint", "-"))),
+                            "stage2": run_info(Path(prov.get("source", "-")))}}
+    if args.bench:
+        r = json.loads(args.bench.read_text())
+        m = r["models"][args.bench_model]
+        metrics["open_loop_192"] = {"episodes": len(r["episodes"]), "steps": r["steps"], "data": r["data"],
+                                    **{k: v for k, v in m["accuracy"].items()}, "speed": m.get("speed")}
+    out = args.checkpoint / "metrics.json"
+    tmp = out.with_name(".metrics.json.tmp")
+    tmp.write_text(json.dumps(metrics, indent=2) + "\n")
+    os.replace(tmp, out)
+    print(json.dumps(metrics["mujoco_rollout"]))
+
+
+if __name__ == "__main__":
+    main()
