@@ -9,6 +9,10 @@ Streaming inference: the latest context frame and the new frame go through the d
 network together; the keys and values of the last N - 1 context frames are cached, so a
 step costs the same at step 10 and at step 10,000, and memory stays flat.
 
+Objectives: a new latent comes from one consistency jump from noise (ours), or, for the
+benchmark's baselines, Euler steps of an EDM denoiser or one pass of a regressor
+(``cfg.objective``); the streaming cache is the same for all three.
+
 Randomness: the noise of batch item i comes from its own generator, seeded by
 ``seed + i`` (or ``seeds[i]``) at reset, so a batched rollout equals per-item rollouts.
 """

@@ -45,6 +45,7 @@ LOWER_IS_BETTER = {"mse", "lpips", "fid", "fvd", "iou_err"}
 NEEDS = {"lpips": feats.LPIPS_FILE, "fid": feats.INCEPTION_FILE, "fvd": feats.I3D_FILE}
 FVD_CLIP = 16  # frames per FVD clip (Unterthiner et al. 2018)
 FIGURE_STEPS = (0, 48, 96, 144, 192)
+COPY = "copy of the first frame"  # the reference row of the report
 
 
 def latency_ms(fn: Callable[[], object], n: int = 200, warmup: int = 10) -> float:
@@ -394,6 +395,11 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
         per_step[name], preds[name] = scores, ol.pred
         log.info("%s: PSNR %.2f dB, SSIM %.3f", name, entry["accuracy"]["psnr"]["mean"],
                  entry["accuracy"]["ssim"]["mean"])
+    # For scale: a "model" that repeats the context frame.
+    still = np.repeat(context[:, None], steps, 1)
+    scores = frame_metrics(truth, still, nets, device=device)
+    scores["iou_err"] = np.abs(np.asarray(pixel_iou(still)) - np.asarray(pixel_iou(truth)))
+    result["reference"] = {COPY: {"accuracy": summarize(scores, set_metrics(truth_feats, still, nets))}}
     for name, wm in wms.items():
         result["models"][name]["speed"] = speed(wm, context[0], speed_batch, speed_calls)
     curves_figure(per_step, out / "curves.png")
@@ -478,12 +484,12 @@ def markdown(r: dict) -> str:
         "| model | " + " | ".join(f"{m.upper()} {arrows[m]}" for m in METRICS) + " |",
         "|---|" + "---|" * len(METRICS),
     ]
-    for n in names:
-        acc = r["models"][n]["accuracy"]
+    rows = [(n, r["models"][n]["accuracy"]) for n in names]
+    rows += [(f"*{n}*", e["accuracy"]) for n, e in r.get("reference", {}).items()]
+    for n, acc in rows:
         lines.append(f"| {n} | " + " | ".join(_cell(acc, m, un) for m in METRICS) + " |")
     lines += ["", f"At step {r['steps']}:", "", "| model | PSNR ↑ | SSIM ↑ | IoU error ↓ |", "|---|---|---|---|"]
-    for n in names:
-        acc = r["models"][n]["accuracy"]
+    for n, acc in rows:
         lines.append(f"| {n} | " + " | ".join(_cell(acc, m, un, "last") for m in ("psnr", "ssim", "iou_err")) + " |")
     lines += ["", "![curves](curves.png)", "", "![frames](frames.png)", "", "## Training and speed", "",
               "| model | objective | training | step at batch 1 (ms) | steps/s | dynamics step (ms) | frames/s at batch "

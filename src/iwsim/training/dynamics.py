@@ -7,6 +7,10 @@ the last L latents are the targets, each noised to its own level t and jumped to
 consistency objective. The attention mask of :mod:`iwsim.models.dynamics` lets target
 k + 1 see only the context up to k (N - 1 frames back), so one pass trains L predictions.
 
+The benchmark's baselines train in the same way with another ``objective`` (see
+``iwsim.config.VARIANTS``): EDM denoising of the targets (sampled by Euler steps) or
+plain MSE regression of the next latent from zeros, each with its own context noise.
+
 Every checkpoint of a dynamics run is a complete world model (autoencoder + dynamics +
 action normalisation + config), loadable with :meth:`iwsim.WorldModel.load`.
 """
