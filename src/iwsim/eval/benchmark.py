@@ -382,12 +382,13 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
         ol = open_loop(wm, store, chosen, steps, seed=seed, progress=progress)
         if truth is None:
             truth, context = ol.truth, np.stack([store.episode(e)["img"][0] for e in chosen])
+            truth_iou = ol.iou_true
             if nets.inception is not None:
                 truth_feats["fid"] = inception_features(nets.inception, truth)
             if nets.i3d is not None:
                 truth_feats["fvd"] = i3d_features(nets.i3d, truth)
         scores = frame_metrics(truth, ol.pred, nets, device=device)
-        scores["iou_err"] = np.abs(np.asarray(pixel_iou(ol.pred)) - np.asarray(pixel_iou(truth)))
+        scores["iou_err"] = np.abs(ol.iou_pred - truth_iou)
         entry = {"checkpoint": str(paths[name]), "objective": wm.cfg.objective, **training_info(paths[name]),
                  "accuracy": summarize(scores, set_metrics(truth_feats, ol.pred, nets)),
                  "accuracy_seconds": time.perf_counter() - t0}
@@ -398,7 +399,7 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
     # For scale: a "model" that repeats the context frame.
     still = np.repeat(context[:, None], steps, 1)
     scores = frame_metrics(truth, still, nets, device=device)
-    scores["iou_err"] = np.abs(np.asarray(pixel_iou(still)) - np.asarray(pixel_iou(truth)))
+    scores["iou_err"] = np.abs(np.asarray(pixel_iou(context))[:, None] - truth_iou)
     result["reference"] = {COPY: {"accuracy": summarize(scores, set_metrics(truth_feats, still, nets))}}
     for name, wm in wms.items():
         result["models"][name]["speed"] = speed(wm, context[0], speed_batch, speed_calls)
