@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
+from iwsim.eval.benchmark import training_info
 from iwsim.eval.rollout import against_mujoco
+from iwsim.training.checkpoint import write_json_atomic
 from iwsim.world_model import WorldModel
 
 SEEDS = (100000, 100001, 100002, 100003)
@@ -35,11 +36,8 @@ def mujoco_rollout(wm: WorldModel, seeds: tuple[int, ...] = SEEDS, steps: int = 
 
 
 def run_info(checkpoint: Path) -> dict:
-    state = checkpoint / "training_state" / "state.json"
-    if not state.is_file():
-        return {}
-    s = json.loads(state.read_text())
-    return {"steps": int(s["step"]), "minutes": round(float(s["elapsed_s"]) / 60, 1)}
+    info = training_info(checkpoint)
+    return {"steps": info["train_steps"], "minutes": round(info["train_minutes"], 1)} if info else {}
 
 
 def main() -> None:
@@ -59,10 +57,7 @@ def main() -> None:
         m = r["models"][args.bench_model]
         metrics["open_loop_192"] = {"episodes": len(r["episodes"]), "steps": r["steps"], "data": r["data"],
                                     **{k: v for k, v in m["accuracy"].items()}, "speed": m.get("speed")}
-    out = args.checkpoint / "metrics.json"
-    tmp = out.with_name(".metrics.json.tmp")
-    tmp.write_text(json.dumps(metrics, indent=2) + "\n")
-    os.replace(tmp, out)
+    write_json_atomic(args.checkpoint / "metrics.json", metrics, sort_keys=False)
     print(json.dumps(metrics["mujoco_rollout"]))
 
 

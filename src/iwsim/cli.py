@@ -214,6 +214,14 @@ def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
+def _check_positive(args: argparse.Namespace, *names: str) -> None:
+    """Each named integer flag, when given, must be >= 1."""
+    for name in names:
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
+
+
 def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
     """The preset named by --preset with --steps/--batch-size/--seed (and --variant) applied; prints it
     and returns None under --dry-run."""
@@ -227,9 +235,7 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
     cfg = presets[args.preset]
     overrides = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed))
                  if v is not None}
-    for k, v in overrides.items():
-        if k != "seed" and v < 1:
-            raise ValueError(f"--{k.replace('_', '-')} must be a positive integer, got {v}.")
+    _check_positive(args, "steps", "batch_size")
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **overrides))
     if getattr(args, "variant", None) is not None:
         from iwsim.config import variant
@@ -278,10 +284,7 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
     from iwsim.training.autoencoder import finetune_decoder
     from iwsim.training.trainer import resolve_device
 
-    for name in ("steps", "batch_size"):
-        v = getattr(args, name)
-        if v is not None and v < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
+    _check_positive(args, "steps", "batch_size")
     if not args.lr > 0:
         raise ValueError(f"--lr must be positive, got {args.lr}.")
     _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
@@ -330,9 +333,7 @@ def _bench(args: argparse.Namespace) -> int:
         if name in models:
             raise ValueError(f"model name {name!r} is given twice.")
         models[name] = path
-    for flag in ("episodes", "steps", "stability_every", "speed_batch", "speed_calls"):
-        if getattr(args, flag) < 1:
-            raise ValueError(f"--{flag.replace('_', '-')} must be a positive integer, got {getattr(args, flag)}.")
+    _check_positive(args, "episodes", "steps", "stability_every", "speed_batch", "speed_calls")
     if args.stability_steps < 0:
         raise ValueError(f"--stability-steps must be >= 0, got {args.stability_steps}.")
     run_benchmark(models, args.out, args.data, episodes=args.episodes, steps=args.steps,

@@ -34,6 +34,7 @@ from iwsim.data.frames import split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
 from iwsim.eval import features as feats
 from iwsim.eval.metrics import mse, psnr, ssim, uiqi
+from iwsim.training.checkpoint import write_json_atomic
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
@@ -418,17 +419,11 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
         result["stability"] = {"steps": stability_steps, "every": stability_every,
                                "minutes": (time.perf_counter() - t0) / 60,
                                "memory_mib_first": float(mem[min(len(mem) - 1, 1)]), "memory_mib_last": float(mem[-1])}
-    write_json(result, out / "results.json")
+    write_json_atomic(out / "results.json", result, sort_keys=False)  # models in the order given
     tmp = out / ".results.md.tmp"
     tmp.write_text(markdown(result))
     os.replace(tmp, out / "results.md")
     return result
-
-
-def write_json(obj: dict, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2) + "\n")
-    os.replace(tmp, path)
 
 
 # -- the report ------------------------------------------------------------------------------------
