@@ -4,6 +4,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
+CHROMIUM := /usr/bin/chromium
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
 .PHONY: demo test install clean
 
 # torch is pinned and installed first: an unpinned torch would pull the CUDA build.
@@ -19,7 +22,12 @@ install: $(STAMP)
 demo: $(STAMP)
 	MUJOCO_GL=egl $(VENV)/bin/iwsim demo
 
-test: $(STAMP)
+# The browser tests drive Debian's chromium through Playwright (no browser download).
+$(CHROMIUM):
+	$(SUDO) apt-get update -q
+	DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q chromium
+
+test: $(STAMP) $(CHROMIUM)
 	MUJOCO_GL=egl $(PY) -m pytest -q
 
 clean:

@@ -9,7 +9,7 @@ from iwsim.autoencoder import Autoencoder
 from iwsim.config import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant
 from iwsim.models.dynamics import Dynamics, DynamicsConfig, attention_layout, sequence_layout
 from iwsim.training.checkpoint import CheckpointError, load_tensors, save_model_dir
-from iwsim.world_model import WorldModel
+from iwsim.world_model import StreamState, WorldModel
 
 CFG = DynamicsConfig(window=4, channels=(8, 16), heads=2, emb_dim=16)
 LOW, HIGH = [-0.22] * 4, [0.22] * 4
@@ -144,7 +144,7 @@ def test_world_model_streaming_matches_full_recompute():
     wm.reset_latents(z0, seed=3)
     for i in range(6):
         wm.step_latent(acts[i])
-    cache_len = len(wm._cache)
+    cache_len = wm.state.context_frames
     assert cache_len == wm.cfg.dynamics.window - 1
     k = 7
     ctx = torch.stack(zs[:k], 1)
@@ -169,7 +169,7 @@ def test_sliding_window_keeps_a_constant_state():
     shapes = []
     for _ in range(3 * wm.cfg.dynamics.window):
         wm.step(np.zeros((2, 4), np.float32))
-        shapes.append([tuple(k.shape) for k in wm._cache.keys])
+        shapes.append([tuple(k.shape) for k in wm.state.cache.keys])
     n = wm.cfg.dynamics.window
     assert all(s == shapes[n] for s in shapes[n:])
     assert shapes[n][0][2] == n - 1  # the cache holds N - 1 context frames
@@ -192,7 +192,7 @@ def test_reset_with_several_context_frames():
     rng = np.random.default_rng(0)
     frames = rng.integers(0, 256, (2, 3, 64, 64, 3), dtype=np.uint8)
     wm.reset(frames, actions=np.zeros((2, 2, 4), np.float32))
-    assert len(wm._cache) == 2 and wm.step(np.zeros((2, 4))).shape == (2, 64, 64, 3)
+    assert wm.state.context_frames == 2 and wm.step(np.zeros((2, 4))).shape == (2, 64, 64, 3)
     with pytest.raises(ValueError, match="actions"):
         wm.reset(frames)
 
@@ -291,3 +291,37 @@ def test_unknown_objective_is_rejected():
         WorldModel(Autoencoder(AE_PRESETS["tiny"]), Dynamics(cfg.dynamics), cfg, LOW, HIGH)
     with pytest.raises(ValueError, match="unknown variant"):
         variant(cfg, "best")
+
+
+def test_states_of_rollouts_started_apart_share_a_step():
+    """Rollouts at different steps, stepped together through StreamState.cat and split
+    again, give what each gives alone (the play server's batching of sessions)."""
+    wm = tiny_world_model()
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (2, 64, 64, 3), dtype=np.uint8)
+    acts = rng.uniform(-0.2, 0.2, (2, 12, 4)).astype(np.float32)
+    n = wm.cfg.dynamics.window
+    alone_a = wm.rollout(frames[:1], acts[:1, :n + 3], seed=5)[0]
+    alone_b = wm.rollout(frames[1:], acts[1:, :n + 1], seed=6)[0]
+
+    def run(frame: np.ndarray, a: np.ndarray, seed: int, steps: int) -> StreamState:
+        wm.reset(frame[None], seed=seed)
+        for t in range(steps):
+            wm.step(a[None, t])
+        return wm.state
+
+    state_a = run(frames[0], acts[0], 5, n + 1)  # a is 2 steps ahead of b
+    state_b = run(frames[1], acts[1], 6, n - 1)
+    assert state_a.context_frames == state_b.context_frames == n - 1 and state_a.tau != state_b.tau
+    wm.state = StreamState.cat([state_a, state_b])
+    together = wm.step(np.stack([acts[0, n + 1], acts[1, n - 1]]))
+    assert np.abs(together[0].astype(int) - alone_a[n + 1]).max() <= 1
+    assert np.abs(together[1].astype(int) - alone_b[n - 1]).max() <= 1
+    next_a, next_b = wm.state.split()
+    wm.state = next_a
+    assert np.abs(wm.step(acts[0, n + 2][None])[0].astype(int) - alone_a[n + 2]).max() <= 1
+    wm.state = next_b
+    assert np.abs(wm.step(acts[1, n][None])[0].astype(int) - alone_b[n]).max() <= 1
+    wm.reset(frames[:1])
+    with pytest.raises(ValueError, match="context lengths"):
+        StreamState.cat([wm.state, next_a])

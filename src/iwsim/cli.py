@@ -122,6 +122,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", default="expert", help="scripted policy: expert or play (default: %(default)s)")
     p.add_argument("--out", default="outputs/demo", help="output directory (default: %(default)s)")
     p.set_defaults(func=_demo)
+
+    p = sub.add_parser("play", help="drive a world model from the browser and record demonstrations")
+    p.add_argument("--checkpoint", default="checkpoints/pusht-64", help="world model (default: %(default)s)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind; others need --token (default: %(default)s)")
+    p.add_argument("--port", type=int, default=8000, help="port (default: %(default)s)")
+    p.add_argument("--token", help="secret clients must send (open the page as /?token=SECRET)")
+    p.add_argument("--record-to", help="episode store that saved demonstrations are appended to")
+    p.add_argument("--store", help="episode store to draw 'frame from store' starts from")
+    p.add_argument("--hz", type=float, default=10.0, help="control rate, steps per second (default: %(default)s)")
+    p.add_argument("--max-sessions", type=int, default=4, help="concurrent sessions (default: %(default)s)")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    p.set_defaults(func=_play)
     return parser
 
 
@@ -342,6 +354,29 @@ def _bench(args: argparse.Namespace) -> int:
                   weights=Path(args.weights) if args.weights else None, device=resolve_device(args.device),
                   progress=not args.no_progress)
     print(Path(args.out) / "results.md")
+    return 0
+
+
+def _play(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from iwsim.play.engine import Engine, PlayConfig
+    from iwsim.play.server import check_bind, serve
+    from iwsim.training.trainer import resolve_device
+    from iwsim.world_model import WorldModel
+
+    check_bind(args.host, args.token)  # before the slow part
+    if not 0 < args.port < 65536:
+        raise ValueError(f"--port must be in 1..65535, got {args.port}.")
+    cfg = PlayConfig(hz=args.hz, max_sessions=args.max_sessions, checkpoint=args.checkpoint,
+                     record_to=Path(args.record_to) if args.record_to else None,
+                     store=Path(args.store) if args.store else None)
+    engine = Engine(WorldModel.load(args.checkpoint, resolve_device(args.device)), cfg)
+    shown = "localhost" if args.host in ("0.0.0.0", "::") else args.host
+    url = f"http://{shown}:{args.port}/" + (f"?token={args.token}" if args.token else "")
+    log.info("serving %s at %s (%s Hz, up to %d sessions%s); Ctrl-C stops", args.checkpoint, url, args.hz,
+             args.max_sessions, f", recording to {args.record_to}" if args.record_to else "")
+    serve(engine, args.host, args.port, args.token)
     return 0
 
 

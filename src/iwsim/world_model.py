@@ -15,11 +15,16 @@ benchmark's baselines, Euler steps of an EDM denoiser or one pass of a regressor
 
 Randomness: the noise of batch item i comes from its own generator, seeded by
 ``seed + i`` (or ``seeds[i]``) at reset, so a batched rollout equals per-item rollouts.
+
+Independent rollouts (e.g. the browser sessions of ``iwsim play``) can share forward
+passes: ``wm.state`` is a :class:`StreamState`, which ``StreamState.cat`` joins and
+``.split()`` separates again, so each rollout keeps its own state between batched steps.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +54,71 @@ def level_input(objective: str, schedule: Schedule, levels: torch.Tensor) -> tor
 def scale_actions(a: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
     """Actions in the data's units -> [-1, 1] over [low, high] (not clipped)."""
     return (a - low) / (high - low) * 2 - 1
+
+
+@dataclass
+class StreamState:
+    """The state of B streaming rollouts between two steps.
+
+    ``cache`` holds the keys and values of up to N - 1 context frames (None right after
+    a one-frame reset); ``z`` (B, C, h, w) is the newest context latent (standardised),
+    not yet in the cache, with the action (B, A) and known flag (B,) that produced it and
+    its time ``tau``; ``generators`` draw each item's noise.
+    """
+
+    cache: Cache | None
+    z: torch.Tensor
+    action: torch.Tensor
+    known: torch.Tensor
+    tau: int
+    generators: list[torch.Generator]
+
+    @property
+    def batch_size(self) -> int:
+        return self.z.shape[0]
+
+    @property
+    def context_frames(self) -> int:
+        """Context frames in the cache: states join only with states of the same count."""
+        return 0 if self.cache is None else len(self.cache)
+
+    @staticmethod
+    def cat(states: Sequence[StreamState]) -> StreamState:
+        """One state for the rollouts of ``states`` (all with the same ``context_frames``).
+
+        Attention sees only time offsets, so times are renumbered from 0 and rollouts that
+        started at different steps can share a pass."""
+        if not states:
+            raise ValueError("StreamState.cat needs at least one state.")
+        m = states[0].context_frames
+        if any(s.context_frames != m for s in states):
+            raise ValueError(f"states with different context lengths cannot share a step: "
+                             f"{sorted({s.context_frames for s in states})}.")
+        cache = None
+        if m:
+            first = states[0].cache
+            cache = Cache([torch.cat([s.cache.keys[i] for s in states]) for i in range(len(first.keys))],
+                          [torch.cat([s.cache.values[i] for s in states]) for i in range(len(first.values))],
+                          torch.arange(m, device=first.times.device))
+        return StreamState(cache, torch.cat([s.z for s in states]), torch.cat([s.action for s in states]),
+                           torch.cat([s.known for s in states]), m,
+                           [g for s in states for g in s.generators])
+
+    def split(self) -> list[StreamState]:
+        """One state per rollout (views, no copies)."""
+        b = self.batch_size
+
+        def item(t: torch.Tensor, i: int) -> torch.Tensor:  # cache rows are (B*h*w, ...), item-major
+            n = t.shape[0] // b
+            return t[i * n:(i + 1) * n]
+
+        out = []
+        for i in range(b):
+            cache = None if self.cache is None else Cache(
+                [item(k, i) for k in self.cache.keys], [item(v, i) for v in self.cache.values], self.cache.times)
+            out.append(StreamState(cache, self.z[i:i + 1], self.action[i:i + 1], self.known[i:i + 1], self.tau,
+                                   [self.generators[i]]))
+        return out
 
 
 class WorldModel(nn.Module):
@@ -86,9 +156,7 @@ class WorldModel(nn.Module):
         # Inference knobs, from the config and settable: consistency jumps (or Euler steps
         # of the "edm" objective) per new frame and the level context frames are labelled with.
         self.jumps, self.euler_steps, self.context_level = cfg.jumps, cfg.euler_steps, cfg.context_level
-        self._cache: Cache | None = None
-        self._pending: tuple[torch.Tensor, torch.Tensor, torch.Tensor, int] | None = None
-        self._generators: list[torch.Generator] = []
+        self._state: StreamState | None = None
 
     # -- properties -------------------------------------------------------------------------
     @property
@@ -106,7 +174,18 @@ class WorldModel(nn.Module):
     @property
     def batch_size(self) -> int:
         """The batch of the current rollout (0 before ``reset``)."""
-        return 0 if self._pending is None else self._pending[0].shape[0]
+        return 0 if self._state is None else self._state.batch_size
+
+    @property
+    def state(self) -> StreamState:
+        """The rollouts' state: take it after ``reset`` or ``step``, set it to continue them."""
+        if self._state is None:
+            raise RuntimeError("call reset() before step().")
+        return self._state
+
+    @state.setter
+    def state(self, value: StreamState) -> None:
+        self._state = value
 
     # -- frames and actions -----------------------------------------------------------------
     def check_frames(self, frames: np.ndarray | torch.Tensor, ndim: int) -> torch.Tensor:
@@ -176,23 +255,21 @@ class WorldModel(nn.Module):
             times = torch.arange(k - 1, device=self.device)
             _, cache = self.dynamics(z[:, :-1], lv, lv, acts[:, :-1], known[:, :-1], times,
                                      torch.ones(k - 1, dtype=torch.bool, device=self.device))
-        self._cache = cache
-        self._pending = (z[:, -1], acts[:, -1], known[:, -1], k - 1)
         seeds = [seed + i for i in range(b)] if isinstance(seed, int) else list(seed)
         if len(seeds) != b:
             raise ValueError(f"got {len(seeds)} seeds for a batch of {b}.")
-        self._generators = [torch.Generator(self.device).manual_seed(int(s)) for s in seeds]
+        self._state = StreamState(cache, z[:, -1], acts[:, -1], known[:, -1], k - 1,
+                                  [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
 
     def _noise(self, shape: tuple[int, ...]) -> torch.Tensor:
         """Clipped Gaussian noise (B, *shape), item i from its own generator."""
-        return torch.cat([gaussian((1, *shape), g, self.device) for g in self._generators])
+        return torch.cat([gaussian((1, *shape), g, self.device) for g in self.state.generators])
 
     @torch.inference_mode()
     def step_latent(self, actions: torch.Tensor) -> torch.Tensor:
         """Normalised actions (B, A) -> the next latents (B, C, h, w), as ``encode`` gives them."""
-        if self._pending is None:
-            raise RuntimeError("call reset() before step().")
-        z_ctx, a_ctx, k_ctx, tau = self._pending
+        st = self.state
+        z_ctx, a_ctx, k_ctx, tau = st.z, st.action, st.known, st.tau
         b = z_ctx.shape[0]
         if actions.shape != (b, self.action_dim):
             raise ValueError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
@@ -208,7 +285,7 @@ class WorldModel(nn.Module):
                 v, new_cache = self.dynamics(
                     torch.stack([z_ctx, x], 1), torch.stack([ctx_in, t], 1), torch.stack([ctx_in, s], 1),
                     torch.stack([a_ctx, actions], 1), torch.stack([k_ctx, one], 1),
-                    torch.tensor([tau, tau + 1], device=dev), torch.tensor([True, False], device=dev), self._cache)
+                    torch.tensor([tau, tau + 1], device=dev), torch.tensor([True, False], device=dev), st.cache)
             else:
                 v, _ = self.dynamics(x[:, None], t[:, None], s[:, None], actions[:, None], one[:, None],
                                      torch.tensor([tau + 1], device=dev), torch.tensor([False], device=dev),
@@ -216,8 +293,7 @@ class WorldModel(nn.Module):
             return v[:, -1]
 
         x = self._sample(net, tuple(z_ctx.shape[1:]), b)
-        self._cache = new_cache
-        self._pending = (x, actions, one, tau + 1)
+        self._state = StreamState(new_cache, x, actions, one, tau + 1, st.generators)
         return self.unstandardize(x)
 
     def _sample(self, net: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
@@ -267,9 +343,7 @@ class WorldModel(nn.Module):
     @torch.inference_mode()
     def step(self, actions: np.ndarray | torch.Tensor) -> np.ndarray:
         """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)."""
-        if self._pending is None:
-            raise RuntimeError("call reset() before step().")
-        z = self.step_latent(self.normalize_actions(actions, self.batch_size))
+        z = self.step_latent(self.normalize_actions(actions, self.state.batch_size))
         return to_uint8(self.decode_latents(z))
 
     @torch.inference_mode()

@@ -21,7 +21,7 @@ from iwsim.envs.pusht import GOAL_POSE, PALETTE, VIEW_HALF
 _NAMES = ["block"] + [n for n in PALETTE if n != "block"]
 _COLOURS = np.array([np.round(np.array(PALETTE[n]) * 255) for n in _NAMES], dtype=np.float32)
 # Every pixel is modelled as a mix of two palette colours (a colour with itself = pure).
-_PAIRS = [(i, i) for i in range(len(_NAMES))] + list(combinations(range(len(_NAMES)), 2))
+_PAIRS = np.array([(i, i) for i in range(len(_NAMES))] + list(combinations(range(len(_NAMES)), 2)))
 
 
 def pixel_centers(image_size: int, view_half: float = VIEW_HALF) -> np.ndarray:
@@ -72,29 +72,33 @@ def _check_frame(frame: np.ndarray) -> np.ndarray:
     return frame
 
 
-def colour_fraction(frame: np.ndarray, name: str = "block") -> np.ndarray:
-    """(..., H, W, 3) uint8 frames -> (..., H, W) float32 fraction of each pixel that shows
-    the palette surface ``name`` (block, left, right, goal, table, wall).
+def colour_fractions(frame: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """(..., H, W, 3) uint8 frames -> (..., K, H, W) float32 fraction of each pixel that
+    shows each of the K palette surfaces ``names`` (block, left, right, goal, table, wall).
 
     Each pixel is explained as the best mix of two palette colours (anti-aliased edges
-    blend two surfaces); the surface's share of that mix is the answer.
+    blend two surfaces); a surface's share of that mix is the answer.
     """
-    if name not in _NAMES:
-        raise ValueError(f"unknown surface {name!r}; expected one of {_NAMES}.")
-    k = _NAMES.index(name)
-    p = _check_frame(frame).astype(np.float32)
-    best_err = np.full(p.shape[:-1], np.inf, np.float32)
-    best_frac = np.zeros(p.shape[:-1], np.float32)
-    for i, j in _PAIRS:
-        a, b = _COLOURS[i], _COLOURS[j]
-        d = b - a
-        gamma = np.zeros(p.shape[:-1], np.float32) if i == j else np.clip(((p - a) @ d) / (d @ d), 0, 1)
-        err = np.sum((p - a - gamma[..., None] * d) ** 2, axis=-1)
-        frac = (1 - gamma) * (i == k) + gamma * (j == k)
-        better = err < best_err
-        best_err = np.where(better, err, best_err)
-        best_frac = np.where(better, frac, best_frac)
-    return best_frac
+    for name in names:
+        if name not in _NAMES:
+            raise ValueError(f"unknown surface {name!r}; expected one of {_NAMES}.")
+    p = _check_frame(frame).astype(np.float32)[..., None, :]  # (..., H, W, 1, 3)
+    a, b = _COLOURS[_PAIRS[:, 0]], _COLOURS[_PAIRS[:, 1]]  # (P, 3): every pair at once
+    d = b - a
+    dd = np.maximum((d * d).sum(-1), 1e-12)  # a pair of one colour twice has d = 0
+    gamma = np.clip(((p - a) * d).sum(-1) / dd, 0, 1)  # (..., H, W, P): the second colour's share
+    err = ((p - a - gamma[..., None] * d) ** 2).sum(-1)
+    best = err.argmin(-1)[..., None]  # the first pair of least error
+    gamma = np.take_along_axis(gamma, best, -1)[..., 0]
+    first, second = _PAIRS[best[..., 0], 0], _PAIRS[best[..., 0], 1]
+    out = [(1 - gamma) * (first == k) + gamma * (second == k) for k in map(_NAMES.index, names)]
+    return np.stack(out, axis=-3).astype(np.float32)
+
+
+def colour_fraction(frame: np.ndarray, name: str = "block") -> np.ndarray:
+    """(..., H, W, 3) uint8 frames -> (..., H, W) float32 fraction of each pixel that shows
+    the palette surface ``name`` (see :func:`colour_fractions`)."""
+    return colour_fractions(frame, (name,))[..., 0, :, :]
 
 
 def block_fraction(frame: np.ndarray) -> np.ndarray:
@@ -109,8 +113,8 @@ def pusher_positions(frame: np.ndarray, min_pixels: float = 1.0) -> tuple[np.nda
     frame = _check_frame(frame)
     centers = pixel_centers(frame.shape[-2])
     out, found = [], []
-    for name in ("left", "right"):
-        w = colour_fraction(frame, name)
+    fractions = colour_fractions(frame, ("left", "right"))
+    for w in (fractions[..., 0, :, :], fractions[..., 1, :, :]):
         total = w.sum(axis=(-2, -1))
         xy = np.einsum("...hw,hwc->...c", w, centers) / np.maximum(total, 1e-9)[..., None]
         ok = total >= min_pixels

@@ -17,6 +17,7 @@ run in lockstep (all start together and are truncated together after
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +33,18 @@ from iwsim.world_model import WorldModel
 SOURCES = ("mujoco", "store")
 
 
-class _Starts:
-    """Initial frames and pusher positions from MuJoCo resets or from a store."""
+@dataclass(frozen=True)
+class Start:
+    """An initial frame (H, W, 3) uint8, its pusher positions (4,) and, when known, the
+    MuJoCo state ``[lx, ly, rx, ry, bx, by, byaw]`` that renders it (``reset_to_state``)."""
+
+    frame: np.ndarray
+    agent_pos: np.ndarray
+    state: np.ndarray | None
+
+
+class Starts:
+    """Initial frames from MuJoCo resets or from a random frame of an episode store."""
 
     def __init__(self, source: str, image_size: int, store: str | Path | None, task: str) -> None:
         if source not in SOURCES:
@@ -51,8 +62,12 @@ class _Starts:
             if size != image_size:
                 raise ValueError(f"{store} holds {size}x{size} frames; the world model needs {image_size}x{image_size}.")
 
-    def draw(self, seed: int, source: str | None = None, state: Any = None) -> tuple[np.ndarray, np.ndarray]:
-        """(frame (H, W, 3) uint8, agent_pos (4,) float32) for ``seed``."""
+    @property
+    def has_store(self) -> bool:
+        return self._store is not None
+
+    def draw(self, seed: int, source: str | None = None, state: Any = None) -> Start:
+        """The start for ``seed`` (and, for MuJoCo, an explicit ``state`` if given)."""
         source = source or self.source
         if source == "mujoco":
             if self._env is None:
@@ -60,7 +75,7 @@ class _Starts:
 
                 self._env = make_env(self.task, self.image_size)
             obs, _ = self._env.reset(seed=int(seed), options=None if state is None else {"reset_to_state": state})
-            return obs["pixels"], obs["agent_pos"]
+            return Start(obs["pixels"], obs["agent_pos"], self._env.unwrapped.get_state())
         if source != "store" or self._store is None:
             raise ValueError(f"reset source {source!r} is not available; expected one of {SOURCES} "
                              "(and a store for 'store').")
@@ -70,9 +85,13 @@ class _Starts:
         start = 0 if e == 0 else int(ends[e - 1])
         i = int(rng.integers(start, ends[e]))
         frame = np.asarray(self._store.array("img")[i])
-        if "state" in self._store.keys:
-            return frame, np.asarray(self._store.array("state")[i], dtype=np.float32)
-        return frame, _agent_pos(frame[None], np.zeros((1, 4), np.float32))[0]
+        if "state" not in self._store.keys:
+            return Start(frame, read_agent_pos(frame[None], np.zeros((1, 4), np.float32))[0], None)
+        pos = np.asarray(self._store.array("state")[i], dtype=np.float32)
+        state = None
+        if "block_pose" in self._store.keys:
+            state = np.concatenate([pos, self._store.array("block_pose")[i]]).astype(np.float64)
+        return Start(frame, pos, state)
 
     def close(self) -> None:
         if self._env is not None:
@@ -80,7 +99,7 @@ class _Starts:
             self._env = None
 
 
-def _agent_pos(frames: np.ndarray, previous: np.ndarray) -> np.ndarray:
+def read_agent_pos(frames: np.ndarray, previous: np.ndarray) -> np.ndarray:
     """Pusher positions read from frames (B, H, W, 3); a pusher not seen keeps its previous position."""
     pos, found = pusher_positions(frames)
     keep = np.repeat(~found, 2, axis=-1)
@@ -112,7 +131,7 @@ class WorldModelEnv(gym.Env):
             raise ValueError(f"the world model takes {self.model.action_dim}-D actions; {task} needs 4.")
         self.render_mode, self.terminate_on_success = render_mode, terminate_on_success
         self.action_space, self.observation_space = spaces(self.model.image_size)
-        self._starts = _Starts(reset_source, self.model.image_size, store, task)
+        self._starts = Starts(reset_source, self.model.image_size, store, task)
         self._frame: np.ndarray | None = None
         self._agent_pos = np.zeros(4, np.float32)
 
@@ -128,10 +147,10 @@ class WorldModelEnv(gym.Env):
         if "frame" in options:
             frame = self.model.check_frames(np.asarray(options["frame"])[None], 4).numpy()[0]
             pos = options.get("agent_pos")
-            pos = _agent_pos(frame[None], np.zeros((1, 4), np.float32))[0] if pos is None else pos
+            pos = read_agent_pos(frame[None], np.zeros((1, 4), np.float32))[0] if pos is None else pos
         else:
-            frame, pos = self._starts.draw(draw, options.get("source"),
-                                           options.get("reset_to_state"))
+            start = self._starts.draw(draw, options.get("source"), options.get("reset_to_state"))
+            frame, pos = start.frame, start.agent_pos
         self.model.reset(frame[None], seed=draw)
         self._frame, self._agent_pos = frame, np.asarray(pos, dtype=np.float32)
         return self._obs(), self._info()
@@ -140,7 +159,7 @@ class WorldModelEnv(gym.Env):
         if self._frame is None:
             raise RuntimeError("call reset() before step().")
         self._frame = self.model.step(np.asarray(action, dtype=np.float32)[None])[0]
-        self._agent_pos = _agent_pos(self._frame[None], self._agent_pos[None])[0]
+        self._agent_pos = read_agent_pos(self._frame[None], self._agent_pos[None])[0]
         info = self._info()
         terminated = bool(self.terminate_on_success and info["is_success"])
         return self._obs(), float(info["iou"]), terminated, False, info
@@ -180,7 +199,7 @@ class WorldModelVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.render_mode = "rgb_array"
-        self._starts = _Starts(reset_source, self.model.image_size, store, task)
+        self._starts = Starts(reset_source, self.model.image_size, store, task)
         self._frames: np.ndarray | None = None
         self._agent_pos = np.zeros((num_envs, 4), np.float32)
         self._t = 0
@@ -202,11 +221,11 @@ class WorldModelVectorEnv(VectorEnv):
             frames = self.model.check_frames(np.asarray(options["frames"]), 4).numpy()
             if len(frames) != self.num_envs:
                 raise ValueError(f"got {len(frames)} frames for {self.num_envs} environments.")
-            pos = np.asarray(options.get("agent_pos", _agent_pos(frames, np.zeros((len(frames), 4), np.float32))))
+            pos = np.asarray(options.get("agent_pos", read_agent_pos(frames, np.zeros((len(frames), 4), np.float32))))
         else:
             drawn = [self._starts.draw(s, options.get("source")) for s in seeds]
-            frames = np.stack([f for f, _ in drawn])
-            pos = np.stack([p for _, p in drawn])
+            frames = np.stack([d.frame for d in drawn])
+            pos = np.stack([d.agent_pos for d in drawn])
         self.model.reset(frames, seed=seeds)
         self._frames, self._agent_pos = frames, pos.astype(np.float32)
         self._t, self._needs_reset = 0, False
@@ -220,7 +239,7 @@ class WorldModelVectorEnv(VectorEnv):
             zeros = np.zeros(self.num_envs, dtype=bool)
             return obs, np.zeros(self.num_envs), zeros, zeros.copy(), info
         self._frames = self.model.step(np.asarray(actions, dtype=np.float32))
-        self._agent_pos = _agent_pos(self._frames, self._agent_pos)
+        self._agent_pos = read_agent_pos(self._frames, self._agent_pos)
         self._t += 1
         info = self._info()
         truncated = np.full(self.num_envs, self._t >= self.max_episode_steps)

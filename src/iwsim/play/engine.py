@@ -1,0 +1,310 @@
+"""Play sessions: per-connection world-model state, stepped together at a fixed control rate.
+
+The engine knows nothing of sockets: the server calls :meth:`Engine.open` per connection,
+:meth:`Engine.handle` per parsed message and :meth:`Engine.tick` once per control step,
+and sends what they return. Everything runs on one thread (the server's event loop), so
+sessions need no locks; only saving an episode goes to a writer thread.
+
+Each session holds its own :class:`~iwsim.world_model.StreamState`. A tick joins the
+states of all sessions with the same context length (all of them, once each has run N - 1
+steps) into one batch, takes one forward pass and splits the states again.
+
+Recording: step t stores the frame shown before action t, the pusher positions read from
+it, the action and the frame's pixel IoU (``img``, ``state``, ``action``, ``iou``: the
+layout of ``iwsim collect``). The take lives in memory until it is saved, and a save is
+one atomic append, so a client that vanishes mid-recording leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from iwsim.envs.pixels import pixel_iou
+from iwsim.envs.pusht import TaskSpec
+from iwsim.envs.world_model_env import Start, Starts, read_agent_pos
+from iwsim.play import protocol as proto
+from iwsim.world_model import StreamState, WorldModel
+
+log = logging.getLogger(__name__)
+
+EPISODE_KEYS = ("img", "state", "action", "iou")
+
+
+@dataclass(frozen=True)
+class PlayConfig:
+    hz: float = 10.0  # control steps per second
+    max_sessions: int = 4
+    record_to: Path | None = None  # episode store that saved takes are appended to
+    store: Path | None = None  # episode store to draw "store" resets from
+    task: str = "pusht"
+    max_record_steps: int = 6000  # 10 minutes at 10 Hz
+    checkpoint: str = ""  # recorded in the store's attributes
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.hz, (int, float)) and 0 < self.hz <= 60):
+            raise ValueError(f"the control rate must be in (0, 60] Hz, got {self.hz!r}.")
+        if not (isinstance(self.max_sessions, int) and self.max_sessions >= 1):
+            raise ValueError(f"max sessions must be a positive integer, got {self.max_sessions!r}.")
+        if not (isinstance(self.max_record_steps, int) and self.max_record_steps >= 1):
+            raise ValueError(f"max record steps must be a positive integer, got {self.max_record_steps!r}.")
+
+
+@dataclass
+class Session:
+    """One connection's simulator: world-model state, the current action, a MuJoCo twin in
+    side-by-side mode, and the take being recorded."""
+
+    id: int
+    target: np.ndarray  # the action applied at every step until the client sends another
+    ack: int = -1  # seq of the last action message
+    state: StreamState | None = None
+    frame: np.ndarray | None = None  # the world model's current frame (H, W, 3)
+    agent_pos: np.ndarray = field(default_factory=lambda: np.zeros(4, np.float32))
+    iou: float = 0.0
+    step: int = 0
+    start: Start | None = None
+    source: str = "mujoco"
+    seed: int = 0
+    twin: Any = None  # MuJoCo env in side-by-side mode
+    twin_frame: np.ndarray | None = None
+    twin_iou: float | None = None
+    take: dict[str, list] | None = None  # the recording in progress
+    closed: bool = False
+
+
+class Recorder:
+    """Appends saved takes to an episode store, one at a time, on a writer thread."""
+
+    def __init__(self, path: Path, attrs: dict[str, Any]) -> None:
+        from iwsim.data.store import EpisodeStore, StoreError
+
+        if path.exists():
+            store = EpisodeStore.open(path, "a")
+            have = store.attrs
+            for key in ("task", "image_size"):
+                if have.get(key) != attrs[key]:
+                    raise StoreError(f"{path} holds episodes with {key}={have.get(key)!r}, not {attrs[key]!r}; "
+                                     "record into another store.")
+            if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
+                raise StoreError(f"{path} holds arrays {store.keys}, not the recorded {sorted(EPISODE_KEYS)} "
+                                 "(a store of iwsim collect?); record into another store.")
+        else:
+            store = EpisodeStore.create(path, attrs)
+        self.store, self.path = store, path
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="iwsim-recorder")
+
+    def save(self, episode: dict[str, np.ndarray], seed: int) -> Future[int]:
+        """Append ``episode`` in the background; the future gives its index in the store."""
+        def write() -> int:
+            self.store.append(episode, seed=seed)
+            return self.store.n_episodes - 1
+
+        return self._writer.submit(write)
+
+    def close(self) -> None:
+        self._writer.shutdown(wait=True)
+
+
+class Engine:
+    """The simulator behind ``iwsim play`` (see the module docstring)."""
+
+    def __init__(self, model: WorldModel, cfg: PlayConfig = PlayConfig()) -> None:
+        if model.action_dim != 4:
+            raise ValueError(f"the world model takes {model.action_dim}-D actions; {cfg.task} needs 4.")
+        self.model, self.cfg = model, cfg
+        self.spec = TaskSpec()
+        self.low = np.asarray(self.spec.action_low, np.float32)
+        self.high = np.asarray(self.spec.action_high, np.float32)
+        self.starts = Starts("mujoco", model.image_size, cfg.store, cfg.task)
+        self.recorder: Recorder | None = None
+        if cfg.record_to is not None:
+            from iwsim.data.collect import store_attrs
+
+            attrs = {**store_attrs(cfg.task, "teleop", 0, model.image_size), "steps": None,
+                     "source": "world_model", "world_model": cfg.checkpoint, "keys": list(EPISODE_KEYS)}
+            self.recorder = Recorder(Path(cfg.record_to), attrs)
+        self.sessions: dict[int, Session] = {}
+        self._saves: list[tuple[Session, Future[int], int]] = []
+        self._next_id = 0
+        self._rng = np.random.default_rng()
+        self.last_step_ms = 0.0
+
+    # -- sessions -------------------------------------------------------------------------
+    def open(self) -> Session | None:
+        """A new session, reset to a fresh MuJoCo start, or None when ``max_sessions`` are open."""
+        if len(self.sessions) >= self.cfg.max_sessions:
+            return None
+        s = Session(self._next_id, target=np.zeros(4, np.float32))
+        self._next_id += 1
+        self.sessions[s.id] = s
+        self.reset(s, "mujoco", None)
+        return s
+
+    def close(self, s: Session) -> None:
+        """Forget the session; an unsaved take is dropped."""
+        s.closed, s.take = True, None
+        if s.twin is not None:
+            s.twin.close()
+            s.twin = None
+        self.sessions.pop(s.id, None)
+
+    def hello(self, s: Session) -> str:
+        return proto.event(
+            "hello", session=s.id, image_size=self.model.image_size, hz=self.cfg.hz,
+            action_low=self.low.tolist(), action_high=self.high.tolist(),
+            action_names=list(self.spec.action_names), view_half=self.spec.view_half,
+            reset_sources=["mujoco", *(["store"] if self.starts.has_store else [])],
+            recording_to=None if self.recorder is None else str(self.recorder.path),
+            max_message_bytes=proto.MAX_MESSAGE_BYTES)
+
+    # -- messages -------------------------------------------------------------------------
+    def handle(self, s: Session, msg: proto.Message) -> list[str]:
+        """Apply one parsed client message; returns the events to send back (a reset's
+        first frame goes out with the next tick's frames, see :meth:`frame_message`)."""
+        if isinstance(msg, proto.Action):
+            s.target = np.clip(np.asarray(msg.action, np.float32), self.low, self.high)
+            s.ack = msg.seq
+            return []
+        if isinstance(msg, proto.Reset):
+            if msg.source == "store" and not self.starts.has_store:
+                return [proto.event("error", message="no store to reset from; start iwsim play with --store PATH.")]
+            dropped = self._drop_take(s)
+            self.reset(s, msg.source, msg.seed)
+            return dropped + [self._status(s, f"reset to a {msg.source} start (seed {s.seed})")]
+        if isinstance(msg, proto.SideBySide):
+            dropped = self._drop_take(s)
+            if msg.on and s.twin is None:
+                from iwsim.envs import make_env
+
+                s.twin = make_env(self.cfg.task, self.model.image_size)
+            elif not msg.on and s.twin is not None:
+                s.twin.close()
+                s.twin, s.twin_frame, s.twin_iou = None, None, None
+            self.reset(s, s.source, s.seed)
+            note = "" if s.twin is None or s.start.state is not None else " (this start has no MuJoCo state)"
+            return dropped + [self._status(s, f"side by side {'on' if msg.on else 'off'}: episode restarted{note}")]
+        return self._command(s, msg.name)
+
+    def _command(self, s: Session, name: str) -> list[str]:
+        if name == "record":
+            if s.take is not None:
+                return [proto.event("error", message="already recording; save (s) or discard (q) first.")]
+            if self.recorder is None:
+                return [proto.event("error", message="recording is off; start iwsim play with --record-to STORE.")]
+            s.take = {k: [] for k in EPISODE_KEYS}
+            return [self._status(s, "recording")]
+        if s.take is None:
+            return [proto.event("error", message=f"nothing to {name}: not recording (press c to record).")]
+        if name == "discard":
+            n = len(s.take["img"])
+            s.take = None
+            return [self._status(s, f"discarded {n} steps")]
+        take, s.take = s.take, None
+        if not take["img"]:
+            return [self._status(s, "nothing recorded yet; take discarded")]
+        episode = {k: np.stack(v) for k, v in take.items()}
+        self._saves.append((s, self.recorder.save(episode, s.seed), len(episode["img"])))
+        return [self._status(s, f"saving {len(episode['img'])} steps")]
+
+    def finished_saves(self) -> list[tuple[Session, str]]:
+        """Events for the saves written since the last call: ``saved`` with the episode's
+        index in the store, or an ``error`` if the append failed (the store is unchanged)."""
+        done = [x for x in self._saves if x[1].done()]
+        self._saves = [x for x in self._saves if not x[1].done()]
+        out = []
+        for s, future, n in done:
+            try:
+                out.append((s, proto.event("saved", episode=future.result(), steps=n,
+                                           store=str(self.recorder.path))))
+            except Exception as e:  # noqa: BLE001 - the client hears why; the server goes on
+                log.error("saving a take of session %d failed: %s", s.id, e)
+                out.append((s, proto.event("error", message=f"saving failed: {e}")))
+        return out
+
+    def _drop_take(self, s: Session) -> list[str]:
+        if s.take is None:
+            return []
+        n = len(s.take["img"])
+        s.take = None
+        return [proto.event("status", message=f"recording of {n} steps discarded by the restart", recording=None)]
+
+    def _status(self, s: Session, message: str) -> str:
+        return proto.event("status", message=message, recording=None if s.take is None else len(s.take["img"]))
+
+    # -- stepping -------------------------------------------------------------------------
+    def reset(self, s: Session, source: str, seed: int | None) -> None:
+        """Start the session's episode from a MuJoCo reset or a store frame."""
+        seed = int(self._rng.integers(proto.MAX_SEED)) if seed is None else seed
+        start = self.starts.draw(seed, source)
+        self.model.reset(start.frame[None], seed=seed)
+        s.state, s.start, s.source, s.seed, s.step = self.model.state, start, source, seed, 0
+        s.frame, s.agent_pos = start.frame, start.agent_pos.astype(np.float32)
+        s.target = np.clip(s.agent_pos, self.low, self.high)  # the pushers hold still
+        s.iou = float(pixel_iou(s.frame))
+        s.twin_frame = s.twin_iou = None
+        if s.twin is not None and start.state is not None:
+            obs, info = s.twin.reset(seed=seed, options={"reset_to_state": start.state})
+            s.twin_frame, s.twin_iou = obs["pixels"], float(info["iou"])
+
+    def tick(self) -> list[Session]:
+        """One control step of every session: record, then step all world models in as few
+        batched passes as context lengths differ, and the MuJoCo twins. Returns the sessions
+        stepped."""
+        sessions = [s for s in self.sessions.values() if s.state is not None]
+        if not sessions:
+            return []
+        t0 = time.perf_counter()
+        for s in sessions:
+            if s.take is not None and len(s.take["img"]) < self.cfg.max_record_steps:
+                for key, value in zip(EPISODE_KEYS, (s.frame, s.agent_pos, s.target, s.iou)):
+                    s.take[key].append(np.asarray(value, np.uint8 if key == "img" else np.float32))
+        groups: dict[int, list[Session]] = defaultdict(list)
+        for s in sessions:
+            groups[s.state.context_frames].append(s)
+        for group in groups.values():
+            self.model.state = StreamState.cat([s.state for s in group])
+            frames = self.model.step(np.stack([s.target for s in group]))
+            for s, state, frame in zip(group, self.model.state.split(), frames):
+                s.state, s.frame = state, frame
+        frames = np.stack([s.frame for s in sessions])
+        ious = np.atleast_1d(pixel_iou(frames))
+        pos = read_agent_pos(frames, np.stack([s.agent_pos for s in sessions]))
+        for s, iou, p in zip(sessions, ious, pos):
+            s.iou, s.agent_pos, s.step = float(iou), p, s.step + 1
+            if s.twin_frame is not None:
+                obs, _, _, _, info = s.twin.step(s.target)
+                s.twin_frame, s.twin_iou = obs["pixels"], float(info["iou"])
+        self.last_step_ms = 1000 * (time.perf_counter() - t0)
+        return sessions
+
+    def frame_message(self, s: Session) -> bytes:
+        """The session's current frame(s) and what the page shows with them."""
+        views, names = [s.frame], ["world_model"]
+        if s.twin_frame is not None:
+            views.append(s.twin_frame)
+            names.append("mujoco")
+        header = {
+            "type": "frame", "step": s.step, "ack": s.ack, "action": s.target.tolist(),
+            "agent_pos": s.agent_pos.tolist(), "iou": s.iou, "mujoco_iou": s.twin_iou,
+            "size": self.model.image_size, "views": names, "source": s.source, "seed": s.seed,
+            "recording": None if s.take is None else len(s.take["img"]),
+            "record_limit": self.cfg.max_record_steps, "step_ms": round(self.last_step_ms, 2),
+            "sessions": len(self.sessions),
+        }
+        return proto.pack_frame(header, views)
+
+    def shutdown(self) -> None:
+        for s in list(self.sessions.values()):
+            self.close(s)
+        if self.recorder is not None:
+            self.recorder.close()
+        self.starts.close()
+

@@ -1,0 +1,292 @@
+// iwsim play: drive the world model from the browser.
+// The page owns the pushers' targets (the action) and sends them when they change; the
+// server applies the latest one at every control step and streams frames back. Frames
+// are binary: uint32 header length, JSON header, then each view's RGB bytes.
+"use strict";
+
+const KEY_SPEED = 0.2;   // m/s of a target under a held key or a full stick
+const DRAG_SPEED = 0.3;  // m/s at most when a target follows the mouse (the play data's top speed)
+const STICK_DEADZONE = 0.15;
+const MOVES = {  // key -> [pusher, dx, dy]
+  w: [0, 0, 1], s: [0, 0, -1], a: [0, -1, 0], d: [0, 1, 0],
+  i: [1, 0, 1], k: [1, 0, -1], j: [1, -1, 0], l: [1, 1, 0],
+};
+const COLOURS = ["#2e6beb", "#9e38c7"];
+
+const $ = (id) => document.getElementById(id);
+const wmCanvas = $("wm"), twinCanvas = $("twin");
+const state = {
+  ws: null, hello: null, target: null, seq: 0, held: new Set(), drag: null, mouse: null,
+  pads: {}, lastTick: performance.now(), header: null, frames: 0,
+  frameTimes: [], latencies: [], pending: null,  // pending: {seq, t} of the last press not yet seen
+};
+// For tests and benchmarks: what the page has seen.
+window.iwsim = { state, stats: { fps: 0, latencyP95: null, latencyLast: null, frames: 0 } };
+
+function connect() {
+  const token = new URLSearchParams(location.search).get("token");
+  const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws` +
+    (token ? `?token=${encodeURIComponent(token)}` : "");
+  const ws = new WebSocket(url);
+  ws.binaryType = "arraybuffer";
+  state.ws = ws;
+  ws.onopen = () => setConn("connected");
+  ws.onclose = (e) => setConn(`disconnected${e.reason ? ` (${e.reason})` : ""} — reload to reconnect`);
+  ws.onmessage = (e) => (typeof e.data === "string" ? onEvent(JSON.parse(e.data)) : onFrame(e.data));
+}
+
+function send(msg) {
+  if (state.ws && state.ws.readyState === WebSocket.OPEN) state.ws.send(JSON.stringify(msg));
+}
+
+function setConn(text) { $("conn").textContent = text; }
+
+function say(text, kind = "") {
+  const m = $("message");
+  m.textContent = text;
+  m.className = kind;
+}
+
+// ---- server events --------------------------------------------------------------------
+function onEvent(msg) {
+  if (msg.type === "hello") {
+    state.hello = msg;
+    $("reset-store").disabled = !msg.reset_sources.includes("store");
+    $("record").disabled = !msg.recording_to;
+    $("rate").textContent = `control rate ${msg.hz} Hz` +
+      (msg.recording_to ? ` · recording to ${msg.recording_to}` : " · recording off (--record-to)");
+  } else if (msg.type === "status") {
+    say(msg.message);
+  } else if (msg.type === "saved") {
+    say(`saved episode ${msg.episode} (${msg.steps} steps) to ${msg.store}`, "ok");
+  } else if (msg.type === "error" || msg.type === "busy") {
+    say(msg.message, "error");
+    if (msg.type === "busy") setConn("busy");
+  }
+}
+
+function onFrame(buf) {
+  const view = new DataView(buf);
+  const n = view.getUint32(0, true);
+  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
+  const size = header.size, px = size * size * 3;
+  const now = performance.now();
+  if (state.target === null || (header.step === 0 && state.header && state.header.step !== 0) ||
+      (state.header && (header.seed !== state.header.seed || header.source !== state.header.source))) {
+    state.target = header.action.slice();  // a new episode: the pushers start where they are
+  }
+  state.header = header;
+  header.views.forEach((name, v) => {
+    const canvas = name === "mujoco" ? twinCanvas : wmCanvas;
+    draw(canvas, new Uint8Array(buf, 4 + n + v * px, px), size, name === "world_model");
+  });
+  $("twin-view").hidden = !header.views.includes("mujoco");
+  if (state.pending && header.ack >= state.pending.seq) {
+    state.latencies.push(now - state.pending.t);
+    if (state.latencies.length > 200) state.latencies.shift();
+    state.pending = null;
+  }
+  state.frameTimes.push(now);
+  while (state.frameTimes.length && now - state.frameTimes[0] > 2000) state.frameTimes.shift();
+  state.frames += 1;
+  updateHud(header, now);
+}
+
+function updateHud(h, now) {
+  const st = window.iwsim.stats;
+  const ft = state.frameTimes;
+  st.fps = ft.length > 1 ? (ft.length - 1) / ((ft[ft.length - 1] - ft[0]) / 1000) : 0;
+  st.frames = state.frames;
+  const lat = state.latencies;
+  if (lat.length) {
+    const sorted = lat.slice().sort((a, b) => a - b);
+    st.latencyLast = lat[lat.length - 1];
+    st.latencyP95 = sorted[Math.min(sorted.length - 1, Math.floor(0.95 * sorted.length))];
+    $("latency").textContent = `${st.latencyLast.toFixed(0)} ms (p95 ${st.latencyP95.toFixed(0)} ms)`;
+  }
+  $("fps").textContent = st.fps.toFixed(1);
+  $("step").textContent = h.step;
+  $("iou").textContent = h.iou.toFixed(3);
+  $("twin-iou").textContent = h.mujoco_iou === null ? "–" : h.mujoco_iou.toFixed(3);
+  $("step-ms").textContent = `${h.step_ms.toFixed(1)} ms · ${h.sessions} session${h.sessions === 1 ? "" : "s"}`;
+  $("episode").textContent = `${h.source} seed ${h.seed}`;
+  $("rec").textContent = h.recording === null ? "" :
+    `● REC ${h.recording} steps${h.recording >= h.record_limit ? " (limit reached: save or discard)" : ""}`;
+}
+
+// ---- drawing --------------------------------------------------------------------------
+const scratch = document.createElement("canvas");
+function draw(canvas, rgb, size, overlay) {
+  scratch.width = scratch.height = size;
+  const sctx = scratch.getContext("2d");
+  const img = sctx.createImageData(size, size);
+  for (let i = 0, j = 0; i < rgb.length; i += 3, j += 4) {
+    img.data[j] = rgb[i]; img.data[j + 1] = rgb[i + 1]; img.data[j + 2] = rgb[i + 2]; img.data[j + 3] = 255;
+  }
+  sctx.putImageData(img, 0, 0);
+  const ctx = canvas.getContext("2d");
+  ctx.imageSmoothingEnabled = false;  // crisp pixels
+  ctx.drawImage(scratch, 0, 0, canvas.width, canvas.height);
+  if (overlay && state.target) drawTargets(ctx, canvas);
+}
+
+function toCanvas(x, y, canvas) {
+  const vh = state.hello.view_half;
+  return [(x + vh) / (2 * vh) * canvas.width, (vh - y) / (2 * vh) * canvas.height];
+}
+
+function toWorld(cx, cy, canvas) {
+  const vh = state.hello.view_half, r = canvas.getBoundingClientRect();
+  return [(cx - r.left) / r.width * 2 * vh - vh, vh - (cy - r.top) / r.height * 2 * vh];
+}
+
+function drawTargets(ctx, canvas) {
+  for (let p = 0; p < 2; p++) {
+    const [x, y] = toCanvas(state.target[2 * p], state.target[2 * p + 1], canvas);
+    ctx.strokeStyle = COLOURS[p];
+    ctx.lineWidth = 3;
+    ctx.beginPath();
+    ctx.arc(x, y, 16, 0, 2 * Math.PI);
+    ctx.moveTo(x - 22, y); ctx.lineTo(x - 10, y); ctx.moveTo(x + 10, y); ctx.lineTo(x + 22, y);
+    ctx.moveTo(x, y - 22); ctx.lineTo(x, y - 10); ctx.moveTo(x, y + 10); ctx.lineTo(x, y + 22);
+    ctx.stroke();
+  }
+}
+
+// ---- controls -------------------------------------------------------------------------
+function clip(a) {
+  const lo = state.hello.action_low, hi = state.hello.action_high;
+  return a.map((v, i) => Math.min(hi[i], Math.max(lo[i], v)));
+}
+
+// Move the targets by velocity (m/s, per pusher [vx, vy]) for dt seconds; send if they moved.
+function move(vel, dt, press) {
+  if (!state.target || !state.hello) return;
+  const next = clip(state.target.map((v, i) => v + vel[i >> 1][i & 1] * dt));
+  if (next.some((v, i) => Math.abs(v - state.target[i]) > 1e-6)) {
+    state.target = next;
+    state.seq += 1;
+    if (press && !state.pending) state.pending = { seq: state.seq, t: press };
+    send({ type: "action", seq: state.seq, action: state.target });
+  }
+}
+
+function keyVelocity() {
+  const vel = [[0, 0], [0, 0]];
+  for (const k of state.held) {
+    const [p, dx, dy] = MOVES[k];
+    vel[p][0] += dx * KEY_SPEED; vel[p][1] += dy * KEY_SPEED;
+  }
+  return vel;
+}
+
+function padVelocity() {
+  const vel = [[0, 0], [0, 0]];
+  for (const pad of navigator.getGamepads ? navigator.getGamepads() : []) {
+    if (!pad) continue;
+    const ax = pad.axes.map((v) => (Math.abs(v) < STICK_DEADZONE ? 0 : v));
+    vel[0][0] += (ax[0] || 0) * KEY_SPEED; vel[0][1] -= (ax[1] || 0) * KEY_SPEED;
+    vel[1][0] += (ax[2] || 0) * KEY_SPEED; vel[1][1] -= (ax[3] || 0) * KEY_SPEED;
+    const was = state.pads[pad.index] || [];
+    const pressed = pad.buttons.map((b) => b.pressed);
+    const edge = (i) => pressed[i] && !was[i];
+    if (edge(2)) command("record");
+    if (edge(3)) command("save");
+    if (edge(1)) command("discard");
+    if (edge(9)) resetMujoco();
+    state.pads[pad.index] = pressed;
+  }
+  return vel;
+}
+
+function dragVelocity(dt) {
+  const vel = [[0, 0], [0, 0]];
+  if (state.drag === null || !state.mouse || !state.target) return vel;
+  const p = state.drag;
+  const dx = state.mouse[0] - state.target[2 * p], dy = state.mouse[1] - state.target[2 * p + 1];
+  const dist = Math.hypot(dx, dy);
+  if (dist > 1e-6 && dt > 0) {
+    const speed = Math.min(DRAG_SPEED, dist / dt);  // reach the cursor, no faster than DRAG_SPEED
+    vel[p] = [dx / dist * speed, dy / dist * speed];
+  }
+  return vel;
+}
+
+function frameLoop(now) {
+  const dt = Math.min(0.1, (now - state.lastTick) / 1000);
+  state.lastTick = now;
+  const k = keyVelocity(), g = padVelocity(), d = dragVelocity(dt);
+  move([0, 1].map((p) => [k[p][0] + g[p][0] + d[p][0], k[p][1] + g[p][1] + d[p][1]]), dt, null);
+  requestAnimationFrame(frameLoop);
+}
+
+function command(name) { send({ type: name }); }
+
+function resetMujoco() {
+  const v = $("seed").value.trim();
+  const msg = { type: "reset", source: "mujoco" };
+  if (v !== "") msg.seed = Number(v);
+  state.target = null;
+  send(msg);
+}
+
+function resetStore() { state.target = null; send({ type: "reset", source: "store" }); }
+
+document.addEventListener("keydown", (e) => {
+  if (e.target instanceof HTMLInputElement && e.target.type === "number") return;
+  const key = e.key.toLowerCase();
+  if (e.key === "Enter" || (e.key === "S" && e.shiftKey)) { command("save"); e.preventDefault(); return; }
+  if (e.ctrlKey || e.metaKey || e.altKey) return;
+  if (key in MOVES) {
+    e.preventDefault();
+    if (!state.held.has(key)) {
+      state.held.add(key);
+      // a press moves the target by one control step at once (a tap nudges); holding
+      // keeps it moving in the frame loop
+      const [p, dx, dy] = MOVES[key];
+      const vel = [[0, 0], [0, 0]];
+      vel[p] = [dx * KEY_SPEED, dy * KEY_SPEED];
+      move(vel, 1 / (state.hello ? state.hello.hz : 10), performance.now());
+    }
+    return;
+  }
+  if (e.repeat) return;
+  if (key === "c") command("record");
+  else if (key === "q") command("discard");
+  else if (key === "r") resetMujoco();
+  else if (key === "t" && !$("reset-store").disabled) resetStore();
+  else if (key === "b") { $("side").checked = !$("side").checked; sideBySide(); }
+});
+document.addEventListener("keyup", (e) => state.held.delete(e.key.toLowerCase()));
+window.addEventListener("blur", () => state.held.clear());
+
+function sideBySide() { state.target = null; send({ type: "side_by_side", on: $("side").checked }); }
+
+wmCanvas.addEventListener("pointerdown", (e) => {
+  if (!state.target || !state.hello) return;
+  const [x, y] = toWorld(e.clientX, e.clientY, wmCanvas);
+  const d = [0, 1].map((p) => Math.hypot(x - state.target[2 * p], y - state.target[2 * p + 1]));
+  state.drag = d[0] <= d[1] ? 0 : 1;
+  state.mouse = [x, y];
+  state.pending = null;
+  wmCanvas.setPointerCapture(e.pointerId);
+  wmCanvas.classList.add("dragging");
+  move(dragVelocity(1 / state.hello.hz), 1 / state.hello.hz, performance.now());
+});
+wmCanvas.addEventListener("pointermove", (e) => {
+  if (state.drag !== null) state.mouse = toWorld(e.clientX, e.clientY, wmCanvas);
+});
+const endDrag = () => { state.drag = null; wmCanvas.classList.remove("dragging"); };
+wmCanvas.addEventListener("pointerup", endDrag);
+wmCanvas.addEventListener("pointercancel", endDrag);
+
+$("record").onclick = () => command("record");
+$("save").onclick = () => command("save");
+$("discard").onclick = () => command("discard");
+$("reset-mujoco").onclick = resetMujoco;
+$("reset-store").onclick = resetStore;
+$("side").onchange = sideBySide;
+window.addEventListener("gamepadconnected", (e) => say(`gamepad connected: ${e.gamepad.id}`));
+
+connect();
+requestAnimationFrame(frameLoop);

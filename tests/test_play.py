@@ -1,0 +1,333 @@
+"""iwsim play: the protocol, the engine (sessions, batching, recording) and the real server
+over real WebSockets, on a tiny world model."""
+
+import contextlib
+import json
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import uvicorn
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from iwsim.cli import main
+from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.envs import make_env
+from iwsim.play import protocol as proto
+from iwsim.play.engine import EPISODE_KEYS, Engine, PlayConfig
+from iwsim.play.server import WS_MAX_BYTES, check_bind, create_app
+from tests.test_dynamics import tiny_world_model
+
+# -- helpers -------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def running(engine: Engine, token: str | None = None) -> Iterator[str]:
+    """A real uvicorn server for ``engine`` on a free loopback port; yields its ws:// base."""
+    server = uvicorn.Server(uvicorn.Config(create_app(engine, token), host="127.0.0.1", port=0,
+                                           ws_max_size=WS_MAX_BYTES, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
+        time.sleep(0.02)
+    port = server.servers[0].sockets[0].getsockname()[1]
+    try:
+        yield f"127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(30)
+
+
+def receive(ws, kind: str, timeout: float = 10.0, where=lambda m: True):
+    """The next message of ``kind`` (a frame header + views for "frame") that satisfies ``where``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        data = ws.recv(timeout=max(0.01, deadline - time.monotonic()))
+        if isinstance(data, bytes):
+            header, views = proto.unpack_frame(data)
+            if kind == "frame" and where(header):
+                return header, views
+        else:
+            msg = json.loads(data)
+            if msg["type"] == kind and where(msg):
+                return msg
+
+
+def close_code(ws, timeout: float = 10.0) -> int:
+    """Read until the server closes the connection; its close code."""
+    deadline = time.monotonic() + timeout
+    with pytest.raises(ConnectionClosed) as closed:
+        while time.monotonic() < deadline:
+            ws.recv(timeout=max(0.01, deadline - time.monotonic()))
+    return closed.value.rcvd.code
+
+
+def engine(**cfg) -> Engine:
+    return Engine(tiny_world_model(), PlayConfig(**cfg))
+
+
+def action(seq: int, a) -> proto.Action:
+    return proto.Action(seq, tuple(float(v) for v in a))
+
+
+# -- protocol ------------------------------------------------------------------------------
+
+BAD = {
+    "oversized": ('{"type": "action", "pad": "' + "x" * proto.MAX_MESSAGE_BYTES + '"}', "over the limit"),
+    "binary": (b'{"type": "record"}', "binary"),
+    "not json": ("{type: record", "not valid JSON"),
+    "not an object": ("[1, 2]", "JSON object"),
+    "no type": ('{"seq": 1}', "JSON object"),
+    "unknown type": ('{"type": "teleport"}', "unknown message type 'teleport'"),
+    "short action": ('{"type": "action", "seq": 1, "action": [0, 0, 0]}', "list of 4 numbers"),
+    "text action": ('{"type": "action", "seq": 1, "action": [0, 0, "0", 0]}', "list of 4 numbers"),
+    "bool action": ('{"type": "action", "seq": 1, "action": [0, 0, true, 0]}', "list of 4 numbers"),
+    "nan action": ('{"type": "action", "seq": 1, "action": [0, NaN, 0, 0]}', "finite"),
+    "huge action": ('{"type": "action", "seq": 1, "action": [0, 1e999, 0, 0]}', "finite"),
+    "no seq": ('{"type": "action", "action": [0, 0, 0, 0]}', "integer 'seq'"),
+    "negative seq": ('{"type": "action", "seq": -1, "action": [0, 0, 0, 0]}', "'seq' must be an integer"),
+    "float seq": ('{"type": "action", "seq": 1.5, "action": [0, 0, 0, 0]}', "'seq' must be an integer"),
+    "bad source": ('{"type": "reset", "source": "dream"}', "'source' must be one of"),
+    "bad seed": ('{"type": "reset", "seed": -3}', "'seed' must be an integer"),
+    "bad side": ('{"type": "side_by_side", "on": "yes"}', "'on' must be true or false"),
+    "deep json": ("[" * 2000 + "]" * 2000, "not valid JSON|JSON object"),
+}
+
+
+@pytest.mark.parametrize("name", BAD)
+def test_bad_messages_are_protocol_errors(name):
+    data, match = BAD[name]
+    with pytest.raises(proto.ProtocolError, match=match):
+        proto.parse(data, 4)
+
+
+def test_good_messages_parse():
+    assert proto.parse('{"type": "action", "seq": 3, "action": [0.1, 0, -0.1, 0.2]}', 4) == \
+        proto.Action(3, (0.1, 0.0, -0.1, 0.2))
+    assert proto.parse('{"type": "reset", "source": "store", "seed": 7}', 4) == proto.Reset("store", 7)
+    assert proto.parse('{"type": "reset"}', 4) == proto.Reset("mujoco", None)
+    assert proto.parse('{"type": "side_by_side", "on": true}', 4) == proto.SideBySide(True)
+    for name in ("record", "save", "discard"):
+        assert proto.parse(json.dumps({"type": name}), 4) == proto.Command(name)
+
+
+def test_frame_messages_round_trip():
+    views = [np.random.default_rng(0).integers(0, 256, (8, 8, 3), dtype=np.uint8) for _ in range(2)]
+    header, back = proto.unpack_frame(proto.pack_frame({"size": 8, "views": ["a", "b"], "step": 3}, views))
+    assert header["step"] == 3 and all(np.array_equal(a, b) for a, b in zip(views, back))
+
+
+# -- engine --------------------------------------------------------------------------------
+
+
+def test_sessions_are_bounded_and_targets_clipped():
+    eng = engine(max_sessions=2)
+    a, b = eng.open(), eng.open()
+    assert a is not None and b is not None and eng.open() is None
+    assert eng.handle(a, action(5, [1.0, -1.0, 0.1, 0.0])) == []
+    np.testing.assert_allclose(a.target, [0.22, -0.22, 0.1, 0.0], atol=1e-6)
+    assert a.ack == 5
+    eng.close(b)
+    assert eng.open() is not None
+
+
+def test_sessions_step_together_as_they_would_alone():
+    """Sessions opened at different times share forward passes (grouped by context
+    length) and get the frames they would get alone."""
+    targets = np.random.default_rng(0).uniform(-0.2, 0.2, (20, 4)).astype(np.float32)
+    alone = engine()
+    s = alone.open()
+    alone.handle(s, proto.Reset("mujoco", 2))
+    solo = []
+    for t in range(12):
+        alone.handle(s, action(t, targets[t]))
+        alone.tick()
+        solo.append(s.frame)
+    shared = engine()
+    first = shared.open()
+    shared.handle(first, proto.Reset("mujoco", 1))
+    for _ in range(3):  # the first session runs ahead, so the two differ in context length
+        shared.tick()
+    s = shared.open()
+    shared.handle(s, proto.Reset("mujoco", 2))
+    for t in range(12):
+        shared.handle(s, action(t, targets[t]))
+        stepped = shared.tick()
+        assert stepped == [first, s]
+        assert np.abs(s.frame.astype(int) - solo[t]).max() <= 1, t
+    assert s.step == 12 and first.step == 15
+
+
+def test_record_save_and_discard(tmp_path):
+    store = tmp_path / "demos.zarr"
+    eng = engine(record_to=store)
+    s = eng.open()
+    start = s.frame.copy()
+    assert "recording is off" not in eng.handle(s, proto.Command("record"))[0]
+    targets = np.linspace(-0.1, 0.1, 5 * 4, dtype=np.float32).reshape(5, 4)
+    shown = []
+    for t in range(5):
+        eng.handle(s, action(t, targets[t]))
+        shown.append(s.frame.copy())
+        eng.tick()
+    assert json.loads(eng.handle(s, proto.Command("save"))[0])["message"] == "saving 5 steps"
+    eng.recorder.close()  # waits for the write
+    (who, text), = eng.finished_saves()
+    assert who is s and json.loads(text) == {"type": "saved", "episode": 0, "steps": 5, "store": str(store)}
+    back = EpisodeStore.open(store)
+    ep = back.episode(0)
+    assert sorted(ep) == sorted(EPISODE_KEYS) and back.seeds == [s.seed]
+    np.testing.assert_array_equal(ep["img"][0], start)
+    np.testing.assert_array_equal(ep["img"], np.stack(shown))  # the frame shown before each action
+    np.testing.assert_allclose(ep["action"], targets)
+    assert ep["state"].shape == (5, 4) and ep["iou"].shape == (5,)
+    assert back.attrs["policy"] == "teleop" and back.attrs["image_size"] == 64 and back.attrs["fps"] == 10
+
+    # discard, and errors for commands out of place, leave the store as it was
+    eng = engine(record_to=store)
+    s = eng.open()
+    assert "nothing to save" in eng.handle(s, proto.Command("save"))[0]
+    eng.handle(s, proto.Command("record"))
+    assert "already recording" in eng.handle(s, proto.Command("record"))[0]
+    eng.tick()
+    assert "discarded 1 steps" in eng.handle(s, proto.Command("discard"))[0]
+    eng.handle(s, proto.Command("record"))
+    eng.tick()
+    assert "discarded by the restart" in eng.handle(s, proto.Reset("mujoco", 3))[0]
+    eng.handle(s, proto.Command("record"))
+    eng.tick()
+    eng.close(s)  # the client vanished mid-recording
+    eng.shutdown()
+    assert EpisodeStore.open(store).n_episodes == 1
+
+
+def test_recording_needs_a_store_and_a_compatible_one(play_store, tmp_path):
+    eng = engine()
+    s = eng.open()
+    assert "--record-to" in eng.handle(s, proto.Command("record"))[0]
+    with pytest.raises(StoreError, match="record into another store"):
+        engine(record_to=play_store)  # a collect store: other arrays
+
+
+def test_side_by_side_and_store_starts(play_store):
+    eng = engine()
+    s = eng.open()
+    assert "--store" in eng.handle(s, proto.Reset("store", 1))[0]
+    events = eng.handle(s, proto.SideBySide(True))
+    assert "side by side on" in events[0]
+    header, views = proto.unpack_frame(eng.frame_message(s))
+    assert header["views"] == ["world_model", "mujoco"] and header["step"] == 0
+    mujoco = make_env("pusht", 64)
+    obs, _ = mujoco.reset(seed=s.seed)
+    np.testing.assert_array_equal(views[0], obs["pixels"])  # both start from the seed's frame
+    np.testing.assert_array_equal(views[1], obs["pixels"])
+    eng.handle(s, action(0, [0.1, 0.1, -0.1, -0.1]))
+    eng.tick()
+    obs, *_ = mujoco.step(np.array([0.1, 0.1, -0.1, -0.1], np.float32))
+    np.testing.assert_array_equal(s.twin_frame, obs["pixels"])  # the twin follows the same actions
+    eng.handle(s, proto.SideBySide(False))
+    assert proto.unpack_frame(eng.frame_message(s))[0]["views"] == ["world_model"]
+
+    eng = engine(store=play_store)
+    s = eng.open()
+    eng.handle(s, proto.SideBySide(True))
+    eng.handle(s, proto.Reset("store", 4))
+    header, views = proto.unpack_frame(eng.frame_message(s))
+    assert header["source"] == "store" and header["views"] == ["world_model", "mujoco"]
+    stored = EpisodeStore.open(play_store).array("img")[:]
+    assert any(np.array_equal(views[0], f) for f in stored)
+    assert np.mean(views[0] != views[1]) < 0.02  # MuJoCo restarted from the stored state
+
+
+# -- the server over real sockets ------------------------------------------------------------
+
+
+def test_server_streams_frames_and_survives_bad_messages():
+    eng = engine(hz=20)
+    with running(eng) as host, connect(f"ws://{host}/ws") as ws:
+        hello = receive(ws, "hello")
+        assert hello["image_size"] == 64 and hello["hz"] == 20 and hello["reset_sources"] == ["mujoco"]
+        first, _ = receive(ws, "frame")
+        for data in [BAD[k][0] for k in BAD if k != "deep json"] + [b"\x00" * 100]:
+            ws.send(data)
+            assert receive(ws, "error")["message"]
+        ws.send(json.dumps({"type": "action", "seq": 41, "action": [0.05, 0.05, -0.05, -0.05]}))
+        header, views = receive(ws, "frame", where=lambda h: h["ack"] == 41)
+        assert header["step"] > first["step"] and header["action"] == pytest.approx([0.05, 0.05, -0.05, -0.05])
+        assert views[0].shape == (64, 64, 3)
+        ws.send(json.dumps({"type": "reset", "seed": 5}))
+        assert receive(ws, "frame", where=lambda h: h["seed"] == 5 and h["step"] == 0)
+        # a message over the transport limit closes only this connection
+        ws.send("x" * (WS_MAX_BYTES + 1))
+        assert close_code(ws) == 1009
+        with connect(f"ws://{host}/ws") as again:
+            assert receive(again, "hello")
+
+
+def test_server_token_and_session_limit():
+    eng = engine(max_sessions=1)
+    with running(eng, token="s3cret") as host:
+        for url in (f"ws://{host}/ws", f"ws://{host}/ws?token=wrong"):
+            with connect(url) as ws:
+                assert "token" in receive(ws, "error")["message"]
+                assert close_code(ws) == 1008
+        with connect(f"ws://{host}/ws?token=s3cret") as ws:
+            assert receive(ws, "hello")
+            with connect(f"ws://{host}/ws?token=s3cret") as extra:
+                assert "busy" in receive(extra, "busy")["message"]
+                assert close_code(extra) == 1013
+            assert receive(ws, "frame")  # the first session goes on
+
+
+def test_a_client_vanishing_mid_recording_leaves_no_episode(tmp_path):
+    store = tmp_path / "demos.zarr"
+    eng = engine(record_to=store, hz=20)
+    with running(eng) as host:
+        ws = connect(f"ws://{host}/ws")
+        receive(ws, "hello")
+        ws.send(json.dumps({"type": "record"}))
+        receive(ws, "frame", where=lambda h: (h["recording"] or 0) >= 3)
+        ws.close()  # gone, without save or discard
+        deadline = time.monotonic() + 10
+        while eng.sessions and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not eng.sessions
+        with connect(f"ws://{host}/ws") as ws:  # the server serves on; a saved take lands
+            receive(ws, "hello")
+            ws.send(json.dumps({"type": "record"}))
+            receive(ws, "frame", where=lambda h: (h["recording"] or 0) >= 2)
+            ws.send(json.dumps({"type": "save"}))
+            saved = receive(ws, "saved")
+    assert saved["episode"] == 0
+    assert EpisodeStore.open(store).n_episodes == 1
+
+
+def test_binding_beyond_loopback_needs_a_token(capsys, tmp_path):
+    check_bind("127.0.0.1", None)
+    check_bind("0.0.0.0", "t")
+    with pytest.raises(ValueError, match="--token"):
+        check_bind("0.0.0.0", None)
+    assert main(["play", "--host", "0.0.0.0", "--checkpoint", str(tmp_path)]) == 1
+    assert "refusing to bind 0.0.0.0 without --token" in capsys.readouterr().err
+    assert main(["play", "--checkpoint", str(tmp_path / "none")]) == 1
+    assert "not a checkpoint directory" in capsys.readouterr().err
+
+
+def test_page_is_served():
+    import urllib.request
+
+    with running(engine()) as host:
+        page = urllib.request.urlopen(f"http://{host}/").read().decode()
+        script = urllib.request.urlopen(f"http://{host}/play.js").read().decode()
+    assert '<script src="/play.js">' in page and "new WebSocket" in script
+
+
+def test_play_config_rejects_bad_values():
+    for bad in ({"hz": 0}, {"hz": 100}, {"max_sessions": 0}, {"max_record_steps": 0}):
+        with pytest.raises(ValueError):
+            PlayConfig(**bad)

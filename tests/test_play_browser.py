@@ -1,0 +1,117 @@
+"""iwsim play end to end in a real browser: Debian's chromium driven by Playwright against
+the real server (a tiny world model): keys, mouse drag, record, save, discard, side by side."""
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iwsim.data.store import EpisodeStore
+from tests.test_play import engine, running
+
+CHROMIUM = "/usr/bin/chromium"
+FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+         "--no-first-run"]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"{CHROMIUM} is missing; `make test` installs Debian's chromium package.")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS, headless=True)
+        yield b
+        b.close()
+
+
+def wait(page, js: str, timeout: float = 15.0) -> None:
+    page.wait_for_function(js, timeout=timeout * 1000)
+
+
+def target(page) -> np.ndarray:
+    return np.array(page.evaluate("window.iwsim.state.target"))
+
+
+def settle(page) -> None:
+    """Wait until a frame has acknowledged the last action the page sent."""
+    wait(page, "window.iwsim.state.header.ack >= window.iwsim.state.seq")
+
+
+def test_drive_record_and_save_in_chromium(browser, tmp_path):
+    store = tmp_path / "demos.zarr"
+    eng = engine(record_to=store, hz=20)
+    errors: list[str] = []
+    with running(eng) as host:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(f"http://{host}/")
+        wait(page, "window.iwsim.stats.frames > 2")
+        assert page.inner_text("#conn") == "connected"
+        canvas = page.eval_on_selector("#wm", "c => c.toDataURL()")
+
+        # keys: D moves the left pusher's target right, and the frames follow
+        before = target(page)
+        page.keyboard.down("d")
+        time.sleep(0.4)
+        page.keyboard.up("d")
+        settle(page)
+        after = target(page)
+        assert after[0] > before[0] + 0.02 and np.allclose(after[1:], before[1:])
+        assert page.eval_on_selector("#wm", "c => c.toDataURL()") != canvas
+        assert np.allclose(page.evaluate("window.iwsim.state.header.action"), after, atol=1e-6)
+        assert page.evaluate("window.iwsim.stats.latencyLast") > 0
+        assert "ms" in page.inner_text("#latency") and float(page.inner_text("#fps")) > 0
+
+        # mouse: drag the right pusher's ring towards the centre
+        box = page.locator("#wm").bounding_box()
+        vh = page.evaluate("window.iwsim.state.hello.view_half")
+        before = target(page)
+
+        def on_page(x: float, y: float) -> tuple[float, float]:
+            return box["x"] + (x + vh) / (2 * vh) * box["width"], box["y"] + (vh - y) / (2 * vh) * box["height"]
+
+        page.mouse.move(*on_page(before[2], before[3]))
+        page.mouse.down()
+        page.mouse.move(*on_page(0.0, 0.0), steps=5)
+        time.sleep(0.5)
+        page.mouse.up()
+        settle(page)
+        after = target(page)
+        assert np.hypot(*after[2:]) < np.hypot(*before[2:]) - 0.02 or np.hypot(*after[2:]) < 0.01
+        assert np.allclose(after[:2], before[:2])
+
+        # record (c), move the right pusher up (i), save (Shift+S)
+        page.keyboard.press("c")
+        wait(page, "document.getElementById('rec').textContent.includes('REC')")
+        page.keyboard.down("i")
+        time.sleep(0.5)
+        page.keyboard.up("i")
+        wait(page, "window.iwsim.state.header.recording >= 5")
+        page.keyboard.press("Shift+S")
+        wait(page, "document.getElementById('message').textContent.includes('saved episode 0')")
+        assert page.inner_text("#rec") == ""
+
+        # record and discard with the buttons
+        page.click("#record")
+        wait(page, "window.iwsim.state.header.recording >= 2")
+        page.click("#discard")
+        wait(page, "document.getElementById('message').textContent.includes('discarded')")
+
+        # side by side shows MuJoCo next to the model
+        assert page.locator("#twin-view").is_hidden()
+        page.click("#side")
+        wait(page, "!document.getElementById('twin-view').hidden")
+        wait(page, "window.iwsim.state.header.mujoco_iou !== null")
+        page.close()
+    assert not errors, errors
+
+    back = EpisodeStore.open(store)
+    assert back.n_episodes == 1
+    ep = back.episode(0)
+    assert len(ep["img"]) >= 5 and ep["img"].dtype == np.uint8 and ep["img"].shape[1:] == (64, 64, 3)
+    right_y = ep["action"][:, 3]
+    assert right_y[-1] > right_y[0] + 0.02  # i moved the right pusher up while recording
+    assert np.allclose(ep["action"][:, :3], ep["action"][0, :3])
