@@ -1,15 +1,11 @@
 """iwsim play: the protocol, the engine (sessions, batching, recording) and the real server
 over real WebSockets, on a tiny world model."""
 
-import contextlib
 import json
-import threading
 import time
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
-import uvicorn
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -18,29 +14,10 @@ from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.envs import make_env
 from iwsim.play import protocol as proto
 from iwsim.play.engine import EPISODE_KEYS, Engine, PlayConfig
-from iwsim.play.server import WS_MAX_BYTES, check_bind, create_app
+from iwsim.play.server import WS_MAX_BYTES, check_bind, running
 from tests.test_dynamics import tiny_world_model
 
 # -- helpers -------------------------------------------------------------------------------
-
-
-@contextlib.contextmanager
-def running(engine: Engine, token: str | None = None) -> Iterator[str]:
-    """A real uvicorn server for ``engine`` on a free loopback port; yields its ws:// base."""
-    server = uvicorn.Server(uvicorn.Config(create_app(engine, token), host="127.0.0.1", port=0,
-                                           ws_max_size=WS_MAX_BYTES, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
-        time.sleep(0.02)
-    port = server.servers[0].sockets[0].getsockname()[1]
-    try:
-        yield f"127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(30)
 
 
 def receive(ws, kind: str, timeout: float = 10.0, where=lambda m: True):

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from iwsim.data.store import EpisodeStore
-from tests.test_play import engine, running
+from iwsim.play.server import running
+from tests.test_play import engine
 
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",

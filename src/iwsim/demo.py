@@ -34,8 +34,6 @@ def main(args: argparse.Namespace) -> int:
           f"{video.resolve()}")
     print(json.dumps(summary))
     print(f"Per-step scores: {video.with_suffix('.json').resolve()}")
-    print("Drive the world model yourself (Gymnasium):\n"
-          "  import gymnasium as gym, iwsim.envs\n"
-          f"  env = gym.make('iwsim/WorldModel-v0', checkpoint='{args.checkpoint}')\n"
-          "  obs, info = env.reset(seed=0); obs, reward, term, trunc, info = env.step(env.action_space.sample())")
+    print(f"Drive it yourself in the browser: .venv/bin/iwsim play --checkpoint {args.checkpoint}, "
+          "then open http://127.0.0.1:8000/ (WASD / IJKL, mouse drag or a gamepad)")
     return 0

@@ -82,12 +82,16 @@ def colour_fractions(frame: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     for name in names:
         if name not in _NAMES:
             raise ValueError(f"unknown surface {name!r}; expected one of {_NAMES}.")
-    p = _check_frame(frame).astype(np.float32)[..., None, :]  # (..., H, W, 1, 3)
-    a, b = _COLOURS[_PAIRS[:, 0]], _COLOURS[_PAIRS[:, 1]]  # (P, 3): every pair at once
+    p = _check_frame(frame).astype(np.float64)  # (..., H, W, 3)
+    a, b = _COLOURS[_PAIRS[:, 0]].astype(np.float64), _COLOURS[_PAIRS[:, 1]].astype(np.float64)  # (P, 3)
     d = b - a
-    dd = np.maximum((d * d).sum(-1), 1e-12)  # a pair of one colour twice has d = 0
-    gamma = np.clip(((p - a) * d).sum(-1) / dd, 0, 1)  # (..., H, W, P): the second colour's share
-    err = ((p - a - gamma[..., None] * d) ** 2).sum(-1)
+    dd = (d * d).sum(-1)
+    # every pair at once, by inner products: with x = p - a, the second colour's share is
+    # gamma = clip(x.d / d.d, 0, 1) and the error |x - gamma d|^2 = x.x - 2 gamma x.d + gamma^2 d.d
+    xd = p @ d.T - (a * d).sum(-1)  # (..., H, W, P)
+    xx = (p * p).sum(-1, keepdims=True) - 2 * p @ a.T + (a * a).sum(-1)
+    gamma = np.clip(xd / np.maximum(dd, 1e-12), 0, 1)  # a pair of one colour twice has d = 0
+    err = xx - 2 * gamma * xd + gamma**2 * dd
     best = err.argmin(-1)[..., None]  # the first pair of least error
     gamma = np.take_along_axis(gamma, best, -1)[..., 0]
     first, second = _PAIRS[best[..., 0], 0], _PAIRS[best[..., 0], 1]
@@ -110,17 +114,17 @@ def pusher_positions(frame: np.ndarray, min_pixels: float = 1.0) -> tuple[np.nda
     """Pusher centres from (..., H, W, 3) frames: positions (..., 4) float32 ``[lx, ly, rx,
     ry]`` in metres (the centroid of each pusher's colour) and found (..., 2) bool (at
     least ``min_pixels`` of that colour; else the position is NaN)."""
-    frame = _check_frame(frame)
-    centers = pixel_centers(frame.shape[-2])
-    out, found = [], []
-    fractions = colour_fractions(frame, ("left", "right"))
-    for w in (fractions[..., 0, :, :], fractions[..., 1, :, :]):
-        total = w.sum(axis=(-2, -1))
-        xy = np.einsum("...hw,hwc->...c", w, centers) / np.maximum(total, 1e-9)[..., None]
-        ok = total >= min_pixels
-        out.append(np.where(ok[..., None], xy, np.nan))
-        found.append(ok)
-    return np.concatenate(out, axis=-1).astype(np.float32), np.stack(found, axis=-1)
+    return _centroids(colour_fractions(frame, ("left", "right")), min_pixels)
+
+
+def _centroids(fractions: np.ndarray, min_pixels: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centroids (..., 2K) and found (..., K) of K surfaces' fractions (..., K, H, W)."""
+    centers = pixel_centers(fractions.shape[-1])
+    total = fractions.sum(axis=(-2, -1))
+    xy = np.einsum("...khw,hwc->...kc", fractions, centers) / np.maximum(total, 1e-9)[..., None]
+    found = total >= min_pixels
+    xy = np.where(found[..., None], xy, np.nan)
+    return xy.reshape(*xy.shape[:-2], -1).astype(np.float32), found
 
 
 def pixel_iou(frame: np.ndarray, goal_pose: np.ndarray = GOAL_POSE) -> np.ndarray | float:
@@ -128,12 +132,23 @@ def pixel_iou(frame: np.ndarray, goal_pose: np.ndarray = GOAL_POSE) -> np.ndarra
 
     Soft masks: intersection sum(min(a, g)), union sum(a + g - min(a, g)).
     """
-    a = block_fraction(frame)
+    iou = _iou(block_fraction(frame), goal_pose)
+    return float(iou) if np.ndim(iou) == 0 else iou
+
+
+def _iou(a: np.ndarray, goal_pose: np.ndarray) -> np.ndarray:
     g = goal_mask(a.shape[-1], goal_pose)
     inter = np.minimum(a, g).sum(axis=(-2, -1))
     union = (a + g).sum(axis=(-2, -1)) - inter
-    iou = inter / np.maximum(union, 1e-9)
-    return float(iou) if np.ndim(iou) == 0 else iou
+    return inter / np.maximum(union, 1e-9)
+
+
+def read_frames(frames: np.ndarray, goal_pose: np.ndarray = GOAL_POSE,
+                min_pixels: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`pixel_iou` and :func:`pusher_positions` of (..., H, W, 3) frames in one pass
+    of the colour segmentation: IoU (...), positions (..., 4) and found (..., 2)."""
+    f = colour_fractions(frames, ("block", "left", "right"))
+    return (_iou(f[..., 0, :, :], goal_pose), *_centroids(f[..., 1:, :, :], min_pixels))
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from iwsim.envs.pixels import pixel_iou, pusher_positions
+from iwsim.envs.pixels import pixel_iou, pusher_positions, read_frames
 from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, spaces
 from iwsim.world_model import WorldModel
 
@@ -101,9 +101,18 @@ class Starts:
 
 def read_agent_pos(frames: np.ndarray, previous: np.ndarray) -> np.ndarray:
     """Pusher positions read from frames (B, H, W, 3); a pusher not seen keeps its previous position."""
-    pos, found = pusher_positions(frames)
-    keep = np.repeat(~found, 2, axis=-1)
-    pos = np.where(keep, previous, pos)
+    return _hold_unseen(*pusher_positions(frames), previous)
+
+
+def observe(frames: np.ndarray, previous: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel IoU (B,) and pusher positions (B, 4) (as :func:`read_agent_pos`) of frames
+    (B, H, W, 3), in one pass of the colour segmentation."""
+    iou, pos, found = read_frames(frames)
+    return iou, _hold_unseen(pos, found, previous)
+
+
+def _hold_unseen(pos: np.ndarray, found: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    pos = np.where(np.repeat(~found, 2, axis=-1), previous, pos)
     return np.clip(pos, -WORKSPACE, WORKSPACE).astype(np.float32)
 
 

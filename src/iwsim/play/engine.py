@@ -2,8 +2,8 @@
 
 The engine knows nothing of sockets: the server calls :meth:`Engine.open` per connection,
 :meth:`Engine.handle` per parsed message and :meth:`Engine.tick` once per control step,
-and sends what they return. Everything runs on one thread (the server's event loop), so
-sessions need no locks; only saving an episode goes to a writer thread.
+and sends what they return. The server makes every call from one thread, so sessions need
+no locks; only saving an episode goes to a writer thread.
 
 Each session holds its own :class:`~iwsim.world_model.StreamState`. A tick joins the
 states of all sessions with the same context length (all of them, once each has run N - 1
@@ -26,10 +26,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.pusht import TaskSpec
-from iwsim.envs.world_model_env import Start, Starts, read_agent_pos
+from iwsim.envs.world_model_env import Start, Starts, observe
 from iwsim.play import protocol as proto
 from iwsim.world_model import StreamState, WorldModel
 
@@ -135,6 +136,7 @@ class Engine:
         self._saves: list[tuple[Session, Future[int], int]] = []
         self._next_id = 0
         self._rng = np.random.default_rng()
+        self._threads = torch.get_num_threads()
         self.last_step_ms = 0.0
 
     # -- sessions -------------------------------------------------------------------------
@@ -167,8 +169,10 @@ class Engine:
 
     # -- messages -------------------------------------------------------------------------
     def handle(self, s: Session, msg: proto.Message) -> list[str]:
-        """Apply one parsed client message; returns the events to send back (a reset's
-        first frame goes out with the next tick's frames, see :meth:`frame_message`)."""
+        """Apply one parsed client message; returns the events to send back (the server
+        also sends :meth:`frame_message` at once after a restart)."""
+        if s.closed:
+            return []
         if isinstance(msg, proto.Action):
             s.target = np.clip(np.asarray(msg.action, np.float32), self.low, self.high)
             s.ack = msg.seq
@@ -270,13 +274,16 @@ class Engine:
         for s in sessions:
             groups[s.state.context_frames].append(s)
         for group in groups.values():
-            self.model.state = StreamState.cat([s.state for s in group])
+            self.model.state = group[0].state if len(group) == 1 else StreamState.cat([s.state for s in group])
+            # One session's step is too small to gain from a second thread, and with the browser
+            # on the same two cores a second thread made it slower (p95 key-to-frame 107 vs
+            # 95 ms at 25 Hz, bench/bench_play.py); batches do gain (4 sessions: 84 vs 113 ms).
+            torch.set_num_threads(1 if len(group) == 1 else self._threads)
             frames = self.model.step(np.stack([s.target for s in group]))
-            for s, state, frame in zip(group, self.model.state.split(), frames):
+            states = [self.model.state] if len(group) == 1 else self.model.state.split()
+            for s, state, frame in zip(group, states, frames):
                 s.state, s.frame = state, frame
-        frames = np.stack([s.frame for s in sessions])
-        ious = np.atleast_1d(pixel_iou(frames))
-        pos = read_agent_pos(frames, np.stack([s.agent_pos for s in sessions]))
+        ious, pos = observe(np.stack([s.frame for s in sessions]), np.stack([s.agent_pos for s in sessions]))
         for s, iou, p in zip(sessions, ious, pos):
             s.iou, s.agent_pos, s.step = float(iou), p, s.step + 1
             if s.twin_frame is not None:
@@ -302,6 +309,7 @@ class Engine:
         return proto.pack_frame(header, views)
 
     def shutdown(self) -> None:
+        torch.set_num_threads(self._threads)
         for s in list(self.sessions.values()):
             self.close(s)
         if self.recorder is not None:

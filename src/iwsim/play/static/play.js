@@ -16,7 +16,7 @@ const COLOURS = ["#2e6beb", "#9e38c7"];
 const $ = (id) => document.getElementById(id);
 const wmCanvas = $("wm"), twinCanvas = $("twin");
 const state = {
-  ws: null, hello: null, target: null, seq: 0, held: new Set(), drag: null, mouse: null,
+  ws: null, hello: null, target: null, seq: 0, sent: null, sentAt: 0, held: new Set(), drag: null, mouse: null,
   pads: {}, lastTick: performance.now(), header: null, frames: 0,
   frameTimes: [], latencies: [], pending: null,  // pending: {seq, t} of the last press not yet seen
 };
@@ -74,6 +74,7 @@ function onFrame(buf) {
   if (state.target === null || (header.step === 0 && state.header && state.header.step !== 0) ||
       (state.header && (header.seed !== state.header.seed || header.source !== state.header.source))) {
     state.target = header.action.slice();  // a new episode: the pushers start where they are
+    state.sent = state.target.slice();
   }
   state.header = header;
   header.views.forEach((name, v) => {
@@ -159,14 +160,20 @@ function clip(a) {
   return a.map((v, i) => Math.min(hi[i], Math.max(lo[i], v)));
 }
 
-// Move the targets by velocity (m/s, per pusher [vx, vy]) for dt seconds; send if they moved.
+// Move the targets by velocity (m/s, per pusher [vx, vy]) for dt seconds. A press (its
+// event time given) is sent at once; continuous motion at most twice per control step,
+// as the server only uses the latest target of each step.
 function move(vel, dt, press) {
   if (!state.target || !state.hello) return;
   const next = clip(state.target.map((v, i) => v + vel[i >> 1][i & 1] * dt));
-  if (next.some((v, i) => Math.abs(v - state.target[i]) > 1e-6)) {
-    state.target = next;
+  if (next.some((v, i) => Math.abs(v - state.target[i]) > 1e-6)) state.target = next;
+  const now = performance.now();
+  const changed = !state.sent || state.target.some((v, i) => v !== state.sent[i]);
+  if (changed && (press || now - state.sentAt >= 500 / state.hello.hz)) {
     state.seq += 1;
     if (press && !state.pending) state.pending = { seq: state.seq, t: press };
+    state.sent = state.target.slice();
+    state.sentAt = now;
     send({ type: "action", seq: state.seq, action: state.target });
   }
 }
