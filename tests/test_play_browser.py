@@ -41,6 +41,33 @@ def settle(page) -> None:
     wait(page, "window.iwsim.state.header.ack >= window.iwsim.state.seq")
 
 
+# A stand-in for the browser's Gamepad API: tests set window.fakePad.axes / .buttons.
+FAKE_PAD = """
+window.fakePad = {index: 0, id: "fake pad", axes: [0, 0, 0, 0],
+                  buttons: Array.from({length: 17}, () => ({pressed: false, value: 0}))};
+navigator.getGamepads = () => [window.fakePad];
+"""
+
+
+def test_gamepad_sticks_and_buttons(browser):
+    with running(engine(hz=20)) as host:
+        page = browser.new_page()
+        page.add_init_script(FAKE_PAD)
+        page.goto(f"http://{host}/")
+        wait(page, "window.iwsim.stats.frames > 2")
+        before = target(page)
+        page.evaluate("window.fakePad.axes = [0.9, 0, 0, -0.9]")  # left stick right, right stick up
+        time.sleep(0.4)
+        page.evaluate("window.fakePad.axes = [0, 0, 0, 0]")
+        settle(page)
+        after = target(page)
+        assert after[0] > before[0] + 0.02 and after[3] > before[3] + 0.02
+        assert np.allclose(after[[1, 2]], before[[1, 2]])
+        page.evaluate("window.fakePad.buttons[2].pressed = true")  # X: record
+        wait(page, "document.getElementById('message').textContent.includes('recording is off')")
+        page.close()
+
+
 def test_drive_record_and_save_in_chromium(browser, tmp_path):
     store = tmp_path / "demos.zarr"
     eng = engine(record_to=store, hz=20)

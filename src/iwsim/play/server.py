@@ -69,12 +69,18 @@ class Runner:
         self._jobs.put(None)
 
     def run(self) -> None:
-        """Serve requests and step until :meth:`stop`, then shut the engine down (its
-        MuJoCo renderers belong to this thread); blocks the calling thread."""
+        """Serve requests and step until :meth:`stop`; blocks the calling thread. Requests
+        still queued then fail, so no coroutine waits forever."""
         try:
             self._serve()
         finally:
-            self.engine.shutdown()
+            while self._stop.is_set():  # (not when interrupted: the caller may run again)
+                try:
+                    job = self._jobs.get_nowait()
+                except queue.Empty:
+                    break
+                if job is not None and self.loop is not None:
+                    self.loop.call_soon_threadsafe(_settle, job[2], None, RuntimeError("the engine has stopped"))
 
     def _serve(self) -> None:
         period = 1.0 / self.engine.cfg.hz
@@ -237,7 +243,7 @@ def create_app(runner: Runner, token: str | None = None) -> FastAPI:
                 await sender
             outboxes.pop(s.id, None)
             await runner.call(engine.close, s)
-            log.info("session %d closed (%d frames dropped for a slow client)", s.id, out.dropped)
+            log.info("session %d closed (%d frames skipped while it was slow to read)", s.id, out.dropped)
 
     return app
 
@@ -252,7 +258,7 @@ def _uvicorn(runner: Runner, host: str, port: int, token: str | None):
     import uvicorn
 
     config = uvicorn.Config(create_app(runner, token), host=host, port=port, ws_max_size=WS_MAX_BYTES,
-                            log_level="warning")
+                            log_level="warning", timeout_graceful_shutdown=5)
     return uvicorn.Server(config)
 
 
@@ -262,41 +268,56 @@ def running(engine: Engine, host: str = "127.0.0.1", port: int = 0, token: str |
     check_bind(host, token)
     runner = Runner(engine)
     server = _uvicorn(runner, host, port, token)
-    threads = [threading.Thread(target=server.run, daemon=True), threading.Thread(target=runner.run, daemon=True)]
-    for t in threads:
-        t.start()
+    web = threading.Thread(target=server.run, daemon=True)
+    steps = threading.Thread(target=_run_engine, args=(runner,), daemon=True)
+    web.start()
+    steps.start()
     deadline = time.monotonic() + 30
     while not server.started:
-        if not threads[0].is_alive() or time.monotonic() > deadline:
+        if not web.is_alive() or time.monotonic() > deadline:
             runner.stop()
             raise RuntimeError(f"the play server did not start on {host}:{port}.")
         time.sleep(0.02)
     try:
         yield f"{host}:{server.servers[0].sockets[0].getsockname()[1]}"
     finally:
-        server.should_exit = True
-        threads[0].join(30)
+        server.should_exit = True  # the web side closes its sessions through the engine first
+        web.join(30)
         runner.stop()
-        threads[1].join(30)
+        steps.join(30)
+
+
+def _run_engine(runner: Runner) -> None:
+    """The engine's thread: run, then shut down there (its MuJoCo renderers belong to it)."""
+    try:
+        runner.run()
+    finally:
+        runner.engine.shutdown()
 
 
 def serve(engine: Engine, host: str = "127.0.0.1", port: int = 8000, token: str | None = None) -> None:
-    """Run the server until interrupted: the engine on this (the main) thread, uvicorn on
-    another."""
+    """Run the server until Ctrl-C or SIGTERM: the engine on this (the main) thread, uvicorn
+    on another. Stopping closes the web side first (its sessions close through the engine),
+    then the engine."""
     check_bind(host, token)
     runner = Runner(engine)
     server = _uvicorn(runner, host, port, token)
-    thread = threading.Thread(target=server.run, name="iwsim-server", daemon=True)
-    thread.start()
-    stopper = threading.Thread(target=lambda: (thread.join(), runner.stop()), daemon=True)
-    stopper.start()  # the server failing to start (port in use, ...) stops the engine too
-    signal.signal(signal.SIGTERM, lambda *_: runner.stop())  # a service manager's stop: as Ctrl-C
-    try:
-        runner.run()
-    except KeyboardInterrupt:
-        pass
-    finally:
+    web = threading.Thread(target=lambda: (server.run(), runner.stop()), name="iwsim-server", daemon=True)
+    web.start()  # when uvicorn ends (stopped, or failing to start: port in use, ...), so does the engine
+
+    def stop(*_: Any) -> None:
         server.should_exit = True
-        thread.join(30)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        while True:
+            try:
+                runner.run()
+                break
+            except KeyboardInterrupt:  # Ctrl-C: stop the web side, and serve it until it is done
+                stop()
+    finally:
+        engine.shutdown()
+        web.join(10)
     if not server.started:
         raise OSError(f"could not serve on {host}:{port} (is the port in use? see uvicorn's message above).")
