@@ -33,6 +33,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 from iwsim.play.protocol import unpack_frame  # noqa: E402
 
+SERVER_LOG = REPO / "outputs" / "bench_play_server.log"  # the last server's log
 CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
                   "--disable-component-update", "--no-first-run"]
 
@@ -49,6 +50,7 @@ class Server:
     def __init__(self, checkpoint: str, hz: float, sessions: int, log: Path) -> None:
         self.port = free_port()
         iwsim = str(Path(sys.executable).with_name("iwsim"))
+        log.parent.mkdir(parents=True, exist_ok=True)
         self.log = open(log, "w")
         self.proc = subprocess.Popen(
             [iwsim, "play", "--checkpoint", checkpoint, "--port", str(self.port), "--hz", str(hz),
@@ -133,8 +135,8 @@ def client(port: int, hz: float, warmup: float, seconds: float, seed: int, out: 
     out.update(latencies=latencies, frame_times=frame_times, step_ms=step_ms)
 
 
-def run_clients(checkpoint: str, hz: float, n: int, warmup: float, seconds: float, out: Path) -> dict:
-    server = Server(checkpoint, hz, n, out / "server.log")
+def run_clients(checkpoint: str, hz: float, n: int, warmup: float, seconds: float) -> dict:
+    server = Server(checkpoint, hz, n, SERVER_LOG)
     try:
         outs = [{} for _ in range(n)]
         threads = [threading.Thread(target=client, args=(server.port, hz, warmup, seconds, i, outs[i])) for i in range(n)]
@@ -164,7 +166,7 @@ def run_browser(checkpoint: str, hz: float, warmup: float, seconds: float, out: 
     """The real page in chromium: key taps every 0.4-0.6 s; the page's own fps and latency."""
     from playwright.sync_api import sync_playwright
 
-    server = Server(checkpoint, hz, 1, out / "server.log")
+    server = Server(checkpoint, hz, 1, SERVER_LOG)
     rng = random.Random(0)
     try:
         with sync_playwright() as p:
@@ -257,7 +259,7 @@ def main() -> None:
     for spec in filter(None, args.configs.split(",")):
         n, hz = spec.split("@")
         print(f"{n} client(s) at {hz} Hz ...", flush=True)
-        rows.append(run_clients(args.checkpoint, float(hz), int(n), args.warmup, args.seconds, out))
+        rows.append(run_clients(args.checkpoint, float(hz), int(n), args.warmup, args.seconds))
         print(f"  {rows[-1]['fps_per_client']} frames/s, latency {rows[-1]['latency_ms']}", flush=True)
     for hz in filter(None, args.browser.split(",")):
         print(f"chromium at {hz} Hz ...", flush=True)

@@ -200,7 +200,7 @@ class Engine:
     def _command(self, s: Session, name: str) -> list[str]:
         if name == "record":
             if s.take is not None:
-                return [proto.event("error", message="already recording; save (s) or discard (q) first.")]
+                return [proto.event("error", message="already recording; save (Shift+S) or discard (q) first.")]
             if self.recorder is None:
                 return [proto.event("error", message="recording is off; start iwsim play with --record-to STORE.")]
             s.take = {k: [] for k in EPISODE_KEYS}
@@ -279,7 +279,10 @@ class Engine:
             # on the same two cores a second thread made it slower (p95 key-to-frame 107 vs
             # 95 ms at 25 Hz, bench/bench_play.py); batches do gain (4 sessions: 84 vs 113 ms).
             torch.set_num_threads(1 if len(group) == 1 else self._threads)
-            frames = self.model.step(np.stack([s.target for s in group]))
+            try:
+                frames = self.model.step(np.stack([s.target for s in group]))
+            finally:
+                torch.set_num_threads(self._threads)
             states = [self.model.state] if len(group) == 1 else self.model.state.split()
             for s, state, frame in zip(group, states, frames):
                 s.state, s.frame = state, frame
@@ -309,7 +312,6 @@ class Engine:
         return proto.pack_frame(header, views)
 
     def shutdown(self) -> None:
-        torch.set_num_threads(self._threads)
         for s in list(self.sessions.values()):
             self.close(s)
         if self.recorder is not None:
