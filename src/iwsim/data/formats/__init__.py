@@ -1,0 +1,111 @@
+"""Episode stores to and from the formats robot-learning tools read and write.
+
+    export:   lerobot-v3, lerobot-v2.1, hdf5-aloha
+    import:   lerobot-v3, lerobot-v2.1, hdf5-aloha, robomimic, zarr (Diffusion Policy)
+    validate: an episode store, a LeRobot dataset (v3 or v2.1) or ALOHA/robomimic HDF5
+
+Every format module offers some of:
+
+- ``export_<fmt>(store, out, *, fps, task, progress)``: write ``store`` into the empty
+  directory ``out`` (this module hands it a temporary directory and renames it at the end);
+- ``read_<fmt>(src, *, camera) -> (attrs, n_episodes, episodes)``: the source's
+  attributes (task, fps, action names, ...) and an iterator of ``(episode, seed)``;
+- ``validate_<fmt>(path) -> problems``: one line per thing that is wrong, empty if none.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from iwsim.data.formats.common import FormatError, output_dir, write_store
+from iwsim.data.store import EpisodeStore
+
+EXPORT_FORMATS = ("lerobot-v3", "lerobot-v2.1", "hdf5-aloha")
+IMPORT_FORMATS = ("lerobot-v3", "lerobot-v2.1", "hdf5-aloha", "robomimic", "zarr")
+
+__all__ = ["EXPORT_FORMATS", "IMPORT_FORMATS", "FormatError", "export", "import_", "validate"]
+
+
+def export(fmt: str, store: str | os.PathLike, out: str | os.PathLike, *, fps: int | None = None,
+           task: str | None = None, progress: bool = True) -> Path:
+    """Write the episode store ``store`` as ``fmt`` to the new directory ``out``."""
+    if fmt not in EXPORT_FORMATS:
+        raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}.")
+    src = EpisodeStore.open(store, "r")
+    if src.n_episodes == 0:
+        raise FormatError(f"{store} holds no episodes to export.")
+    fps = int(fps or src.attrs.get("fps") or 10)
+    if fps < 1:
+        raise ValueError(f"--fps must be a positive integer, got {fps}.")
+    task = task or str(src.attrs.get("task") or "")
+    if fmt == "hdf5-aloha":
+        from iwsim.data.formats.hdf5 import export_aloha as writer
+    else:
+        from iwsim.data.formats.lerobot import export_v3, export_v21
+
+        writer = export_v3 if fmt == "lerobot-v3" else export_v21
+    with output_dir(out) as tmp:
+        writer(src, tmp, fps=fps, task=task, progress=progress)
+    return Path(out)
+
+
+def import_(fmt: str, src: str | os.PathLike, out: str | os.PathLike, *, camera: str | None = None,
+            image_size: int | None = 64, progress: bool = True) -> EpisodeStore:
+    """Read ``src`` (in ``fmt``) into a new episode store at ``out``, frames resized to
+    ``image_size`` (None keeps them)."""
+    if fmt not in IMPORT_FORMATS:
+        raise ValueError(f"unknown import format {fmt!r}; expected one of {', '.join(IMPORT_FORMATS)}.")
+    if image_size is not None and image_size < 1:
+        raise ValueError(f"--image-size must be a positive integer, got {image_size}.")
+    src = Path(src)
+    if not src.exists():
+        raise FileNotFoundError(f"{src} does not exist.")
+    if fmt == "hdf5-aloha":
+        from iwsim.data.formats.hdf5 import read_aloha as reader
+    elif fmt == "robomimic":
+        from iwsim.data.formats.hdf5 import read_robomimic as reader
+    elif fmt == "zarr":
+        from iwsim.data.formats.dp_zarr import read_zarr as reader
+    else:
+        from iwsim.data.formats.lerobot import read_v3, read_v21
+
+        reader = read_v3 if fmt == "lerobot-v3" else read_v21
+    attrs, n, episodes = reader(src, camera=camera)
+    attrs = {**attrs, "source_format": fmt, "source": str(src)}
+    if image_size is not None:
+        attrs["image_size"] = image_size
+    return write_store(out, episodes, attrs, image_size=image_size, progress=progress, total=n)
+
+
+def validate(path: str | os.PathLike) -> tuple[str, list[str]]:
+    """What ``path`` is and what is wrong with it: (kind, problems), no problems if valid."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist.")
+    if (path / "meta" / "info.json").is_file():
+        from iwsim.data.formats.lerobot import validate_lerobot
+
+        return validate_lerobot(path)
+    if (path / "meta" / "episode_ends").exists() or (path / ".zgroup").exists():
+        from iwsim.data.formats.dp_zarr import read_zarr, validate_store
+
+        try:
+            attrs = json.loads((path / ".zattrs").read_text())
+        except (OSError, ValueError):
+            attrs = {}
+        if isinstance(attrs, dict) and "store_version" in attrs:
+            return "episode store", validate_store(path)
+        try:  # another tool's replay buffer (e.g. Diffusion Policy's): valid if it imports
+            for _ in read_zarr(path, camera=None)[2]:
+                pass
+        except FormatError as e:
+            return "Diffusion Policy zarr", [str(e)]
+        return "Diffusion Policy zarr", []
+    if path.suffix in (".hdf5", ".h5") or (path.is_dir() and any(path.glob("*.hdf5"))):
+        from iwsim.data.formats.hdf5 import validate_hdf5
+
+        return validate_hdf5(path)
+    raise FormatError(f"{path} is none of: an episode store, a LeRobot dataset (meta/info.json), "
+                      "ALOHA or robomimic HDF5.")

@@ -1,0 +1,138 @@
+"""What every format shares: episodes as dicts of arrays, one-line errors, atomic outputs,
+frame resizing and writing an episode store from imported episodes.
+
+An episode, between a format and the store, is ``{"img": (T, H, W, 3) uint8, "state":
+(T, S) float32, "action": (T, A) float32, ...}`` with T >= 1 (other keys are kept).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import uuid
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from iwsim.data.store import EpisodeStore
+
+REQUIRED = ("img", "state", "action")
+
+
+class FormatError(ValueError):
+    """A file that does not follow its format; the message names the file, key and episode."""
+
+
+def where(path: str | os.PathLike, key: str | None = None, episode: int | None = None) -> str:
+    """``path`` [key 'k'] [episode i], for error messages."""
+    out = str(path)
+    if key is not None:
+        out += f" key '{key}'"
+    if episode is not None:
+        out += f" (episode {episode})"
+    return out
+
+
+def positive_int(value: Any) -> int | None:
+    """``value`` as an integer >= 1 (rounded), or None if it is not one (attributes of
+    other tools' files are often floats, strings or arrays)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return int(round(v)) if math.isfinite(v) and v >= 1 else None
+
+
+def check_episode(ep: Mapping[str, np.ndarray], at: str) -> dict[str, np.ndarray]:
+    """An episode with the required arrays, equal lengths T >= 1, RGB uint8 frames and
+    finite float state and action (cast to float32); else a FormatError naming ``at``."""
+    missing = [k for k in REQUIRED if k not in ep]
+    if missing:
+        raise FormatError(f"{at}: missing {', '.join(missing)}.")
+    out = {k: np.asarray(v) for k, v in ep.items()}
+    img = out["img"]
+    if img.dtype != np.uint8 or img.ndim != 4 or img.shape[-1] != 3:
+        raise FormatError(f"{at}: frames must be uint8 (T, H, W, 3), got {img.dtype} {img.shape}.")
+    lengths = {k: (len(v) if v.ndim else 0) for k, v in out.items()}
+    if len(set(lengths.values())) != 1:
+        raise FormatError(f"{at}: arrays differ in length: {lengths}.")
+    if lengths["img"] < 1:
+        raise FormatError(f"{at}: the episode is empty.")
+    for k in ("state", "action"):
+        v = out[k]
+        if v.ndim == 1:
+            v = v[:, None]
+        if v.ndim != 2 or not np.issubdtype(v.dtype, np.number):
+            raise FormatError(f"{at}: '{k}' must be numbers of shape (T, D), got {v.dtype} {v.shape}.")
+        v = v.astype(np.float32)
+        if not np.isfinite(v).all():
+            raise FormatError(f"{at}: '{k}' holds non-finite values.")
+        out[k] = v
+    return out
+
+
+@contextlib.contextmanager
+def output_dir(out: str | os.PathLike, force: bool = False) -> Iterator[Path]:
+    """A temporary directory next to ``out``, renamed to ``out`` when the block succeeds and
+    removed when it fails, so ``out`` never holds a half-written result."""
+    out = Path(out)
+    if out.exists() and not force:
+        raise FileExistsError(f"{out} already exists; choose another output path.")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
+    tmp.mkdir()
+    try:
+        yield tmp
+        if out.exists():
+            shutil.rmtree(out)
+        os.rename(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
+    """uint8 (T, H, W, 3) -> (T, size, size, 3): a centred square crop, then area
+    averaging when shrinking (bilinear when growing)."""
+    import torch
+    from torch.nn import functional as F
+
+    t, h, w, _ = frames.shape
+    if (h, w) == (size, size):
+        return frames
+    s = min(h, w)
+    top, left = (h - s) // 2, (w - s) // 2
+    x = torch.from_numpy(np.ascontiguousarray(frames[:, top:top + s, left:left + s])).permute(0, 3, 1, 2).float()
+    mode = "area" if s >= size else "bilinear"
+    y = F.interpolate(x, size=(size, size), mode=mode, **({} if mode == "area" else {"align_corners": False}))
+    return y.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
+
+
+def store_episodes(store: EpisodeStore) -> Iterator[dict[str, np.ndarray]]:
+    """The store's episodes, one at a time."""
+    for i in range(store.n_episodes):
+        yield store.episode(i)
+
+
+def write_store(out: str | os.PathLike, episodes: Iterable[tuple[dict[str, np.ndarray], int | None]],
+                attrs: Mapping[str, Any], image_size: int | None = None, progress: bool = True,
+                total: int | None = None, force: bool = False) -> EpisodeStore:
+    """An episode store at ``out`` from ``(episode, seed)`` pairs (frames resized to
+    ``image_size`` when given), written under a temporary name and renamed at the end."""
+    from tqdm import tqdm
+
+    with output_dir(out, force) as tmp:
+        store = EpisodeStore.create(tmp / "store.zarr", dict(attrs))
+        for ep, seed in tqdm(episodes, total=total, unit="ep", desc=f"import {Path(out).name}", disable=not progress):
+            if image_size is not None:
+                ep = {**ep, "img": resize_frames(ep["img"], image_size)}
+            store.append(ep, seed=seed)
+        if store.n_episodes == 0:
+            raise FormatError(f"no episodes to write to {out}.")
+        for child in (tmp / "store.zarr").iterdir():
+            os.rename(child, tmp / child.name)
+        (tmp / "store.zarr").rmdir()
+    return EpisodeStore.open(out, "r")

@@ -1,0 +1,536 @@
+"""LeRobotDataset v3.0 and v2.1, written and read without the ``lerobot`` package.
+
+v3.0 (LeRobot's current layout; many episodes per file)::
+
+    meta/info.json                          codebase_version "v3.0", fps, features, totals,
+                                            chunks_size, file size limits, data_path, video_path, splits
+    meta/stats.json                         per feature: min, max, mean, std, count, q01 q10 q50 q90 q99
+    meta/tasks.parquet                      task_index, indexed by the task string
+    meta/episodes/chunk-000/file-000.parquet  one row per episode: length, tasks, the data and
+                                            video files it lives in, its rows and timestamps there,
+                                            and its own stats (stats/<feature>/<stat>)
+    data/chunk-000/file-000.parquet         observation.state, action, timestamp, frame_index,
+                                            episode_index, index, task_index
+    videos/observation.image/chunk-000/file-000.mp4   H.264, yuv420p, all episodes back to back
+
+v2.1 (one file per episode; JSON-lines metadata)::
+
+    meta/info.json, meta/episodes.jsonl, meta/tasks.jsonl, meta/episodes_stats.jsonl
+    data/chunk-000/episode_000000.parquet
+    videos/chunk-000/observation.image/episode_000000.mp4
+
+Checked against LeRobot's ``src/lerobot/datasets/utils.py`` (path templates, default
+features, ``create_empty_dataset_info``), ``compute_stats.py`` (stats keys and the image
+stats' (3, 1, 1) shape in [0, 1]), ``dataset_metadata.py`` (tasks.parquet indexed by task)
+and ``video_utils.py`` (the video ``info`` block).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from iwsim.data.formats.common import FormatError, check_episode, store_episodes, where
+from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video
+from iwsim.data.store import EpisodeStore
+
+V3, V21 = "v3.0", "v2.1"
+CHUNKS_SIZE = 1000  # files per chunk directory
+DATA_FILE_MB, VIDEO_FILE_MB = 100, 500  # when a v3 data or video file is full, the next episode starts a new one
+V3_DATA = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+V3_VIDEO = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+V3_EPISODES = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+V21_DATA = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
+V21_VIDEO = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
+IMAGE = "observation.image"
+STATE, ACTION = "observation.state", "action"
+INDEX_FEATURES = {"timestamp": "float32", "frame_index": "int64", "episode_index": "int64", "index": "int64",
+                  "task_index": "int64"}
+QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
+STATS_FRAMES = 100  # at most this many frames (evenly spaced) per image statistic, as LeRobot samples
+
+
+# -- writing ------------------------------------------------------------------------------
+
+def features(store: EpisodeStore, fps: int) -> dict[str, dict]:
+    """The ``features`` block of info.json for a store's img / state / action."""
+    img, state, action = (store.array(k) for k in ("img", "state", "action"))
+    h, w = img.shape[1:3]
+    attrs = store.attrs
+
+    def names(key: str, dim: int) -> list[str]:
+        given = attrs.get(f"{key}_names") or (attrs.get("action_names") if key == "state" else None)
+        return list(given) if given is not None and len(given) == dim else [f"{key}_{i}" for i in range(dim)]
+
+    return {
+        IMAGE: {"dtype": "video", "shape": [h, w, 3], "names": ["height", "width", "channels"],
+                "info": {"video.height": h, "video.width": w, "video.codec": CODEC_NAME, "video.pix_fmt": PIX_FMT,
+                         "video.is_depth_map": False, "video.fps": fps, "video.channels": 3, "has_audio": False}},
+        STATE: {"dtype": "float32", "shape": [state.shape[1]], "names": names("state", state.shape[1])},
+        ACTION: {"dtype": "float32", "shape": [action.shape[1]], "names": names("action", action.shape[1])},
+        **{k: {"dtype": d, "shape": [1], "names": None} for k, d in INDEX_FEATURES.items()},
+    }
+
+
+def feature_stats(x: np.ndarray, image: bool = False) -> dict[str, np.ndarray]:
+    """min, max, mean, std, count and quantiles over the first axis of (N, D) values, or per
+    channel of uint8 frames (N, H, W, 3) scaled to [0, 1] with shape (3, 1, 1), as LeRobot."""
+    if image:
+        if len(x) > STATS_FRAMES:
+            x = x[np.round(np.linspace(0, len(x) - 1, STATS_FRAMES)).astype(int)]
+        v = x.reshape(-1, 3).astype(np.float64) / 255.0
+        shape = (3, 1, 1)
+    else:
+        v = x.reshape(len(x), -1).astype(np.float64)
+        shape = (v.shape[1],)
+    out = {"min": v.min(0), "max": v.max(0), "mean": v.mean(0), "std": v.std(0)}
+    out.update({k: np.quantile(v, q, axis=0) for k, q in QUANTILES.items()})
+    out = {k: s.reshape(shape) for k, s in out.items()}
+    out["count"] = np.array([len(x)])
+    return out
+
+
+def episode_columns(ep: dict[str, np.ndarray], episode: int, start: int, fps: int) -> dict[str, np.ndarray]:
+    """The per-frame columns of one episode (everything but the video)."""
+    t = len(ep["img"])
+    frame = np.arange(t, dtype=np.int64)
+    return {STATE: ep["state"].astype(np.float32), ACTION: ep["action"].astype(np.float32),
+            "timestamp": (frame / fps).astype(np.float32), "frame_index": frame,
+            "episode_index": np.full(t, episode, np.int64), "index": start + frame,
+            "task_index": np.zeros(t, np.int64)}
+
+
+def _episodes(store: EpisodeStore, fps: int, desc: str, progress: bool
+              ) -> Iterator[tuple[int, dict[str, np.ndarray], dict[str, np.ndarray], int]]:
+    """(index, checked episode, its per-frame columns, its first global index) per episode."""
+    from tqdm import tqdm
+
+    start = 0
+    for e, ep in enumerate(tqdm(store_episodes(store), total=store.n_episodes, desc=desc, unit="ep",
+                                disable=not progress)):
+        ep = check_episode(ep, where(store.path, episode=e))
+        yield e, ep, episode_columns(ep, e, start, fps), start
+        start += len(ep["img"])
+
+
+def all_stats(columns: dict[str, np.ndarray], frames: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
+    return {IMAGE: feature_stats(frames, image=True), **{k: feature_stats(v) for k, v in columns.items()}}
+
+
+def _table(columns: dict[str, np.ndarray]):
+    import pyarrow as pa
+
+    arrays = {}
+    for k, v in columns.items():
+        if v.ndim == 2:  # fixed-size float lists, as HF datasets' Sequence(length=D)
+            arrays[k] = pa.FixedSizeListArray.from_arrays(pa.array(v.reshape(-1)), v.shape[1])
+        else:
+            arrays[k] = pa.array(v)
+    return pa.table(arrays)
+
+
+def _jsonable(stats: dict[str, dict[str, np.ndarray]]) -> dict:
+    return {f: {k: v.tolist() for k, v in s.items()} for f, s in stats.items()}
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=4))
+
+
+def _write_tasks_parquet(path: Path, tasks: list[str]) -> None:
+    import pandas as pd
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pd.DataFrame({"task_index": np.arange(len(tasks), dtype=np.int64)},
+                 index=pd.Index(tasks, name="task")).to_parquet(path)
+
+
+def _info(version: str, store: EpisodeStore, fps: int, n_tasks: int, extra: dict) -> dict:
+    return {"codebase_version": version, "robot_type": store.attrs.get("robot_type"),
+            "total_episodes": store.n_episodes, "total_frames": store.n_frames, "total_tasks": n_tasks,
+            "chunks_size": CHUNKS_SIZE, "fps": fps, "splits": {"train": f"0:{store.n_episodes}"}, **extra,
+            "features": features(store, fps)}
+
+
+def export_v3(store: EpisodeStore, out: Path, *, fps: int, task: str, progress: bool) -> None:
+    """Write ``store`` as a LeRobotDataset v3.0 into the empty directory ``out``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    video: VideoWriter | None = None
+    file = {"data": (0, 0), "video": (0, 0)}  # (chunk_index, file_index) being written
+    rows: list[dict[str, np.ndarray]] = []  # the current data file's episodes
+    data_bytes = 0
+    episodes_meta: list[dict[str, Any]] = []
+    everything: list[dict[str, np.ndarray]] = []
+    sample_frames: list[np.ndarray] = []
+    frame_budget = max(1, 10 * STATS_FRAMES // store.n_episodes + 1)  # ~1000 frames for the dataset stats
+
+    def next_file(kind: str) -> None:
+        c, f = file[kind]
+        file[kind] = (c + 1, 0) if f + 1 == CHUNKS_SIZE else (c, f + 1)
+
+    def flush_data() -> None:
+        nonlocal rows, data_bytes
+        if rows:
+            c, f = file["data"]
+            path = out / V3_DATA.format(chunk_index=c, file_index=f)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            pq.write_table(_table({k: np.concatenate([r[k] for r in rows]) for k in rows[0]}), path)
+            rows, data_bytes = [], 0
+            next_file("data")
+
+    for e, ep, cols, start in _episodes(store, fps, "export lerobot-v3", progress):
+        t = len(ep["img"])
+        if video is None or video.path.stat().st_size > VIDEO_FILE_MB * 2**20:
+            if video is not None:
+                video.close()
+                next_file("video")
+            c, f = file["video"]
+            video = VideoWriter(out / V3_VIDEO.format(video_key=IMAGE, chunk_index=c, file_index=f), fps,
+                                *ep["img"].shape[1:3])
+        from_ts = video.frames / fps
+        video.write(ep["img"])
+        rows.append(cols)
+        data_bytes += sum(v.nbytes for v in cols.values())
+        meta = {"episode_index": e, "tasks": [task], "length": t,
+                "data/chunk_index": file["data"][0], "data/file_index": file["data"][1],
+                "dataset_from_index": start, "dataset_to_index": start + t,
+                f"videos/{IMAGE}/chunk_index": file["video"][0], f"videos/{IMAGE}/file_index": file["video"][1],
+                f"videos/{IMAGE}/from_timestamp": from_ts, f"videos/{IMAGE}/to_timestamp": from_ts + t / fps,
+                "meta/episodes/chunk_index": 0, "meta/episodes/file_index": 0}
+        for feat, stats in all_stats(cols, ep["img"]).items():
+            meta.update({f"stats/{feat}/{k}": v.tolist() for k, v in stats.items()})
+        episodes_meta.append(meta)
+        everything.append(cols)
+        sample_frames.append(ep["img"][np.linspace(0, t - 1, min(t, frame_budget)).round().astype(int)])
+        if data_bytes > DATA_FILE_MB * 2**20:
+            flush_data()
+    flush_data()
+    video.close()
+
+    path = out / V3_EPISODES.format(chunk_index=0, file_index=0)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(pa.Table.from_pylist(episodes_meta), path)
+    _write_tasks_parquet(out / "meta/tasks.parquet", [task])
+    merged = {k: np.concatenate([c[k] for c in everything]) for k in everything[0]}
+    _write_json(out / "meta/stats.json", _jsonable(all_stats(merged, np.concatenate(sample_frames))))
+    _write_json(out / "meta/info.json", _info(V3, store, fps, 1, {
+        "data_files_size_in_mb": DATA_FILE_MB, "video_files_size_in_mb": VIDEO_FILE_MB,
+        "data_path": V3_DATA, "video_path": V3_VIDEO}))
+
+
+def export_v21(store: EpisodeStore, out: Path, *, fps: int, task: str, progress: bool) -> None:
+    """Write ``store`` as a LeRobotDataset v2.1 (one parquet and one mp4 per episode)."""
+    import pyarrow.parquet as pq
+
+    episodes, stats_lines = [], []
+    for e, ep, cols, _ in _episodes(store, fps, "export lerobot-v2.1", progress):
+        t = len(ep["img"])
+        chunk = e // CHUNKS_SIZE
+        path = out / V21_DATA.format(episode_chunk=chunk, episode_index=e)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(_table(cols), path)
+        writer = VideoWriter(out / V21_VIDEO.format(episode_chunk=chunk, video_key=IMAGE, episode_index=e), fps,
+                             *ep["img"].shape[1:3])
+        writer.write(ep["img"])
+        writer.close()
+        episodes.append({"episode_index": e, "tasks": [task], "length": t})
+        stats = {f: {k: v for k, v in s.items() if k not in QUANTILES} for f, s in all_stats(cols, ep["img"]).items()}
+        stats_lines.append({"episode_index": e, "stats": _jsonable(stats)})
+
+    def jsonl(name: str, items: list[dict]) -> None:
+        (out / "meta").mkdir(parents=True, exist_ok=True)
+        (out / "meta" / name).write_text("".join(json.dumps(x) + "\n" for x in items))
+
+    jsonl("episodes.jsonl", episodes)
+    jsonl("tasks.jsonl", [{"task_index": 0, "task": task}])
+    jsonl("episodes_stats.jsonl", stats_lines)
+    _write_json(out / "meta/info.json", _info(V21, store, fps, 1, {
+        "total_videos": store.n_episodes, "total_chunks": math.ceil(store.n_episodes / CHUNKS_SIZE),
+        "data_path": V21_DATA, "video_path": V21_VIDEO}))
+
+
+# -- reading ------------------------------------------------------------------------------
+
+def _load_info(src: Path, versions: tuple[str, ...]) -> dict:
+    path = src / "meta" / "info.json"
+    try:
+        info = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FormatError(f"{path}: missing; {src} is not a LeRobot dataset.") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise FormatError(f"{path}: not valid JSON ({e}).") from None
+    if not isinstance(info, dict):
+        raise FormatError(f"{path}: expected a JSON object.")
+    version = info.get("codebase_version")
+    if not isinstance(version, str) or not version.startswith(versions):
+        raise FormatError(f"{where(path, 'codebase_version')}: {version!r}, expected {' or '.join(versions)}.")
+    for key, kind in (("fps", (int, float)), ("features", dict)):
+        if not isinstance(info.get(key), kind):
+            raise FormatError(f"{where(path, key)}: missing or of the wrong type.")
+    for key in (STATE, ACTION):
+        if key not in info["features"]:
+            raise FormatError(f"{where(path, 'features')}: no '{key}' feature; features are {sorted(info['features'])}.")
+    return info
+
+
+def _camera(info: dict, src: Path, camera: str | None) -> str:
+    cams = [k for k, f in info["features"].items() if isinstance(f, dict) and f.get("dtype") in ("video", "image")]
+    if camera is not None:
+        full = camera if camera in cams else f"observation.images.{camera}"
+        if full not in cams:
+            raise FormatError(f"{src}: no camera {camera!r}; cameras are {cams}.")
+        return full
+    if IMAGE in cams:
+        return IMAGE
+    if len(cams) != 1:
+        raise FormatError(f"{src}: {len(cams)} cameras {cams}; choose one with --camera.")
+    return cams[0]
+
+
+def _read_parquet(path: Path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.read_table(path)
+    except FileNotFoundError:
+        raise FormatError(f"{path}: missing.") from None
+    except (pa.ArrowException, OSError) as e:
+        raise FormatError(f"{path}: not a readable parquet file ({' '.join(str(e).split())[:120]}).") from None
+
+
+def _column(table, key: str, path: Path, episode: int | None = None) -> np.ndarray:
+    if key not in table.column_names:
+        raise FormatError(f"{where(path, key, episode)}: column missing.")
+    import pyarrow as pa
+
+    col = table.column(key).combine_chunks()
+    try:
+        if pa.types.is_list(col.type) or pa.types.is_fixed_size_list(col.type) or pa.types.is_large_list(col.type):
+            if col.null_count:
+                raise ValueError("null rows")
+            lengths = set(np.asarray(col.value_lengths().to_numpy(zero_copy_only=False)).tolist())
+            if len(lengths) > 1:
+                raise ValueError(f"rows of different lengths {sorted(lengths)}")
+            values = np.asarray(col.flatten().to_numpy(zero_copy_only=False))
+            return values.reshape(len(col), -1)
+        return np.asarray(col.to_numpy(zero_copy_only=False))
+    except (ValueError, TypeError) as e:
+        raise FormatError(f"{where(path, key, episode)}: unexpected values ({e}).") from None
+
+
+def _images(table, key: str, path: Path, episode: int) -> np.ndarray:
+    """Frames of an 'image' feature stored in parquet as {bytes, path} (PNG/JPEG)."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    if key not in table.column_names:
+        raise FormatError(f"{where(path, key, episode)}: column missing.")
+    frames = []
+    for cell in table.column(key).to_pylist():
+        try:
+            frames.append(np.asarray(Image.open(io.BytesIO(cell["bytes"])).convert("RGB")))
+        except (TypeError, KeyError, UnidentifiedImageError, OSError):
+            raise FormatError(f"{where(path, key, episode)}: an image cell is not an encoded image.") from None
+    return np.stack(frames)
+
+
+def _episode_from_rows(table, path: Path, e: int, cam: str, frames: np.ndarray | None) -> dict[str, np.ndarray]:
+    order = np.argsort(_column(table, "frame_index", path, e), kind="stable")
+    ep = {"state": _column(table, STATE, path, e)[order], "action": _column(table, ACTION, path, e)[order]}
+    ep["img"] = frames if frames is not None else _images(table, cam, path, e)[order]
+    return check_episode(ep, where(path, episode=e))
+
+
+def _attrs(info: dict, tasks: list[str], cam: str) -> dict[str, Any]:
+    f = info["features"]
+    return {"task": tasks[0] if tasks else "", "tasks": tasks, "fps": info["fps"], "camera": cam,
+            "action_names": f[ACTION].get("names"), "state_names": f[STATE].get("names"),
+            "robot_type": info.get("robot_type")}
+
+
+def _slice(frames: np.ndarray, first: int, n: int, path: Path, e: int) -> np.ndarray:
+    if first < 0 or first + n > len(frames):
+        raise FormatError(f"{where(path, episode=e)}: frames {first}..{first + n - 1} asked, the video has {len(frames)}.")
+    return frames[first:first + n]
+
+
+def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple[dict, int | None]]]:
+    """A LeRobotDataset v3.0 directory as (attrs, episodes, iterator of (episode, None))."""
+    info = _load_info(src, ("v3",))
+    cam = _camera(info, src, camera)
+    is_video = info["features"][cam]["dtype"] == "video"
+    meta_files = sorted((src / "meta" / "episodes").glob("*/*.parquet"))
+    if not meta_files:
+        raise FormatError(f"{src / 'meta' / 'episodes'}: no episode metadata files.")
+    import pyarrow as pa
+
+    meta = pa.concat_tables([_read_parquet(p) for p in meta_files]).to_pylist()
+    meta.sort(key=lambda m: m.get("episode_index", -1))
+    tasks_path = src / "meta" / "tasks.parquet"
+    tasks: list[str] = []
+    if tasks_path.exists():
+        t = _read_parquet(tasks_path)
+        tasks = [str(x) for x in (t.column("task").to_pylist() if "task" in t.column_names else [])]
+    data_path, video_path = info.get("data_path", V3_DATA), info.get("video_path", V3_VIDEO)
+
+    def episodes() -> Iterator[tuple[dict, int | None]]:
+        tables: dict[Path, Any] = {}
+        videos: dict[Path, np.ndarray] = {}
+        for m in meta:
+            e = m.get("episode_index")
+            try:
+                path = src / data_path.format(chunk_index=m["data/chunk_index"], file_index=m["data/file_index"])
+                lo, hi = int(m["dataset_from_index"]), int(m["dataset_to_index"])
+            except (KeyError, TypeError, ValueError):
+                raise FormatError(f"{where(meta_files[0], episode=e)}: episode row lacks its data file or "
+                                  "index range.") from None
+            if path not in tables:
+                tables = {path: _read_parquet(path)}  # files are read one at a time, in order
+            table = tables[path]
+            index = _column(table, "index", path, e)
+            rows = table.filter(pa.array((index >= lo) & (index < hi)))
+            if rows.num_rows != hi - lo or hi <= lo:
+                raise FormatError(f"{where(path, 'index', e)}: {rows.num_rows} rows for the range {lo}..{hi}.")
+            frames = None
+            if is_video:
+                try:
+                    vpath = src / video_path.format(video_key=cam, chunk_index=m[f"videos/{cam}/chunk_index"],
+                                                    file_index=m[f"videos/{cam}/file_index"])
+                    first = round(float(m[f"videos/{cam}/from_timestamp"]) * info["fps"])
+                except (KeyError, TypeError, ValueError):
+                    raise FormatError(f"{where(meta_files[0], f'videos/{cam}', e)}: missing video location.") from None
+                if vpath not in videos:
+                    videos = {vpath: read_video(vpath)}
+                frames = _slice(videos[vpath], first, hi - lo, vpath, e)
+            yield _episode_from_rows(rows, path, e, cam, frames), None
+
+    return _attrs(info, tasks, cam), len(meta), episodes()
+
+
+def _jsonl(path: Path) -> list[dict]:
+    try:
+        lines = path.read_text().splitlines()
+    except FileNotFoundError:
+        raise FormatError(f"{path}: missing.") from None
+    out = []
+    for i, line in enumerate(lines):
+        if line.strip():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                raise FormatError(f"{path}: line {i + 1} is not valid JSON.") from None
+    return out
+
+
+def read_v21(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple[dict, int | None]]]:
+    """A LeRobotDataset v2.1 (or v2.0) directory as (attrs, episodes, iterator of (episode, None))."""
+    info = _load_info(src, ("v2.",))
+    cam = _camera(info, src, camera)
+    is_video = info["features"][cam]["dtype"] == "video"
+    meta = sorted(_jsonl(src / "meta" / "episodes.jsonl"), key=lambda m: m.get("episode_index", -1))
+    tasks = [str(t.get("task")) for t in _jsonl(src / "meta" / "tasks.jsonl")] if (src / "meta/tasks.jsonl").exists() \
+        else []
+    chunks = int(info.get("chunks_size", CHUNKS_SIZE))
+    data_path, video_path = info.get("data_path", V21_DATA), info.get("video_path", V21_VIDEO)
+
+    def episodes() -> Iterator[tuple[dict, int | None]]:
+        for m in meta:
+            e = m.get("episode_index")
+            if not isinstance(e, int):
+                raise FormatError(f"{src / 'meta/episodes.jsonl'}: an entry without an integer episode_index.")
+            path = src / data_path.format(episode_chunk=e // chunks, episode_index=e)
+            table = _read_parquet(path)
+            frames = None
+            if is_video:
+                vpath = src / video_path.format(episode_chunk=e // chunks, video_key=cam, episode_index=e)
+                frames = _slice(read_video(vpath), 0, table.num_rows, vpath, e)
+            yield _episode_from_rows(table, path, e, cam, frames), None
+
+    return _attrs(info, tasks, cam), len(meta), episodes()
+
+
+# -- validation ---------------------------------------------------------------------------
+
+def validate_lerobot(path: Path) -> tuple[str, list[str]]:
+    """(kind, problems) of a LeRobot dataset directory: the schema of info.json and of every
+    metadata, data and video file, and that they agree with each other."""
+    problems: list[str] = []
+    try:
+        raw = json.loads((path / "meta/info.json").read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        return "LeRobot dataset", [f"{path / 'meta/info.json'}: unreadable ({e})."]
+    version = raw.get("codebase_version") if isinstance(raw, dict) else None
+    kind = f"LeRobot dataset {version}"
+    v3 = isinstance(version, str) and version.startswith("v3")
+    if not (isinstance(version, str) and version.startswith(("v3", "v2."))):
+        return kind, [f"{where(path / 'meta/info.json', 'codebase_version')}: {version!r}, expected v3.0 or v2.x."]
+    info_path = path / "meta/info.json"
+    required = {"fps": (int, float), "features": dict, "total_episodes": int, "total_frames": int,
+                "total_tasks": int, "chunks_size": int, "splits": dict, "data_path": str}
+    if v3:
+        required |= {"data_files_size_in_mb": (int, float), "video_files_size_in_mb": (int, float)}
+    else:
+        required |= {"total_videos": int, "total_chunks": int}
+    for key, kind_ in required.items():
+        if not isinstance(raw.get(key), kind_):
+            problems.append(f"{where(info_path, key)}: missing or not {getattr(kind_, '__name__', kind_)}.")
+    feats = raw.get("features") if isinstance(raw.get("features"), dict) else {}
+    for key, f in feats.items():
+        if not isinstance(f, dict) or not isinstance(f.get("dtype"), str) or not isinstance(f.get("shape"), list) \
+                or "names" not in f:
+            problems.append(f"{where(info_path, f'features.{key}')}: needs dtype (str), shape (list) and names.")
+        elif f["dtype"] == "video":
+            missing = {"video.codec", "video.pix_fmt", "video.fps"} - set(f.get("info") or {})
+            if missing:
+                problems.append(f"{where(info_path, f'features.{key}.info')}: missing {sorted(missing)}.")
+            if raw.get("video_path") is None:
+                problems.append(f"{where(info_path, 'video_path')}: a video feature needs a video_path template.")
+    for key in (STATE, ACTION, *INDEX_FEATURES):
+        if key not in feats:
+            problems.append(f"{where(info_path, 'features')}: no '{key}' feature.")
+    if problems:
+        return kind, problems
+    for name in (["stats.json", "tasks.parquet"] if v3 else ["episodes.jsonl", "tasks.jsonl", "episodes_stats.jsonl"]):
+        if not (path / "meta" / name).is_file():
+            problems.append(f"{path / 'meta' / name}: missing.")
+    if v3:
+        stats_path = path / "meta/stats.json"
+        if stats_path.is_file():
+            try:
+                stats = json.loads(stats_path.read_text())
+                for key, s in stats.items():
+                    lack = {"min", "max", "mean", "std", "count", *QUANTILES} - set(s)
+                    if lack:
+                        problems.append(f"{where(stats_path, key)}: missing {sorted(lack)}.")
+            except (json.JSONDecodeError, AttributeError, TypeError):
+                problems.append(f"{stats_path}: not a JSON object of per-feature stats.")
+    # Reading every episode checks the files, their columns and the frame counts.
+    reader = read_v3 if v3 else read_v21
+    frames = episodes = 0
+    try:
+        _, n, eps = reader(path, camera=None)
+        for i, (ep, _) in enumerate(eps):
+            want = feats[STATE]["shape"][0], feats[ACTION]["shape"][0]
+            got = ep["state"].shape[1], ep["action"].shape[1]
+            if got != want:
+                problems.append(f"{where(path, episode=i)}: state/action sizes {got}, info.json says {want}.")
+            frames += len(ep["img"])
+            episodes += 1
+    except FormatError as e:
+        problems.append(str(e))
+        return kind, problems
+    if episodes != raw["total_episodes"]:
+        problems.append(f"{where(info_path, 'total_episodes')}: {raw['total_episodes']}, the files hold {episodes}.")
+    if frames != raw["total_frames"]:
+        problems.append(f"{where(info_path, 'total_frames')}: {raw['total_frames']}, the files hold {frames}.")
+    return kind, problems

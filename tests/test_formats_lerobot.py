@@ -1,0 +1,346 @@
+"""LeRobotDataset v3.0 and v2.1: round trips through the episode store, every written file
+against the format's schema, hand-written fixtures, validation, and bad input."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from iwsim.cli import main
+from iwsim.data.formats import FormatError, export, import_, validate
+from iwsim.data.formats.lerobot import QUANTILES
+from iwsim.data.formats.video import probe, write_video
+from iwsim.data.store import EpisodeStore
+
+FRAME_TOLERANCE = 4.0  # mean absolute error of a frame after H.264 in yuv420p (0..255)
+
+
+@pytest.fixture(scope="module")
+def exports(play_store, tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("lerobot")
+    return {fmt: export(fmt, play_store, root / fmt, task="push the T", progress=False)
+            for fmt in ("lerobot-v3", "lerobot-v2.1")}
+
+
+@pytest.mark.parametrize("fmt", ["lerobot-v3", "lerobot-v2.1"])
+def test_round_trip(play_store, exports, tmp_path, fmt):
+    back = import_(fmt, exports[fmt], tmp_path / "back.zarr", progress=False)
+    src = EpisodeStore.open(play_store)
+    assert back.n_episodes == src.n_episodes
+    np.testing.assert_array_equal(back.episode_ends, src.episode_ends)
+    for i in range(src.n_episodes):
+        a, b = src.episode(i), back.episode(i)
+        np.testing.assert_array_equal(b["state"], a["state"])
+        np.testing.assert_array_equal(b["action"], a["action"])
+        err = np.abs(b["img"].astype(int) - a["img"]).mean(axis=(1, 2, 3))
+        assert err.max() < FRAME_TOLERANCE, (i, err.max())
+    assert back.attrs["task"] == "push the T" and back.attrs["fps"] == 10
+    assert back.attrs["action_names"] == ["left_x", "left_y", "right_x", "right_y"]
+    assert validate(tmp_path / "back.zarr") == ("episode store", [])
+
+
+def test_v3_files_follow_the_specification(play_store, exports):
+    root = exports["lerobot-v3"]
+    src = EpisodeStore.open(play_store)
+    n, e = src.n_frames, src.n_episodes
+    info = json.loads((root / "meta/info.json").read_text())
+    assert info["codebase_version"] == "v3.0" and info["fps"] == 10
+    assert (info["total_episodes"], info["total_frames"], info["total_tasks"]) == (e, n, 1)
+    assert info["chunks_size"] == 1000 and info["data_files_size_in_mb"] == 100
+    assert info["video_files_size_in_mb"] == 500 and info["splits"] == {"train": f"0:{e}"}
+    assert info["data_path"] == "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+    assert info["video_path"] == "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+    f = info["features"]
+    assert f["observation.image"]["dtype"] == "video" and f["observation.image"]["shape"] == [64, 64, 3]
+    assert f["observation.image"]["names"] == ["height", "width", "channels"]
+    assert f["observation.image"]["info"] == {
+        "video.height": 64, "video.width": 64, "video.codec": "h264", "video.pix_fmt": "yuv420p",
+        "video.is_depth_map": False, "video.fps": 10, "video.channels": 3, "has_audio": False}
+    for key, dim in (("observation.state", 4), ("action", 4)):
+        assert f[key] == {"dtype": "float32", "shape": [dim], "names": ["left_x", "left_y", "right_x", "right_y"]}
+    for key, dtype in (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"),
+                       ("index", "int64"), ("task_index", "int64")):
+        assert f[key] == {"dtype": dtype, "shape": [1], "names": None}
+
+    stats = json.loads((root / "meta/stats.json").read_text())
+    assert set(stats) == set(f)
+    for key, s in stats.items():
+        assert set(s) == {"min", "max", "mean", "std", "count", *QUANTILES}
+        shape = (3, 1, 1) if key == "observation.image" else tuple(f[key]["shape"])
+        assert all(np.shape(s[k]) == shape for k in s if k != "count"), key
+    assert stats["action"]["count"] == [n]
+    np.testing.assert_allclose(stats["action"]["mean"], src.array("action")[:n].mean(0), rtol=1e-5)
+    assert 0 <= np.min(stats["observation.image"]["min"]) <= np.max(stats["observation.image"]["max"]) <= 1
+
+    tasks = pd.read_parquet(root / "meta/tasks.parquet")
+    assert tasks.index.name == "task" and list(tasks.index) == ["push the T"]
+    assert list(tasks["task_index"]) == [0]
+
+    eps = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet")
+    rows = eps.to_pylist()
+    assert [r["episode_index"] for r in rows] == list(range(e))
+    ends = src.episode_ends
+    for r, lo, hi in zip(rows, np.concatenate([[0], ends[:-1]]), ends):
+        assert (r["dataset_from_index"], r["dataset_to_index"], r["length"]) == (lo, hi, hi - lo)
+        assert r["tasks"] == ["push the T"] and r["data/chunk_index"] == r["data/file_index"] == 0
+        assert r["videos/observation.image/from_timestamp"] == pytest.approx(lo / 10)
+        assert r["videos/observation.image/to_timestamp"] == pytest.approx(hi / 10)
+        assert r["stats/action/count"] == [hi - lo] and len(r["stats/action/q50"]) == 4
+    assert eps.schema.field("tasks").type == pa.list_(pa.string())
+
+    data = pq.read_table(root / "data/chunk-000/file-000.parquet")
+    assert set(data.column_names) == {"observation.state", "action", "timestamp", "frame_index", "episode_index",
+                                      "index", "task_index"}
+    assert data.schema.field("action").type == pa.list_(pa.float32(), 4)
+    assert data.schema.field("timestamp").type == pa.float32()
+    for key in ("frame_index", "episode_index", "index", "task_index"):
+        assert data.schema.field(key).type == pa.int64()
+    assert data.column("index").to_pylist() == list(range(n))
+
+    video = probe(root / "videos/observation.image/chunk-000/file-000.mp4")
+    assert video == {"codec": "h264", "pix_fmt": "yuv420p", "height": 64, "width": 64, "frames": n}
+
+
+def test_v21_files_follow_the_specification(play_store, exports):
+    root = exports["lerobot-v2.1"]
+    src = EpisodeStore.open(play_store)
+    e = src.n_episodes
+    info = json.loads((root / "meta/info.json").read_text())
+    assert info["codebase_version"] == "v2.1"
+    assert (info["total_episodes"], info["total_videos"], info["total_chunks"]) == (e, e, 1)
+    assert info["data_path"] == "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
+    assert info["video_path"] == "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
+    lines = [json.loads(x) for x in (root / "meta/episodes.jsonl").read_text().splitlines()]
+    assert lines == [{"episode_index": i, "tasks": ["push the T"], "length": int(len(src.episode(i)["img"]))}
+                     for i in range(e)]
+    assert [json.loads(x) for x in (root / "meta/tasks.jsonl").read_text().splitlines()] == \
+        [{"task_index": 0, "task": "push the T"}]
+    stats = [json.loads(x) for x in (root / "meta/episodes_stats.jsonl").read_text().splitlines()]
+    assert [s["episode_index"] for s in stats] == list(range(e))
+    assert set(stats[0]["stats"]["action"]) == {"min", "max", "mean", "std", "count"}
+    for i in range(e):
+        t = pq.read_table(root / f"data/chunk-000/episode_{i:06d}.parquet")
+        assert t.num_rows == lines[i]["length"] and t.column("episode_index").to_pylist() == [i] * t.num_rows
+        v = probe(root / f"videos/chunk-000/observation.image/episode_{i:06d}.mp4")
+        assert v["frames"] == t.num_rows and v["pix_fmt"] == "yuv420p"
+    assert validate(root) == ("LeRobot dataset v2.1", [])
+
+
+def handwritten_v3(root: Path, action_dim: int = 6, image_dtype: str = "video") -> dict[str, np.ndarray]:
+    """A small v3 dataset written without our exporter: two cameras, 2 episodes of 5 and 3
+    frames, a ``action_dim``-D action. Returns the 'wrist' frames and the actions."""
+    rng = np.random.default_rng(0)
+    lengths, n = [5, 3], 8
+    frames = {cam: np.repeat(rng.integers(0, 256, (n, 1, 1, 3), dtype=np.uint8), 32, 1).repeat(32, 2)
+              for cam in ("top", "wrist")}
+    action = rng.normal(size=(n, action_dim)).astype(np.float32)
+    state = rng.normal(size=(n, 3)).astype(np.float32)
+    feats = {"observation.state": {"dtype": "float32", "shape": [3], "names": None},
+             "action": {"dtype": "float32", "shape": [action_dim], "names": None},
+             "timestamp": {"dtype": "float32", "shape": [1], "names": None},
+             **{k: {"dtype": "int64", "shape": [1], "names": None}
+                for k in ("frame_index", "episode_index", "index", "task_index")}}
+    for cam in frames:
+        feats[f"observation.images.{cam}"] = {"dtype": image_dtype, "shape": [32, 32, 3],
+                                              "names": ["height", "width", "channels"],
+                                              "info": {"video.fps": 10, "video.codec": "h264",
+                                                       "video.pix_fmt": "yuv420p"}}
+    (root / "meta/episodes/chunk-000").mkdir(parents=True)
+    (root / "data/chunk-000").mkdir(parents=True)
+    (root / "meta/info.json").write_text(json.dumps({
+        "codebase_version": "v3.0", "fps": 10, "features": feats, "total_episodes": 2, "total_frames": n,
+        "total_tasks": 1, "chunks_size": 1000, "data_files_size_in_mb": 100, "video_files_size_in_mb": 500,
+        "splits": {"train": "0:2"}, "data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
+        "video_path": "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"}))
+    ep = np.repeat([0, 1], lengths)
+    frame = np.concatenate([np.arange(k) for k in lengths])
+    cols = {"observation.state": pa.array(state.tolist(), pa.list_(pa.float32())),  # variable lists, as older writers
+            "action": pa.array(action.tolist(), pa.list_(pa.float32())),
+            "timestamp": pa.array(frame / 10, pa.float32()), "frame_index": pa.array(frame, pa.int64()),
+            "episode_index": pa.array(ep, pa.int64()), "index": pa.array(np.arange(n), pa.int64()),
+            "task_index": pa.array(np.zeros(n, np.int64))}
+    if image_dtype == "image":
+        import io
+
+        from PIL import Image
+
+        for cam, x in frames.items():
+            cells = []
+            for f in x:
+                buf = io.BytesIO()
+                Image.fromarray(f).save(buf, format="PNG")
+                cells.append({"bytes": buf.getvalue(), "path": None})
+            cols[f"observation.images.{cam}"] = pa.array(cells)
+    else:
+        for cam, x in frames.items():
+            write_video(root / f"videos/observation.images.{cam}/chunk-000/file-000.mp4", x, 10)
+    pq.write_table(pa.table(cols), root / "data/chunk-000/file-000.parquet")
+    rows = []
+    for i, (lo, hi) in enumerate([(0, 5), (5, 8)]):
+        row = {"episode_index": i, "tasks": ["stack"], "length": hi - lo, "data/chunk_index": 0,
+               "data/file_index": 0, "dataset_from_index": lo, "dataset_to_index": hi}
+        for cam in frames:
+            row |= {f"videos/observation.images.{cam}/chunk_index": 0,
+                    f"videos/observation.images.{cam}/file_index": 0,
+                    f"videos/observation.images.{cam}/from_timestamp": lo / 10,
+                    f"videos/observation.images.{cam}/to_timestamp": hi / 10}
+        rows.append(row)
+    pq.write_table(pa.Table.from_pylist(rows), root / "meta/episodes/chunk-000/file-000.parquet")
+    pd.DataFrame({"task_index": [0]}, index=pd.Index(["stack"], name="task")).to_parquet(root / "meta/tasks.parquet")
+    return {"wrist": frames["wrist"], "action": action}
+
+
+@pytest.mark.parametrize("image_dtype", ["video", "image"])
+def test_import_a_handwritten_v3_dataset(tmp_path, image_dtype):
+    src = tmp_path / "ds"
+    want = handwritten_v3(src, image_dtype=image_dtype)
+    with pytest.raises(FormatError, match="2 cameras"):
+        import_("lerobot-v3", src, tmp_path / "x.zarr", progress=False)
+    assert not (tmp_path / "x.zarr").exists()
+    back = import_("lerobot-v3", src, tmp_path / "s.zarr", camera="wrist", image_size=None, progress=False)
+    assert back.n_episodes == 2 and list(back.episode_ends) == [5, 8]
+    np.testing.assert_array_equal(np.concatenate([back.episode(i)["action"] for i in range(2)]), want["action"])
+    got = np.concatenate([back.episode(i)["img"] for i in range(2)]).astype(int)
+    assert np.abs(got - want["wrist"]).mean() < FRAME_TOLERANCE  # flat colours: the camera asked for
+    assert back.attrs["task"] == "stack" and back.array("action").shape[1] == 6
+    small = import_("lerobot-v3", src, tmp_path / "s16.zarr", camera="observation.images.top", image_size=16,
+                    progress=False)
+    assert small.array("img").shape[1:] == (16, 16, 3)
+
+
+def test_validate_finds_what_is_wrong(exports, tmp_path):
+    assert validate(exports["lerobot-v3"]) == ("LeRobot dataset v3.0", [])
+    root = tmp_path / "v3"
+    shutil.copytree(exports["lerobot-v3"], root)
+    info = json.loads((root / "meta/info.json").read_text())
+    info["total_frames"] += 1
+    del info["features"]["observation.image"]["info"]["video.pix_fmt"]
+    (root / "meta/info.json").write_text(json.dumps(info))
+    stats = json.loads((root / "meta/stats.json").read_text())
+    del stats["action"]["q99"]
+    (root / "meta/stats.json").write_text(json.dumps(stats))
+    _, problems = validate(root)
+    text = "\n".join(problems)
+    assert "features.observation.image.info" in text and "video.pix_fmt" in text
+    (root / "meta/info.json").write_text(json.dumps({**info, "features": json.loads(
+        (exports["lerobot-v3"] / "meta/info.json").read_text())["features"]}))
+    _, problems = validate(root)
+    text = "\n".join(problems)
+    assert "stats.json key 'action'" in text and "q99" in text
+    assert "total_frames" in text
+    (root / "videos/observation.image/chunk-000/file-000.mp4").unlink()
+    _, problems = validate(root)
+    assert any("file-000.mp4: video file is missing" in p for p in problems)
+    assert main(["data", "validate", str(root)]) == 1
+
+
+def test_cli_export_import_validate(play_store, tmp_path, capsys):
+    out = tmp_path / "lr"
+    assert main(["data", "export", "--format", "lerobot-v3", "--in", str(play_store), "--out", str(out),
+                 "--no-progress"]) == 0
+    assert main(["data", "export", "--format", "lerobot-v3", "--in", str(play_store), "--out", str(out),
+                 "--no-progress"]) == 1
+    assert "already exists" in capsys.readouterr().err
+    assert main(["data", "validate", str(out)]) == 0
+    assert main(["data", "import", "--format", "lerobot-v3", "--in", str(out), "--out", str(tmp_path / "s.zarr"),
+                 "--image-size", "32", "--no-progress"]) == 0
+    assert EpisodeStore.open(tmp_path / "s.zarr").array("img").shape[1:] == (32, 32, 3)
+    assert main(["data", "import", "--format", "lerobot-v2.1", "--in", str(out), "--out",
+                 str(tmp_path / "t.zarr"), "--no-progress"]) == 1
+    assert "codebase_version" in capsys.readouterr().err and not (tmp_path / "t.zarr").exists()
+
+
+@pytest.mark.parametrize("fmt", ["lerobot-v3", "lerobot-v2.1"])
+def test_bad_input_names_the_file_and_leaves_nothing(exports, tmp_path, fmt):
+    root = tmp_path / "ds"
+    shutil.copytree(exports[fmt], root)
+    data = sorted((root / "data").rglob("*.parquet"))[0]
+    data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])  # truncated
+    with pytest.raises(FormatError, match=data.name):
+        import_(fmt, root, tmp_path / "out.zarr", progress=False)
+    assert not (tmp_path / "out.zarr").exists()
+    assert not list(tmp_path.glob(".out.zarr*"))
+
+
+FILES = {
+    "lerobot-v3": ["meta/info.json", "data/chunk-000/file-000.parquet", "meta/episodes/chunk-000/file-000.parquet",
+                   "meta/tasks.parquet", "videos/observation.image/chunk-000/file-000.mp4"],
+    "lerobot-v2.1": ["meta/info.json", "meta/episodes.jsonl", "data/chunk-000/episode_000001.parquet",
+                     "videos/chunk-000/observation.image/episode_000001.mp4"],
+}
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(file=st.sampled_from([(fmt, f) for fmt, files in FILES.items() for f in files]), cut=st.floats(0, 1),
+       flips=st.lists(st.integers(0, 10**9), max_size=8))
+def test_corrupted_files_fail_cleanly(exports, tmp_path_factory, file, cut, flips):
+    """Truncated or bit-flipped files of either version: a valid store, or a one-line
+    ValueError/OSError and no output at all."""
+    fmt, name = file
+    tmp = tmp_path_factory.mktemp("corrupt")
+    root = tmp / "ds"
+    shutil.copytree(exports[fmt], root)
+    path = root / name
+    raw = bytearray(path.read_bytes())
+    raw = raw[: max(1, int(len(raw) * cut))] if cut < 0.98 else raw
+    for f in flips:
+        raw[f % len(raw)] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    out = tmp / "out.zarr"
+    try:
+        store = import_(fmt, root, out, progress=False)
+    except (ValueError, OSError) as e:
+        assert "\n" not in str(e).strip() and str(e)
+        assert not out.exists()
+    else:
+        assert validate(store.path)[1] == []
+
+
+def test_v3_rolls_over_to_new_files_and_chunks(play_store, tmp_path, monkeypatch):
+    """With tiny file limits every episode gets its own data and video file, two files per
+    chunk directory; the import reads them all back."""
+    from iwsim.data.formats import lerobot
+
+    monkeypatch.setattr(lerobot, "DATA_FILE_MB", 1e-9)
+    monkeypatch.setattr(lerobot, "VIDEO_FILE_MB", 1e-9)
+    monkeypatch.setattr(lerobot, "CHUNKS_SIZE", 2)
+    root = export("lerobot-v3", play_store, tmp_path / "ds", progress=False)
+    src = EpisodeStore.open(play_store)
+    e = src.n_episodes
+    data = sorted(p.relative_to(root).as_posix() for p in (root / "data").rglob("*.parquet"))
+    assert data == [f"data/chunk-{i // 2:03d}/file-{i % 2:03d}.parquet" for i in range(e)]
+    assert len(list((root / "videos").rglob("*.mp4"))) == e
+    rows = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+    assert [(r["data/chunk_index"], r["data/file_index"]) for r in rows] == [(i // 2, i % 2) for i in range(e)]
+    assert all(r["videos/observation.image/from_timestamp"] == 0 for r in rows)
+    back = import_("lerobot-v3", root, tmp_path / "back.zarr", progress=False)
+    np.testing.assert_array_equal(back.array("action")[:], src.array("action")[:src.n_frames])
+    assert validate(root) == ("LeRobot dataset v3.0", [])
+
+
+def test_hf_datasets_loads_the_v3_files_as_lerobot_does(exports, tmp_path, monkeypatch):
+    """LeRobot loads data files with Hugging Face datasets, its features built from
+    info.json (shape [1] -> Value, [D] -> Sequence(length=D)); ours must load that way."""
+    monkeypatch.setenv("HF_DATASETS_OFFLINE", "1")
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    datasets = pytest.importorskip("datasets")
+    root = exports["lerobot-v3"]
+    info = json.loads((root / "meta/info.json").read_text())
+    feats = {k: datasets.Value(f["dtype"]) if f["shape"] == [1] else
+             datasets.Sequence(length=f["shape"][0], feature=datasets.Value(f["dtype"]))
+             for k, f in info["features"].items() if f["dtype"] != "video"}
+    ds = datasets.Dataset.from_parquet(str(root / "data/chunk-000/file-000.parquet"),
+                                       features=datasets.Features(feats), cache_dir=str(tmp_path / "hf"))
+    assert ds.num_rows == info["total_frames"] and set(ds.column_names) == set(feats)
+    table = pq.read_table(root / "data/chunk-000/file-000.parquet")
+    assert ds[7]["action"] == pytest.approx(table.column("action")[7].as_py())
+    eps = datasets.Dataset.from_parquet(str(root / "meta/episodes/chunk-000/file-000.parquet"),
+                                        cache_dir=str(tmp_path / "hf"))
+    assert eps.num_rows == info["total_episodes"] and eps[0]["tasks"] == ["push the T"]
