@@ -16,11 +16,14 @@ Every format module offers some of:
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 
 from iwsim.data.formats.common import FormatError, output_dir, write_store
 from iwsim.data.store import EpisodeStore
+
+log = logging.getLogger(__name__)
 
 EXPORT_FORMATS = ("lerobot-v3", "lerobot-v2.1", "hdf5-aloha")
 IMPORT_FORMATS = ("lerobot-v3", "lerobot-v2.1", "hdf5-aloha", "robomimic", "zarr")
@@ -40,6 +43,9 @@ def export(fmt: str, store: str | os.PathLike, out: str | os.PathLike, *, fps: i
     if fps < 1:
         raise ValueError(f"--fps must be a positive integer, got {fps}.")
     task = task or str(src.attrs.get("task") or "")
+    dropped = sorted(set(src.keys) - {"img", "state", "action"})
+    if dropped:
+        log.info("%s has no place for %s; they are not exported", fmt, ", ".join(dropped))
     if fmt == "hdf5-aloha":
         from iwsim.data.formats.hdf5 import export_aloha as writer
     else:

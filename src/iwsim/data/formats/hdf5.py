@@ -114,9 +114,6 @@ def export_aloha(store: EpisodeStore, out: Path, *, fps: int, task: str, progres
     from tqdm import tqdm
 
     names = store.attrs.get("action_names")
-    dropped = sorted(set(store.keys) - {"img", "state", "action"})
-    if dropped:
-        log.info("hdf5-aloha has no place for %s; they are not exported", ", ".join(dropped))
     seeds = store.seeds
     for i in tqdm(range(store.n_episodes), unit="ep", desc=f"export {out.name}", disable=not progress):
         ep = check_episode(store.episode(i), where(store.path, episode=i))
