@@ -1,6 +1,7 @@
 from pathlib import Path
 
 import pytest
+import torch
 
 from iwsim.data.collect import collect
 
@@ -11,3 +12,13 @@ def play_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("data") / "play.zarr"
     collect("pusht", "play", 4, out=path, steps=12, image_size=64, workers=1, seed=0, progress=False)
     return path
+
+
+@pytest.fixture
+def one_thread():
+    """Tiny networks on two cores shared with other jobs: torch's default two threads
+    oversubscribe them (tens of times slower here), one thread does not."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

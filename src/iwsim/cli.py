@@ -84,6 +84,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: %(default)s)")
     _train_flags(q, "tiny, pusht-64")
     q.set_defaults(func=_train_dynamics)
+    q = train_sub.add_parser("policy", help="an imitation policy (Diffusion Policy or ACT) on a mixture of stores")
+    q.add_argument("--policy", required=True, choices=("dp", "act"), help="policy type")
+    _train_flags(q, "dp, act, tiny-dp, tiny-act (default: the policy's name)")
+    q.set_defaults(func=_train_policy, preset=None)
+    for action in q._actions:  # --data takes a mixture here
+        if action.dest == "data":
+            action.help = "STORE[:N][,STORE:N...]: exactly the first N episodes of each store (all without :N)"
     q = train_sub.add_parser("decoder-finetune", help="stage 3: fine-tune a world model's decoder on noisy latents")
     q.add_argument("--world-model", required=True, help="world-model run (e.g. runs/dyn) or checkpoint")
     q.add_argument("--data", required=True, help="episode store to train on")
@@ -96,6 +103,21 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     q.set_defaults(func=_train_decoder_finetune)
+
+    p = sub.add_parser("eval", help="evaluate a policy closed-loop in MuJoCo or inside the world model")
+    eval_sub = p.add_subparsers(dest="eval_command", required=True, metavar="COMMAND")
+    q = eval_sub.add_parser("policy", help="success and max IoU over seeded episodes, with intervals and videos")
+    q.add_argument("--checkpoint", required=True, help="policy run (its last checkpoint) or checkpoint directory")
+    q.add_argument("--env", default="pusht", choices=("pusht", "world-model"), help="(default: %(default)s)")
+    q.add_argument("--world-model", default="checkpoints/pusht-64", help="for --env world-model (default: %(default)s)")
+    q.add_argument("--episodes", type=int, default=50, help="(default: %(default)s)")
+    q.add_argument("--seed", type=int, default=100000, help="first MuJoCo seed (default: %(default)s)")
+    q.add_argument("--steps", type=int, default=600, help="steps per episode (default: %(default)s)")
+    q.add_argument("--videos", type=int, default=4, help="episodes recorded as videos (default: %(default)s)")
+    q.add_argument("--out", required=True, help="output directory for results.json and videos")
+    q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    q.set_defaults(func=_eval_policy)
 
     p = sub.add_parser("export-model", help="write a standalone world-model checkpoint from a training run")
     p.add_argument("--run", "--dynamics", dest="run", required=True,
@@ -343,6 +365,48 @@ def _train_dynamics(args: argparse.Namespace) -> int:
 
     _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
                                   force=args.force, progress=not args.no_progress))
+    return 0
+
+
+def _train_policy(args: argparse.Namespace) -> int:
+    from iwsim.policies import PRESETS
+
+    args.preset = args.preset or args.policy
+    cfg = _resolve_preset(args, PRESETS)
+    if cfg is None:
+        return 0
+    if cfg.policy != args.policy:
+        raise ValueError(f"preset {args.preset!r} is a {cfg.policy!r} policy, not {args.policy!r}.")
+    from iwsim.policies.data import parse_mixture
+    from iwsim.training.policy import train_policy
+    from iwsim.training.trainer import resolve_device
+
+    _print_metrics(train_policy(cfg, parse_mixture(args.data), args.out, device=resolve_device(args.device),
+                                force=args.force, progress=not args.no_progress))
+    return 0
+
+
+def _eval_policy(args: argparse.Namespace) -> int:
+    from iwsim.eval.policy import evaluate
+    from iwsim.policies import load_policy
+    from iwsim.training.trainer import resolve_device
+
+    device = resolve_device(args.device)
+    policy = load_policy(args.checkpoint, device)
+    wm = None
+    if args.env == "world-model":
+        from iwsim.world_model import WorldModel
+
+        wm = WorldModel.load(args.world_model, device)
+    result = evaluate(policy, args.env, episodes=args.episodes, seed=args.seed, steps=args.steps, world_model=wm,
+                      image_size=policy.image_size, out=args.out, videos=args.videos, progress=not args.no_progress,
+                      meta={"checkpoint": str(args.checkpoint),
+                            "world_model": args.world_model if args.env == "world-model" else None})
+    post = result["success_beta_posterior"]
+    lo, hi = result["success_clopper_pearson"]
+    print(f"{args.env}: mean max IoU {result['mean_max_iou']:.3f}; success {result['success_rate']:.2f} "
+          f"(Beta posterior mean {post['mean']:.2f}, 95% {post['low']:.2f}-{post['high']:.2f}; "
+          f"Clopper-Pearson {lo:.2f}-{hi:.2f}); {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
     return 0
 
 

@@ -31,7 +31,7 @@ from torch import nn
 from tqdm import tqdm
 
 from iwsim.autoencoder import Autoencoder
-from iwsim.config import OBJECTIVES, DynamicsStageConfig, to_dict
+from iwsim.config import OBJECTIVES, DynamicsStageConfig
 from iwsim.data.frames import split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.diffusion import edm

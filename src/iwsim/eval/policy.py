@@ -1,0 +1,152 @@
+"""Closed-loop evaluation of a policy in the MuJoCo task or inside the world model
+(``iwsim eval policy``).
+
+Episode i starts from MuJoCo seed ``seed + i`` in both environments: the world model
+starts from MuJoCo's rendering of that seed's initial state. All episodes step together:
+inside the world model that is one batched forward pass per step; in MuJoCo the
+environments step one after another. The score of an episode is the maximum IoU it
+reaches (the paper's T-pushing score), success is IoU >= 0.9; the success rate comes with
+a Beta posterior (uniform prior) and a Clopper-Pearson interval.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from torch import nn
+from tqdm import tqdm
+
+from iwsim.envs.pusht import SUCCESS_IOU
+from iwsim.eval.stats import beta_posterior, clopper_pearson
+
+ENVS = ("pusht", "world-model")
+
+
+class _MujocoBatch:
+    """E MuJoCo environments in lockstep, with the vector env's reset/step shapes."""
+
+    def __init__(self, n: int, image_size: int) -> None:
+        from iwsim.envs import make_env
+
+        self.envs = [make_env("pusht", image_size) for _ in range(n)]
+
+    def reset(self, seeds: list[int]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        out = [env.reset(seed=s) for env, s in zip(self.envs, seeds)]
+        return _stack([o for o, _ in out]), np.array([i["iou"] for _, i in out])
+
+    def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        out = [env.step(a) for env, a in zip(self.envs, actions)]
+        return _stack([o[0] for o in out]), np.array([o[4]["iou"] for o in out])
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+class _WorldModelBatch:
+    def __init__(self, n: int, world_model: Any, steps: int) -> None:
+        from iwsim.envs.world_model_env import WorldModelVectorEnv
+
+        self.env = WorldModelVectorEnv(n, model=world_model, reset_source="mujoco", max_episode_steps=steps + 1)
+
+    def reset(self, seeds: list[int]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        obs, info = self.env.reset(seed=seeds)
+        return obs, info["iou"]
+
+    def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        obs, _, _, _, info = self.env.step(actions)
+        return obs, info["iou"]
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def _stack(obs: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    return {k: np.stack([o[k] for o in obs]) for k in obs[0]}
+
+
+def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
+            image_size: int = 64, record: int = 0, progress: bool = True) -> dict[str, Any]:
+    """Run ``policy`` for ``steps`` steps from each seed, all episodes together. Returns
+    per-step IoU (E, steps + 1) and the frames of the first ``record`` episodes."""
+    if env not in ENVS:
+        raise ValueError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
+    n = len(seeds)
+    if env == "world-model":
+        if world_model is None:
+            raise ValueError("evaluating inside the world model needs --world-model CHECKPOINT.")
+        if world_model.image_size != image_size:
+            raise ValueError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
+                             f"renders {world_model.image_size}x{world_model.image_size}.")
+        batch = _WorldModelBatch(n, world_model, steps)
+    else:
+        batch = _MujocoBatch(n, image_size)
+    try:
+        obs, iou = batch.reset(seeds)
+        history: deque[dict[str, np.ndarray]] = deque([obs] * policy.obs_horizon, maxlen=policy.obs_horizon)
+        ious, frames = [iou], [obs["pixels"][:record]]
+        policy.reset()
+        queue: list[np.ndarray] = []
+        bar = tqdm(total=steps, desc=f"eval in {env}", unit="step", disable=not progress)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            if not queue:
+                stacked = {"image": np.stack([h["pixels"] for h in history], 1),
+                           "agent_pos": np.stack([h["agent_pos"] for h in history], 1)}
+                chunk = policy.predict_action(stacked)  # (E, Ta, A)
+                queue = list(chunk.transpose(1, 0, 2))
+            obs, iou = batch.step(queue.pop(0).astype(np.float32))
+            history.append(obs)
+            ious.append(iou)
+            frames.append(obs["pixels"][:record])
+            bar.update()
+        bar.close()
+        seconds = time.perf_counter() - t0
+    finally:
+        batch.close()
+    return {"iou": np.stack(ious, 1), "frames": np.stack(frames, 1) if record else None, "seconds": seconds}
+
+
+def summarize(max_iou: np.ndarray, seeds: list[int]) -> dict[str, Any]:
+    """Per-episode scores and the statistics over episodes."""
+    success = max_iou >= SUCCESS_IOU
+    k, n = int(success.sum()), len(success)
+    return {
+        "episodes": [{"seed": s, "max_iou": float(m), "success": bool(ok)} for s, m, ok in zip(seeds, max_iou, success)],
+        "mean_max_iou": float(max_iou.mean()),
+        "std_max_iou": float(max_iou.std()),
+        "success_rate": k / n,
+        "success_beta_posterior": beta_posterior(k, n),
+        "success_clopper_pearson": list(clopper_pearson(k, n)),
+    }
+
+
+def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
+             image_size: int = 64, out: str | Path | None = None, videos: int = 4, progress: bool = True,
+             meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Evaluate ``policy`` on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``,
+    write ``results.json`` and videos of the first ``videos`` episodes."""
+    for name, v in (("episodes", episodes), ("steps", steps)):
+        if v < 1:
+            raise ValueError(f"--{name} must be a positive integer, got {v}.")
+    seeds = [seed + i for i in range(episodes)]
+    run = rollout(policy, env, seeds, steps, world_model=world_model, image_size=image_size,
+                  record=min(videos, episodes) if out is not None else 0, progress=progress)
+    result = {"env": env, "steps": steps, **(meta or {}), **summarize(run["iou"].max(1), seeds),
+              "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
+    if out is not None:
+        from iwsim.eval.video import upscale, write_video
+        from iwsim.training.checkpoint import write_json_atomic
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / "results.json", result, sort_keys=False)
+        for i in range(len(run["frames"])):
+            write_video(out / f"episode_{seeds[i]}.mp4", upscale(run["frames"][i], 4), fps=10)
+        (out / "iou.json").write_text(json.dumps({"seeds": seeds, "iou_per_step": run["iou"].round(4).tolist()}))
+    return result

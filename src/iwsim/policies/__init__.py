@@ -1,0 +1,106 @@
+"""Imitation policies on image + agent_pos: Diffusion Policy (``dp``) and ACT (``act``).
+
+    policy = load_policy("runs/pol/dp")          # a run (its last checkpoint) or a checkpoint
+    policy.reset()
+    actions = policy.predict_action({"image": (B, To, H, W, 3) uint8, "agent_pos": (B, To, 4)})
+    # -> (B, Ta, 4): execute in order, then ask again
+
+A checkpoint is a directory with ``model.safetensors`` (weights and normalisation
+bounds) and ``config.json`` (``kind: policy``, the policy type and its config).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from iwsim.config import TrainConfig, from_dict, to_dict
+from iwsim.policies.common import Normalizer
+
+KIND = "policy"
+POLICIES = ("dp", "act")
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyStageConfig:
+    """A policy type, its config and the training loop's knobs."""
+
+    policy: str = "dp"
+    model: dict[str, Any] = dataclasses.field(default_factory=dict)  # the policy's config (to_dict)
+    train: TrainConfig = TrainConfig()
+
+
+def config_class(policy: str) -> type:
+    if policy == "dp":
+        from iwsim.policies.diffusion import DiffusionConfig
+
+        return DiffusionConfig
+    if policy == "act":
+        from iwsim.policies.act import ACTConfig
+
+        return ACTConfig
+    raise ValueError(f"unknown policy {policy!r}; expected one of {', '.join(POLICIES)}.")
+
+
+def make_policy(policy: str, model: dict[str, Any], action_norm: Normalizer, state_norm: Normalizer) -> nn.Module:
+    """A policy of type ``policy`` with config fields ``model`` (defaults for the rest)."""
+    cfg = from_dict(config_class(policy), model)
+    if policy == "dp":
+        from iwsim.policies.diffusion import DiffusionPolicy
+
+        return DiffusionPolicy(cfg, action_norm, state_norm)
+    from iwsim.policies.act import ACTPolicy
+
+    return ACTPolicy(cfg, action_norm, state_norm)
+
+
+# Presets: the defaults of the paper-sized-down policies, and tiny ones for tests.
+PRESETS: dict[str, PolicyStageConfig] = {
+    "dp": PolicyStageConfig("dp", {}, TrainConfig(steps=20_000, batch_size=64, lr=1e-4, warmup_steps=500,
+                                                  weight_decay=1e-6, eval_every=1000, checkpoint_every=1000)),
+    "act": PolicyStageConfig("act", {}, TrainConfig(steps=20_000, batch_size=32, lr=1e-4, warmup_steps=500,
+                                                    weight_decay=1e-4, eval_every=1000, checkpoint_every=1000)),
+    "tiny-dp": PolicyStageConfig("dp", {"image_features": 16, "encoder_channels": (8, 16, 16),
+                                        "down_dims": (16, 32), "horizon": 8, "n_action_steps": 4,
+                                        "inference_steps": 4},
+                                 TrainConfig(steps=20, batch_size=8, lr=1e-3, warmup_steps=2, eval_every=10,
+                                             checkpoint_every=10, log_every=5)),
+    "tiny-act": PolicyStageConfig("act", {"chunk_size": 8, "dim": 32, "heads": 2, "enc_layers": 1, "dec_layers": 1,
+                                          "ff_dim": 64},
+                                  TrainConfig(steps=20, batch_size=8, lr=1e-3, warmup_steps=2, eval_every=10,
+                                              checkpoint_every=10, log_every=5)),
+}
+
+
+def describe(policy: nn.Module) -> dict[str, Any]:
+    """The parts of ``config.json`` that :func:`load_policy` reads."""
+    return {"kind": KIND, "policy": policy.kind, "model": to_dict(policy.cfg),
+            "action_dim": int(policy.action_norm.low.shape[0]), "state_dim": int(policy.state_norm.low.shape[0])}
+
+
+def load_policy(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
+    """A trained policy from a checkpoint directory, or from a run (its last checkpoint)."""
+    from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors
+
+    path = Path(path)
+    if (path / "checkpoints" / "last").exists():
+        path = (path / "checkpoints" / "last").resolve()
+    if not (path / "config.json").is_file() or not (path / "model.safetensors").is_file():
+        raise CheckpointError(f"{path} is not a policy checkpoint (model.safetensors + config.json) or a run of "
+                              "iwsim train policy.")
+    config = load_json(path / "config.json")
+    if config.get("kind") != KIND:
+        raise CheckpointError(f"{path} is a {config.get('kind')!r} checkpoint, not a policy.")
+    try:
+        a, s = int(config["action_dim"]), int(config["state_dim"])
+        policy = make_policy(config["policy"], config["model"], Normalizer(torch.zeros(a), torch.ones(a)),
+                             Normalizer(torch.zeros(s), torch.ones(s)))
+        policy.load_state_dict(load_tensors(path / "model.safetensors"))
+        policy.image_size = int(config.get("image_size", 64))  # the frames it was trained on
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(f"{path} does not hold a loadable policy ({' '.join(str(e).split())[:200]}).") from None
+    return policy.to(device).eval()

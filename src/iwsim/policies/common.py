@@ -1,0 +1,109 @@
+"""What the imitation policies share: observation/action normalisation, the batch they
+train on, a small image encoder, and the execution interface.
+
+Observations, as the policies take them (LeRobot's names)::
+
+    obs["image"]      (B, To, H, W, 3) uint8 or (B, To, 3, H, W) float in [-1, 1]
+    obs["agent_pos"]  (B, To, S) float, in the data's units
+
+``predict_action(obs) -> (B, Ta, A)`` returns the actions to execute next, in the data's
+units; the caller executes them in order and asks again. ``reset()`` forgets what the
+policy remembers between calls (an action queue, the ensembling buffer).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+class Normalizer(nn.Module):
+    """Min-max scaling of (..., D) values to [-1, 1]; its bounds travel with the weights."""
+
+    def __init__(self, low: np.ndarray | torch.Tensor, high: np.ndarray | torch.Tensor) -> None:
+        super().__init__()
+        low = torch.as_tensor(low, dtype=torch.float32)
+        high = torch.as_tensor(high, dtype=torch.float32)
+        span = torch.clamp(high - low, min=1e-4)  # a constant dimension still normalises
+        self.register_buffer("low", (low + high) / 2 - span / 2)
+        self.register_buffer("high", (low + high) / 2 + span / 2)
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.low) / (self.high - self.low) * 2 - 1
+
+    def unnormalize(self, y: torch.Tensor) -> torch.Tensor:
+        return (y + 1) / 2 * (self.high - self.low) + self.low
+
+
+@dataclass
+class PolicyBatch:
+    """Training windows. image (B, To, 3, H, W) in [-1, 1]; agent_pos (B, To, S) and
+    action (B, Tp, A) normalised to [-1, 1]; action_is_pad (B, Tp) marks actions past the
+    episode's end (repeats of the last one)."""
+
+    image: torch.Tensor
+    agent_pos: torch.Tensor
+    action: torch.Tensor
+    action_is_pad: torch.Tensor
+
+    def to(self, device: torch.device | str) -> PolicyBatch:
+        return PolicyBatch(*(t.to(device) for t in (self.image, self.agent_pos, self.action, self.action_is_pad)))
+
+
+class SpatialSoftmax(nn.Module):
+    """Expected (x, y) image coordinates of each feature map (Levine et al. 2016), as
+    Diffusion Policy's and robomimic's image encoders pool."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, C, H, W) -> (N, 2C)."""
+        n, c, h, w = x.shape
+        attn = F.softmax(x.flatten(2), dim=-1).view(n, c, h, w)
+        ys = torch.linspace(-1, 1, h, device=x.device, dtype=x.dtype)
+        xs = torch.linspace(-1, 1, w, device=x.device, dtype=x.dtype)
+        return torch.cat([(attn.sum(2) * xs).sum(-1), (attn.sum(3) * ys).sum(-1)], 1)
+
+
+class ImageEncoder(nn.Module):
+    """A small CNN trained from scratch (no downloads): GroupNorm instead of BatchNorm (as
+    Diffusion Policy replaces it), spatial-softmax keypoints, a linear projection."""
+
+    def __init__(self, out_dim: int = 64, channels: tuple[int, ...] = (32, 64, 64), keypoints: int = 32) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        c_in = 3
+        for i, c in enumerate(channels):
+            layers += [nn.Conv2d(c_in, c, 3, stride=1 if i == 0 else 2, padding=1), nn.GroupNorm(8, c), nn.ReLU()]
+            c_in = c
+        layers.append(nn.Conv2d(c_in, keypoints, 1))
+        self.net = nn.Sequential(*layers)
+        self.pool = SpatialSoftmax()
+        self.proj = nn.Linear(2 * keypoints, out_dim)
+        self.out_dim = out_dim
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) in [-1, 1] -> (N, out_dim)."""
+        return self.proj(self.pool(self.net(x)))
+
+
+def prepare_obs(obs: dict, state_norm: Normalizer, obs_horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """obs dict (see the module docstring) -> image (B, To, 3, H, W) in [-1, 1] and the
+    normalised agent_pos (B, To, S), on the normaliser's device; checks the horizon."""
+    device = state_norm.low.device
+    image = torch.as_tensor(np.asarray(obs["image"]) if not torch.is_tensor(obs["image"]) else obs["image"])
+    pos = torch.as_tensor(np.asarray(obs["agent_pos"]), dtype=torch.float32)
+    if image.ndim != 5 or pos.ndim != 3 or image.shape[:2] != pos.shape[:2]:
+        raise ValueError(f"expected image (B, To, H, W, 3) and agent_pos (B, To, S), got {tuple(image.shape)} "
+                         f"and {tuple(pos.shape)}.")
+    if image.shape[1] != obs_horizon:
+        raise ValueError(f"this policy observes {obs_horizon} steps, got {image.shape[1]}.")
+    if image.dtype == torch.uint8:
+        if image.shape[-1] != 3:
+            raise ValueError(f"uint8 images must be (B, To, H, W, 3), got {tuple(image.shape)}.")
+        image = image.permute(0, 1, 4, 2, 3).float() / 127.5 - 1
+    if pos.shape[-1] != state_norm.low.shape[0]:
+        raise ValueError(f"this policy takes a {state_norm.low.shape[0]}-D agent_pos, got {pos.shape[-1]}.")
+    return image.float().to(device), state_norm.normalize(pos.to(device))

@@ -1,0 +1,115 @@
+"""Training windows for the policies, from a mixture of episode stores.
+
+``--data sim.zarr:30,mujoco.zarr:70`` takes exactly the first 30 episodes of the first
+store and the first 70 of the second (``store`` alone takes all of its episodes). A
+window at step t of an episode holds the observations of steps t-To+1 .. t and the
+actions of steps t-To+1 .. t-To+Tp, as Diffusion Policy's sampler: steps before the
+episode's start repeat its first step, actions past its end repeat the last one and are
+marked as padding.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from iwsim.data.store import EpisodeStore
+from iwsim.policies.common import Normalizer, PolicyBatch
+
+
+@dataclass(frozen=True)
+class Source:
+    path: Path
+    episodes: int | None  # None: all of them
+
+
+def parse_mixture(spec: str) -> list[Source]:
+    """``"a.zarr:30,b.zarr:70"`` (or ``"a.zarr"``) -> sources; a clear error otherwise."""
+    sources = []
+    for part in (p.strip() for p in spec.split(",")):
+        if not part:
+            continue
+        path, sep, count = part.rpartition(":")
+        if not sep or not count.isdigit():
+            path, count = part, ""
+        if count and int(count) < 1:
+            raise ValueError(f"episode count of {path} must be >= 1, got {count}.")
+        sources.append(Source(Path(path), int(count) if count else None))
+    if not sources:
+        raise ValueError(f"--data {spec!r} names no episode store; expected STORE[:N][,STORE:N...].")
+    return sources
+
+
+class PolicyData:
+    """The chosen episodes of every source, in memory, and random windows of them."""
+
+    def __init__(self, sources: list[Source], obs_horizon: int, horizon: int) -> None:
+        if not sources:
+            raise ValueError("the data mixture is empty; give at least one STORE[:N].")
+        self.obs_horizon, self.horizon = obs_horizon, horizon
+        imgs, states, actions, lengths, self.counts = [], [], [], [], {}
+        for src in sources:
+            store = EpisodeStore.open(src.path, "r")
+            for key in ("img", "state", "action"):
+                if key not in store.keys:
+                    raise ValueError(f"{src.path} has no data/{key}; policies need img, state and action.")
+            n = store.n_episodes if src.episodes is None else src.episodes
+            if n > store.n_episodes or n < 1:
+                raise ValueError(f"{src.path} holds {store.n_episodes} episodes; {n} were asked for.")
+            end = int(store.episode_ends[n - 1])
+            imgs.append(np.asarray(store.array("img")[:end]))
+            states.append(np.asarray(store.array("state")[:end], np.float32))
+            actions.append(np.asarray(store.array("action")[:end], np.float32))
+            ends = store.episode_ends[:n]
+            lengths += np.diff(ends, prepend=0).tolist()
+            self.counts[os.fspath(src.path)] = n
+            for name, arrays in (("frames", imgs), ("state", states), ("action", actions)):
+                if arrays[-1].shape[1:] != arrays[0].shape[1:]:
+                    raise ValueError(f"{src.path} has {name} of shape {arrays[-1].shape[1:]} per step, "
+                                     f"{sources[0].path} {arrays[0].shape[1:]}; a mixture must agree.")
+        self.img = torch.from_numpy(np.concatenate(imgs))
+        self.state = torch.from_numpy(np.concatenate(states))
+        self.action = torch.from_numpy(np.concatenate(actions))
+        ends = np.cumsum(lengths)
+        self.starts = torch.from_numpy(ends - np.asarray(lengths))
+        self.ends = torch.from_numpy(ends)
+        self.episode_of = torch.repeat_interleave(torch.arange(len(lengths)), torch.as_tensor(lengths))
+
+    @property
+    def n_episodes(self) -> int:
+        return len(self.starts)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.action)
+
+    @property
+    def image_size(self) -> int:
+        return int(self.img.shape[1])
+
+    def normalizers(self) -> tuple[Normalizer, Normalizer]:
+        """Min-max bounds of the actions and agent positions of the training data."""
+        return (Normalizer(self.action.min(0).values, self.action.max(0).values),
+                Normalizer(self.state.min(0).values, self.state.max(0).values))
+
+    def windows(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Global step indices t (B,) -> observation indices (B, To), action indices
+        (B, Tp) and the action padding mask (B, Tp)."""
+        e = self.episode_of[t]
+        lo, hi = self.starts[e][:, None], self.ends[e][:, None] - 1
+        first = t[:, None] - (self.obs_horizon - 1)
+        obs = (first + torch.arange(self.obs_horizon)).clamp(lo, hi)
+        act = first + torch.arange(self.horizon)
+        return obs, act.clamp(lo, hi), act > hi
+
+    def batch(self, t: torch.Tensor, action_norm: Normalizer, state_norm: Normalizer) -> PolicyBatch:
+        """The windows at global steps t (B,), normalised."""
+        obs, act, pad = self.windows(t)
+        image = self.img[obs].permute(0, 1, 4, 2, 3).float() / 127.5 - 1
+        with torch.no_grad():
+            return PolicyBatch(image, state_norm.normalize(self.state[obs]), action_norm.normalize(self.action[act]),
+                               pad)

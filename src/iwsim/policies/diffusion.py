@@ -1,0 +1,184 @@
+"""Diffusion Policy (Chi et al. 2023), the CNN variant, small enough to train on a CPU.
+
+An image encoder (trained from scratch) and the agent positions of the last ``To`` steps
+condition a 1D temporal UNet, through FiLM in every residual block, that denoises a chunk
+of ``Tp`` actions. Training: DDPM noise prediction (100 steps, squared-cosine betas, as
+the paper's code). Inference: DDIM, a few deterministic steps. Execution: receding
+horizon, the ``Ta`` actions starting at the current step, then replan (the paper's
+To = 2, Tp = 16, Ta = 8). The trainer keeps EMA weights, which are what gets exported.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from iwsim.policies.common import ImageEncoder, Normalizer, PolicyBatch, prepare_obs
+
+
+@dataclass(frozen=True)
+class DiffusionConfig:
+    obs_horizon: int = 2  # To
+    horizon: int = 16  # Tp: actions per denoised chunk, from the first observed step
+    n_action_steps: int = 8  # Ta: executed per query, from the current step
+    image_features: int = 64
+    encoder_channels: tuple[int, ...] = (32, 64, 64)
+    down_dims: tuple[int, ...] = (64, 128, 256)
+    kernel_size: int = 5
+    step_embed_dim: int = 64
+    train_steps: int = 100  # DDPM timesteps
+    inference_steps: int = 10  # DDIM steps
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.n_action_steps <= self.horizon - self.obs_horizon + 1:
+            raise ValueError(f"n_action_steps must be in 1..{self.horizon - self.obs_horizon + 1} "
+                             f"(horizon {self.horizon}, obs_horizon {self.obs_horizon}), got {self.n_action_steps}.")
+        if self.horizon % 2 ** (len(self.down_dims) - 1):
+            raise ValueError(f"horizon {self.horizon} must be divisible by {2 ** (len(self.down_dims) - 1)} "
+                             f"for {len(self.down_dims)} UNet levels.")
+
+
+def squared_cosine_alphas_cumprod(steps: int) -> torch.Tensor:
+    """alpha-bar_t of the squared-cosine schedule (Nichol & Dhariwal 2021, Eq. 17), with
+    betas clipped at 0.999 as diffusers' "squaredcos_cap_v2"."""
+    def f(t: float) -> float:
+        return math.cos((t + 0.008) / 1.008 * math.pi / 2) ** 2
+
+    betas = torch.tensor([min(1 - f((i + 1) / steps) / f(i / steps), 0.999) for i in range(steps)], dtype=torch.float64)
+    return torch.cumprod(1 - betas, 0).float()
+
+
+def sinusoidal(t: torch.Tensor, dim: int) -> torch.Tensor:
+    half = dim // 2
+    freq = torch.exp(-math.log(10000) * torch.arange(half, device=t.device) / (half - 1))
+    arg = t.float()[:, None] * freq
+    return torch.cat([arg.sin(), arg.cos()], -1)
+
+
+class Conv1dBlock(nn.Sequential):
+    def __init__(self, c_in: int, c_out: int, kernel: int) -> None:
+        super().__init__(nn.Conv1d(c_in, c_out, kernel, padding=kernel // 2), nn.GroupNorm(8, c_out), nn.Mish())
+
+
+class FiLMResBlock(nn.Module):
+    """Two conv blocks; the condition scales and shifts the first one's output per channel."""
+
+    def __init__(self, c_in: int, c_out: int, cond_dim: int, kernel: int) -> None:
+        super().__init__()
+        self.block1, self.block2 = Conv1dBlock(c_in, c_out, kernel), Conv1dBlock(c_out, c_out, kernel)
+        self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, 2 * c_out))
+        self.skip = nn.Conv1d(c_in, c_out, 1) if c_in != c_out else nn.Identity()
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        scale, shift = self.film(cond)[..., None].chunk(2, 1)
+        return self.block2(self.block1(x) * scale + shift) + self.skip(x)
+
+
+class ConditionalUnet1D(nn.Module):
+    """(B, A, Tp) noisy actions, timesteps (B,), condition (B, C) -> predicted noise."""
+
+    def __init__(self, action_dim: int, cond_dim: int, cfg: DiffusionConfig) -> None:
+        super().__init__()
+        e = cfg.step_embed_dim
+        self.step_dim = e
+        self.step_mlp = nn.Sequential(nn.Linear(e, 4 * e), nn.Mish(), nn.Linear(4 * e, e))
+        c = e + cond_dim
+        dims = [action_dim, *cfg.down_dims]
+        k = cfg.kernel_size
+        self.down = nn.ModuleList()
+        for i, (a, b) in enumerate(zip(dims[:-1], dims[1:])):
+            last = i == len(dims) - 2
+            self.down.append(nn.ModuleList([FiLMResBlock(a, b, c, k), FiLMResBlock(b, b, c, k),
+                                            nn.Identity() if last else nn.Conv1d(b, b, 3, 2, 1)]))
+        mid = dims[-1]
+        self.mid = nn.ModuleList([FiLMResBlock(mid, mid, c, k), FiLMResBlock(mid, mid, c, k)])
+        self.up = nn.ModuleList()
+        for i, (a, b) in enumerate(zip(reversed(dims[2:]), reversed(dims[1:-1]))):
+            self.up.append(nn.ModuleList([FiLMResBlock(2 * a, b, c, k), FiLMResBlock(b, b, c, k),
+                                          nn.ConvTranspose1d(b, b, 4, 2, 1)]))
+        self.out = nn.Sequential(Conv1dBlock(dims[1], dims[1], k), nn.Conv1d(dims[1], action_dim, 1))
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        g = torch.cat([self.step_mlp(sinusoidal(t, self.step_dim)), cond], -1)
+        skips = []
+        for res1, res2, down in self.down:
+            x = res2(res1(x, g), g)
+            skips.append(x)
+            x = down(x)
+        for res in self.mid:
+            x = res(x, g)
+        for res1, res2, up in self.up:
+            x = up(res2(res1(torch.cat([x, skips.pop()], 1), g), g))
+        return self.out(x)
+
+
+class DiffusionPolicy(nn.Module):
+    """See the module docstring; the execution contract is in :mod:`iwsim.policies.common`."""
+
+    kind = "dp"
+
+    def __init__(self, cfg: DiffusionConfig, action_norm: Normalizer, state_norm: Normalizer) -> None:
+        super().__init__()
+        self.cfg, self.action_norm, self.state_norm = cfg, action_norm, state_norm
+        self.action_dim = int(action_norm.low.shape[0])
+        state_dim = int(state_norm.low.shape[0])
+        self.encoder = ImageEncoder(cfg.image_features, cfg.encoder_channels)
+        self.unet = ConditionalUnet1D(self.action_dim, cfg.obs_horizon * (cfg.image_features + state_dim), cfg)
+        self.register_buffer("alphas_cumprod", squared_cosine_alphas_cumprod(cfg.train_steps))
+
+    @property
+    def obs_horizon(self) -> int:
+        return self.cfg.obs_horizon
+
+    @property
+    def horizon(self) -> int:
+        return self.cfg.horizon
+
+    def condition(self, image: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+        """image (B, To, 3, H, W), normalised agent_pos (B, To, S) -> (B, To * (F + S))."""
+        b, to = image.shape[:2]
+        feats = self.encoder(image.flatten(0, 1)).view(b, to, -1)
+        return torch.cat([feats, agent_pos], -1).flatten(1)
+
+    def forward(self, batch: PolicyBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        """DDPM's simple loss: predict the noise added to the action chunk at a random step."""
+        x0 = batch.action.transpose(1, 2)  # (B, A, Tp)
+        b = x0.shape[0]
+        t = torch.randint(0, self.cfg.train_steps, (b,), device=x0.device)
+        eps = torch.randn_like(x0)
+        abar = self.alphas_cumprod[t][:, None, None]
+        x_t = abar.sqrt() * x0 + (1 - abar).sqrt() * eps
+        loss = F.mse_loss(self.unet(x_t, t, self.condition(batch.image, batch.agent_pos)), eps)
+        return loss, {}
+
+    @torch.no_grad()
+    def sample(self, cond: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """DDIM (eta = 0) from noise: condition (B, C) -> normalised chunk (B, Tp, A)."""
+        b = cond.shape[0]
+        x = torch.randn(b, self.action_dim, self.cfg.horizon, generator=generator, device=cond.device)
+        steps = torch.linspace(self.cfg.train_steps - 1, 0, self.cfg.inference_steps).round().long().tolist()
+        for i, t in enumerate(steps):
+            abar = self.alphas_cumprod[t]
+            eps = self.unet(x, torch.full((b,), t, device=cond.device), cond)
+            x0 = ((x - (1 - abar).sqrt() * eps) / abar.sqrt()).clamp(-1, 1)
+            abar_prev = self.alphas_cumprod[steps[i + 1]] if i + 1 < len(steps) else torch.tensor(1.0)
+            eps = (x - abar.sqrt() * x0) / (1 - abar).sqrt()  # consistent with the clipped x0
+            x = abar_prev.sqrt() * x0 + (1 - abar_prev).sqrt() * eps
+        return x.transpose(1, 2)
+
+    def reset(self) -> None:
+        """Nothing to forget: each query replans from its observations."""
+
+    @torch.no_grad()
+    def predict_action(self, obs: dict, generator: torch.Generator | None = None) -> np.ndarray:
+        """The next ``Ta`` actions (B, Ta, A) in the data's units, from the current step."""
+        image, pos = prepare_obs(obs, self.state_norm, self.cfg.obs_horizon)
+        chunk = self.sample(self.condition(image, pos), generator)
+        start = self.cfg.obs_horizon - 1
+        act = self.action_norm.unnormalize(chunk[:, start:start + self.cfg.n_action_steps])
+        return act.cpu().numpy()

@@ -1,0 +1,68 @@
+"""Training a policy (``iwsim train policy``) with the generic loop: random windows of a
+mixture of stores, checkpoints every ``checkpoint_every`` steps (all kept: choosing among
+them is what evaluation is for), resumption, EMA weights exported."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from iwsim.config import from_dict, to_dict
+from iwsim.policies import PolicyStageConfig, config_class, describe, make_policy
+from iwsim.policies.data import PolicyData, Source
+from iwsim.training import trainer
+
+EVAL_WINDOWS = 64  # fixed windows scored at every evaluation
+
+
+class PolicyTask:
+    """Batches of windows from the mixture; evaluation scores sampled action chunks."""
+
+    def __init__(self, cfg: PolicyStageConfig, sources: list[Source]) -> None:
+        model = from_dict(config_class(cfg.policy), cfg.model)
+        horizon = model.horizon if hasattr(model, "horizon") else model.chunk_size  # actions a window needs
+        self.data = PolicyData(sources, model.obs_horizon, horizon)
+        self.action_norm, self.state_norm = self.data.normalizers()
+        self.module = make_policy(cfg.policy, cfg.model, *self.data.normalizers())
+        self.cfg, self.sources = cfg, sources
+        g = torch.Generator().manual_seed(12345)
+        self.eval_steps = torch.randint(0, self.data.n_frames, (min(EVAL_WINDOWS, self.data.n_frames),), generator=g)
+
+    def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device):
+        t = torch.randint(0, self.data.n_frames, (self.cfg.train.batch_size,), generator=generator)
+        # The policies draw their noise (diffusion steps, CVAE samples, dropout) from torch's
+        # global generator; seeding it from the step's generator keeps resumption exact.
+        torch.manual_seed(int(torch.randint(2**62, (1,), generator=generator)))
+        return self.data.batch(t[part], self.action_norm, self.state_norm).to(device)
+
+    @torch.no_grad()
+    def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
+        """The training loss and the error of the chunk the policy would sample, on fixed
+        windows of the training data (closed-loop success is ``iwsim eval policy``'s job)."""
+        batch = self.data.batch(self.eval_steps, self.action_norm, self.state_norm).to(module.action_norm.low.device)
+        torch.manual_seed(step)
+        loss, _ = module(batch)
+        obs = {"image": batch.image, "agent_pos": module.state_norm.unnormalize(batch.agent_pos)}
+        pred = torch.as_tensor(module.predict_action(obs))
+        module.reset()
+        start = module.obs_horizon - 1
+        truth = module.action_norm.unnormalize(batch.action[:, start:start + pred.shape[1]]).cpu()
+        return {"loss": loss.item(), "action_mae": (pred - truth).abs().mean().item()}
+
+    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+        return dict(module.state_dict())
+
+    def config(self) -> dict[str, Any]:
+        return {**describe(self.module), "train": to_dict(self.cfg.train),
+                "data": [{"path": str(s.path), "episodes": s.episodes} for s in self.sources],
+                "episodes_used": self.data.counts, "image_size": self.data.image_size}
+
+
+def train_policy(cfg: PolicyStageConfig, sources: list[Source], out: str | Path, *, device: torch.device,
+                 force: bool = False, progress: bool = True) -> dict[str, float]:
+    """Train (or resume) a policy into the run directory ``out``."""
+    task = PolicyTask(cfg, sources)
+    return trainer.train(task, cfg.train, Path(out), task.config(), device=device, force=force, progress=progress)

@@ -1,0 +1,167 @@
+"""Imitation policies: Diffusion Policy, the data mixture, training through the generic loop, closed-loop
+evaluation (MuJoCo and a tiny world model) and its statistics."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy import stats
+
+from iwsim.cli import main
+from iwsim.data.store import EpisodeStore
+from iwsim.eval.policy import evaluate, rollout
+from iwsim.eval.stats import beta_posterior, clopper_pearson
+from iwsim.policies import PRESETS, load_policy, make_policy
+from iwsim.policies.common import Normalizer
+from iwsim.policies.data import PolicyData, Source, parse_mixture
+from iwsim.training.checkpoint import CheckpointError
+from tests.test_dynamics import tiny_world_model
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+TINY_DP = PRESETS["tiny-dp"].model
+
+
+def norms(a: int = 4, s: int = 4) -> tuple[Normalizer, Normalizer]:
+    return Normalizer(-0.22 * torch.ones(a), 0.22 * torch.ones(a)), Normalizer(-0.22 * torch.ones(s), 0.22 * torch.ones(s))
+
+
+def test_mixture_takes_exactly_the_requested_episodes(play_store, tmp_path):
+    assert parse_mixture("a.zarr:30, b.zarr:70") == [Source(Path("a.zarr"), 30), Source(Path("b.zarr"), 70)]
+    assert parse_mixture("c:/x.zarr")[0].episodes is None
+    with pytest.raises(ValueError, match="names no episode store"):
+        parse_mixture(" , ")
+    data = PolicyData([Source(play_store, 3), Source(play_store, 1)], obs_horizon=2, horizon=8)
+    store = EpisodeStore.open(play_store)
+    ends = store.episode_ends
+    assert data.n_episodes == 4 and data.n_frames == int(ends[2]) + int(ends[0])
+    assert data.counts == {str(play_store): 1}  # the same store twice: the last count is listed
+    with pytest.raises(ValueError, match="holds 4 episodes; 5 were asked"):
+        PolicyData([Source(play_store, 5)], 2, 8)
+    with pytest.raises(ValueError, match="mixture is empty"):
+        PolicyData([], 2, 8)
+
+
+def test_windows_pad_like_diffusion_policy(play_store):
+    data = PolicyData([Source(play_store, 2)], obs_horizon=2, horizon=8)
+    n0 = int(data.ends[0])  # episode 0 is steps 0 .. n0 - 1
+    obs, act, pad = data.windows(torch.tensor([0, n0 - 1, n0]))
+    assert obs[0].tolist() == [0, 0] and act[0].tolist() == [0, 0, 1, 2, 3, 4, 5, 6]  # before the start: repeats
+    assert obs[1].tolist() == [n0 - 2, n0 - 1] and act[1, :2].tolist() == [n0 - 2, n0 - 1]
+    assert act[1, 2:].tolist() == [n0 - 1] * 6 and pad[1].tolist() == [False, False] + [True] * 6
+    assert obs[2].tolist() == [n0, n0] and not pad[2].any()  # episode 1 starts fresh
+
+
+def test_diffusion_policy_overfits_and_acts(play_store):
+    """The noise-prediction loss on 4 fixed windows falls by 2.5x in 300 steps."""
+    torch.manual_seed(0)
+    data = PolicyData([Source(play_store, 2)], obs_horizon=2, horizon=8)
+    policy = make_policy("dp", TINY_DP, *data.normalizers())
+    t = torch.arange(0, 8, 2)
+    batch = data.batch(t, *data.normalizers())
+    opt = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    losses = []
+    for step in range(300):
+        torch.manual_seed(step)
+        loss, _ = policy(batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.mean(losses[-30:]) < 0.4 * np.mean(losses[:5]), (losses[:5], losses[-30:])
+    policy.eval()
+    obs = {"image": data.img[data.windows(torch.arange(3))[0]].numpy(),
+           "agent_pos": data.state[data.windows(torch.arange(3))[0]].numpy()}
+    act = policy.predict_action(obs)
+    assert act.shape == (3, 4, 4)  # (B, Ta, A) of the tiny preset
+    low, high = policy.action_norm.low.numpy(), policy.action_norm.high.numpy()
+    assert (act >= low - 1e-5).all() and (act <= high + 1e-5).all()
+    with pytest.raises(ValueError, match="observes 2 steps"):
+        policy.predict_action({"image": obs["image"][:, :1], "agent_pos": obs["agent_pos"][:, :1]})
+    with pytest.raises(ValueError, match="4-D agent_pos"):
+        policy.predict_action({"image": obs["image"], "agent_pos": obs["agent_pos"][..., :3]})
+
+
+def test_train_resume_save_load_and_checkpoints_kept(play_store, tmp_path, capsys):
+    out = tmp_path / "pol"
+    args = ["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", f"{play_store}:2",
+            "--out", str(out), "--no-progress"]
+    assert main([*args, "--steps", "10"]) == 0
+    assert main([*args, "--steps", "20"]) == 0  # resumes
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["00000010", "00000020", "last"]
+    config = json.loads((out / "config.json").read_text())
+    assert config["policy"] == "dp" and config["episodes_used"] == {str(play_store): 2}
+    a, b = load_policy(out), load_policy(out / "checkpoints" / "00000020")
+    obs = {"image": np.zeros((2, 2, 64, 64, 3), np.uint8), "agent_pos": np.zeros((2, 2, 4), np.float32)}
+    first = a.predict_action(obs, torch.Generator().manual_seed(0))
+    np.testing.assert_array_equal(first, b.predict_action(obs, torch.Generator().manual_seed(0)))
+    capsys.readouterr()
+    act = ["train", "policy", "--policy", "act", "--preset", "tiny-act", *args[6:]]
+    assert main([*act, "--steps", "10"]) == 1  # another policy into the dp run
+    assert "holds a run with a different config" in capsys.readouterr().err
+    with pytest.raises(CheckpointError, match="not a policy checkpoint"):
+        load_policy(tmp_path)
+    assert main(["eval", "policy", "--checkpoint", str(out), "--episodes", "2", "--steps", "4", "--videos", "1",
+                 "--out", str(tmp_path / "eval"), "--no-progress"]) == 0
+    result = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert len(result["episodes"]) == 2 and result["env"] == "pusht" and (tmp_path / "eval/episode_100000.mp4").exists()
+    assert "mean max IoU" in capsys.readouterr().out
+
+    assert main([*act, "--out", str(tmp_path / "act"), "--steps", "10"]) == 0
+    policy = load_policy(tmp_path / "act")
+    assert policy.kind == "act" and policy.predict_action(
+        {"image": obs["image"][:, -1:], "agent_pos": obs["agent_pos"][:, -1:]}).shape == (2, 1, 4)
+
+
+class Scripted(torch.nn.Module):
+    """A deterministic policy for runner tests: push both targets towards the centre."""
+
+    obs_horizon = 2
+
+    def reset(self) -> None:
+        self.calls = 0
+
+    def predict_action(self, obs: dict) -> np.ndarray:
+        self.calls += 1
+        pos = np.asarray(obs["agent_pos"])[:, -1]
+        return np.stack([pos * 0.8, pos * 0.6], 1).astype(np.float32)  # (B, 2, A)
+
+
+def test_batched_evaluation_equals_sequential_in_a_world_model():
+    wm = tiny_world_model()
+    batched = rollout(Scripted(), "world-model", [100000, 100001, 100002], steps=6, world_model=wm, progress=False)
+    for i, seed in enumerate([100000, 100001, 100002]):
+        alone = rollout(Scripted(), "world-model", [seed], steps=6, world_model=wm, progress=False)
+        np.testing.assert_allclose(alone["iou"][0], batched["iou"][i], atol=1e-6)
+    assert batched["iou"].shape == (3, 7)
+
+
+def test_evaluation_in_mujoco_writes_results_and_videos(tmp_path):
+    policy = Scripted()
+    result = evaluate(policy, "pusht", episodes=3, seed=100000, steps=6, out=tmp_path, videos=2, progress=False)
+    assert policy.calls == 3  # 2 actions per query, 6 steps
+    written = json.loads((tmp_path / "results.json").read_text())
+    assert [e["seed"] for e in written["episodes"]] == [100000, 100001, 100002]
+    assert written["mean_max_iou"] == pytest.approx(np.mean([e["max_iou"] for e in written["episodes"]]))
+    assert result["mean_max_iou"] == written["mean_max_iou"] and result["env_steps_per_s"] > 0
+    assert set(written["success_beta_posterior"]) == {"mean", "low", "high"}
+    assert sorted(p.name for p in tmp_path.glob("*.mp4")) == ["episode_100000.mp4", "episode_100001.mp4"]
+    with pytest.raises(ValueError, match="--world-model"):
+        evaluate(policy, "world-model", episodes=1, seed=0, steps=1, progress=False)
+    with pytest.raises(ValueError, match="trained on 96x96"):
+        evaluate(policy, "world-model", episodes=1, seed=0, steps=1, world_model=tiny_world_model(), image_size=96,
+                 progress=False)
+
+
+@pytest.mark.parametrize("k,n", [(0, 10), (3, 10), (10, 10), (17, 50), (1, 1)])
+def test_statistics_match_scipy(k, n):
+    ci = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="exact")
+    np.testing.assert_allclose(clopper_pearson(k, n), (ci.low, ci.high), atol=1e-9)
+    post = stats.beta(1 + k, 1 + n - k)
+    got = beta_posterior(k, n)
+    assert got["mean"] == pytest.approx(post.mean())
+    np.testing.assert_allclose((got["low"], got["high"]), post.interval(0.95), atol=1e-9)
+    with pytest.raises(ValueError):
+        clopper_pearson(n + 1, n)
