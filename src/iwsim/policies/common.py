@@ -71,12 +71,14 @@ class ImageEncoder(nn.Module):
     """A small CNN trained from scratch (no downloads): GroupNorm instead of BatchNorm (as
     Diffusion Policy replaces it), spatial-softmax keypoints, a linear projection."""
 
-    def __init__(self, out_dim: int = 64, channels: tuple[int, ...] = (32, 64, 64), keypoints: int = 32) -> None:
+    def __init__(self, out_dim: int = 64, channels: tuple[int, ...] = (32, 64, 64), keypoints: int = 32,
+                 first_stride: int = 1) -> None:
         super().__init__()
         layers: list[nn.Module] = []
         c_in = 3
-        for i, c in enumerate(channels):
-            layers += [nn.Conv2d(c_in, c, 3, stride=1 if i == 0 else 2, padding=1), nn.GroupNorm(8, c), nn.ReLU()]
+        for i, c in enumerate(channels):  # every layer after the first halves H and W
+            stride = first_stride if i == 0 else 2
+            layers += [nn.Conv2d(c_in, c, 3, stride=stride, padding=1), nn.GroupNorm(8, c), nn.ReLU()]
             c_in = c
         layers.append(nn.Conv2d(c_in, keypoints, 1))
         self.net = nn.Sequential(*layers)

@@ -28,6 +28,7 @@ class DiffusionConfig:
     n_action_steps: int = 8  # Ta: executed per query, from the current step
     image_features: int = 64
     encoder_channels: tuple[int, ...] = (32, 64, 64)
+    encoder_stride: int = 2  # of the first conv: 64 px -> 8x8 keypoint maps; full-resolution convs cost 4x more
     down_dims: tuple[int, ...] = (64, 128, 256)
     kernel_size: int = 5
     step_embed_dim: int = 64
@@ -127,7 +128,7 @@ class DiffusionPolicy(nn.Module):
         self.cfg, self.action_norm, self.state_norm = cfg, action_norm, state_norm
         self.action_dim = int(action_norm.low.shape[0])
         state_dim = int(state_norm.low.shape[0])
-        self.encoder = ImageEncoder(cfg.image_features, cfg.encoder_channels)
+        self.encoder = ImageEncoder(cfg.image_features, cfg.encoder_channels, first_stride=cfg.encoder_stride)
         self.unet = ConditionalUnet1D(self.action_dim, cfg.obs_horizon * (cfg.image_features + state_dim), cfg)
         self.register_buffer("alphas_cumprod", squared_cosine_alphas_cumprod(cfg.train_steps))
 
