@@ -37,6 +37,12 @@ def where(path: str | os.PathLike, key: str | None = None, episode: int | None =
     return out
 
 
+def reason(e: BaseException) -> str:
+    """The first line of an exception's message (or its type), for one-line errors."""
+    lines = str(e).strip().strip("\"'").splitlines()
+    return lines[0] if lines else type(e).__name__
+
+
 def positive_int(value: Any) -> int | None:
     """``value`` as an integer >= 1 (rounded), or None if it is not one (attributes of
     other tools' files are often floats, strings or arrays)."""

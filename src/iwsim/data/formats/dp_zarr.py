@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from iwsim.data.formats.common import FormatError, check_episode, positive_int, where
+from iwsim.data.formats.common import FormatError, check_episode, positive_int, reason, where
 from iwsim.data.store import EpisodeStore, StoreError
 
 log = logging.getLogger(__name__)
@@ -34,11 +34,6 @@ _READ_ERRORS = (OSError, KeyError, ValueError, TypeError, IndexError, RuntimeErr
 _STORE_ATTRS = ("seeds", "store_version", "source_format", "source")  # managed by the store / import_
 
 
-def _reason(e: BaseException) -> str:
-    lines = str(e).strip().strip("\"'").splitlines()
-    return lines[0] if lines else type(e).__name__
-
-
 def _is_image(arr: zarr.Array) -> bool:
     return arr.ndim == 4 and arr.shape[-1] == 3 and (arr.dtype == np.uint8 or np.issubdtype(arr.dtype, np.floating))
 
@@ -48,7 +43,7 @@ def _open(src: Path) -> tuple[zarr.Group, dict[str, zarr.Array], np.ndarray]:
     try:
         root = zarr.open_group(src, mode="r")
     except _READ_ERRORS as e:
-        raise FormatError(f"{src}: not a readable Zarr group ({_reason(e)}).") from None
+        raise FormatError(f"{src}: not a readable Zarr group ({reason(e)}).") from None
     try:
         data = root.get("data")
         if not isinstance(data, zarr.Group):
@@ -61,7 +56,7 @@ def _open(src: Path) -> tuple[zarr.Group, dict[str, zarr.Array], np.ndarray]:
     except FormatError:
         raise
     except _READ_ERRORS as e:
-        raise FormatError(f"{src}: unreadable ({_reason(e)}).") from None
+        raise FormatError(f"{src}: unreadable ({reason(e)}).") from None
     if raw.ndim != 1 or not np.issubdtype(raw.dtype, np.integer):
         raise FormatError(f"{where(src, 'meta/episode_ends')}: expected (E,) integers, got {raw.dtype} {raw.shape}.")
     ends = raw.astype(np.int64)
@@ -125,7 +120,7 @@ def _episodes(src: Path, arrays: dict[str, zarr.Array], keys: dict[str, str], en
             try:
                 value = arrays[key][start:stop]
             except _READ_ERRORS as e:
-                raise FormatError(f"{at}: unreadable ({_reason(e)}).") from None
+                raise FormatError(f"{at}: unreadable ({reason(e)}).") from None
             ep[name] = _frames(value, at) if name == "img" else value
         seed = seeds[i] if i < len(seeds) and isinstance(seeds[i], int) else None
         yield check_episode(ep, where(src, episode=i)), seed
@@ -196,7 +191,7 @@ def validate_store(path: Path) -> list[str]:
     except StoreError as e:
         return [str(e)]
     except _READ_ERRORS as e:
-        return [f"{path}: unreadable ({_reason(e)})."]
+        return [f"{path}: unreadable ({reason(e)})."]
     problems: list[str] = []
     ends, n = store.episode_ends, store.n_frames
     if not np.issubdtype(raw.dtype, np.integer):
@@ -233,7 +228,7 @@ def validate_store(path: Path) -> list[str]:
                 block = arr[a:b]
             except _READ_ERRORS as e:
                 problems.append(f"{where(path, f'data/{key}')} ({_episodes_of(ends, a, b)}): "
-                                f"frames {a}..{b - 1} unreadable ({_reason(e)}).")
+                                f"frames {a}..{b - 1} unreadable ({reason(e)}).")
                 continue
             if key in ("state", "action") and np.issubdtype(block.dtype, np.floating):
                 rows = np.flatnonzero(~np.isfinite(block.reshape(len(block), -1)).all(axis=1))

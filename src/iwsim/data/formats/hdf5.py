@@ -33,7 +33,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from iwsim.data.formats.common import FormatError, check_episode, positive_int, where
+from iwsim.data.formats.common import FormatError, check_episode, positive_int, reason, where
 from iwsim.data.store import EpisodeStore
 
 log = logging.getLogger(__name__)
@@ -51,17 +51,11 @@ _MAX_EXPANSION = 1100
 _READ_ERRORS = (OSError, KeyError, ValueError, TypeError, IndexError, RuntimeError, MemoryError)
 
 
-def _reason(e: BaseException) -> str:
-    """The first line of an exception's message, for one-line errors."""
-    lines = str(e).strip().strip("\"'").splitlines()
-    return lines[0] if lines else type(e).__name__
-
-
 def _open(path: Path, episode: int | None = None) -> h5py.File:
     try:
         return h5py.File(path, "r")
     except _READ_ERRORS as e:
-        raise FormatError(f"{where(path, episode=episode)}: not a readable HDF5 file ({_reason(e)}).") from None
+        raise FormatError(f"{where(path, episode=episode)}: not a readable HDF5 file ({reason(e)}).") from None
 
 
 def _dataset(group: h5py.Group, key: str, at: str) -> h5py.Dataset:
@@ -189,7 +183,7 @@ def _decode_jpegs(rows: np.ndarray, at: str, frame_ids: list[int] | None = None)
             with Image.open(io.BytesIO(row.tobytes()), formats=["JPEG"]) as im:
                 rgb = np.asarray(im.convert("RGB"))
         except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:
-            raise FormatError(f"{at}: frame {t} is not a readable JPEG ({_reason(e)}).") from None
+            raise FormatError(f"{at}: frame {t} is not a readable JPEG ({reason(e)}).") from None
         if frames and rgb.shape != frames[0].shape:
             raise FormatError(f"{at}: frame {t} is {rgb.shape[:2]}, the first is {frames[0].shape[:2]}.")
         frames.append(rgb)
@@ -231,7 +225,7 @@ def _read_aloha_file(path: Path, i: int, camera: str) -> tuple[dict[str, np.ndar
         except FormatError:
             raise
         except _READ_ERRORS as e:
-            raise FormatError(f"{where(path, episode=i)}: unreadable ({_reason(e)}).") from None
+            raise FormatError(f"{where(path, episode=i)}: unreadable ({reason(e)}).") from None
     seed = int(seed) if isinstance(seed, (int, np.integer)) else None
     return check_episode(ep, where(path, episode=i)), seed
 
@@ -277,7 +271,7 @@ def read_aloha(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tu
         except FormatError:
             raise
         except _READ_ERRORS as e:
-            raise FormatError(f"{where(first, episode=0)}: unreadable ({_reason(e)}).") from None
+            raise FormatError(f"{where(first, episode=0)}: unreadable ({reason(e)}).") from None
     attrs: dict[str, Any] = {
         "task": _attr_text(root.get("task")) or (src if src.is_dir() else src.parent).name,
         "fps": positive_int(root.get("fps")) or ALOHA_FPS,
@@ -378,7 +372,7 @@ def _robomimic_episodes(src: Path, demos: list[str], camera: str,
             except FormatError:
                 raise
             except _READ_ERRORS as e:
-                raise FormatError(f"{where(src, f'data/{demo}', i)}: unreadable ({_reason(e)}).") from None
+                raise FormatError(f"{where(src, f'data/{demo}', i)}: unreadable ({reason(e)}).") from None
             a_dim = a_dim or ep["action"].shape[1]
             if ep["action"].shape[1] != a_dim:
                 raise FormatError(f"{where(src, f'data/{demo}/actions', i)}: {ep['action'].shape[1]} dims per step; "
@@ -422,7 +416,7 @@ def read_robomimic(src: Path, *, camera: str | None) -> tuple[dict, int, Iterato
         except FormatError:
             raise
         except _READ_ERRORS as e:
-            raise FormatError(f"{src}: unreadable ({_reason(e)}).") from None
+            raise FormatError(f"{src}: unreadable ({reason(e)}).") from None
     if len(shape) != 4:
         raise FormatError(f"{where(src, f'data/{demos[0]}/obs/{cam}', 0)}: expected (T, H, W, 3) frames, got {shape}.")
     kwargs = env_args.get("env_kwargs") if isinstance(env_args.get("env_kwargs"), dict) else {}
@@ -572,7 +566,7 @@ def _robomimic_problems(f: h5py.File, path: Path) -> list[str]:
         except FormatError as e:
             problems.append(str(e))
         except _READ_ERRORS as e:
-            problems.append(f"{where(path, base, i)}: unreadable ({_reason(e)}).")
+            problems.append(f"{where(path, base, i)}: unreadable ({reason(e)}).")
     return problems
 
 
@@ -592,7 +586,7 @@ def _file_problems(path: Path, i: int | None, dims: dict[str, int]) -> tuple[str
         except FormatError as e:
             return "hdf5-aloha", [str(e)]
         except _READ_ERRORS as e:
-            return "hdf5", [f"{where(path, episode=i)}: unreadable ({_reason(e)})."]
+            return "hdf5", [f"{where(path, episode=i)}: unreadable ({reason(e)})."]
 
 
 def validate_hdf5(path: Path) -> tuple[str, list[str]]:
