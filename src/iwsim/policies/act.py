@@ -46,6 +46,11 @@ class ACTConfig:
     latent_dim: int = 32  # as the paper
     kl_weight: float = 10.0  # beta, as the paper
 
+    @property
+    def horizon(self) -> int:
+        """Future actions a training window holds (as DiffusionConfig.horizon)."""
+        return self.chunk_size
+
     def __post_init__(self) -> None:
         if self.obs_horizon != 1:
             raise ValueError(f"ACT observes the current step only: obs_horizon must be 1, got {self.obs_horizon}.")

@@ -23,8 +23,7 @@ class PolicyTask:
 
     def __init__(self, cfg: PolicyStageConfig, sources: list[Source]) -> None:
         model = from_dict(config_class(cfg.policy), cfg.model)
-        horizon = model.horizon if hasattr(model, "horizon") else model.chunk_size  # actions a window needs
-        self.data = PolicyData(sources, model.obs_horizon, horizon)
+        self.data = PolicyData(sources, model.obs_horizon, model.horizon)
         self.action_norm, self.state_norm = self.data.normalizers()
         self.module = make_policy(cfg.policy, cfg.model, *self.data.normalizers())
         self.cfg, self.sources = cfg, sources
