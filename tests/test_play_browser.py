@@ -36,6 +36,12 @@ def target(page) -> np.ndarray:
     return np.array(page.evaluate("window.iwsim.state.target"))
 
 
+def room(v: float) -> float:
+    """+1 or -1: the direction with more room to move a target coordinate (starts are random,
+    and a target at the workspace edge cannot move further out)."""
+    return 1.0 if v <= 0 else -1.0
+
+
 def settle(page) -> None:
     """Wait until a frame has acknowledged the last action the page sent."""
     wait(page, "window.iwsim.state.header.ack >= window.iwsim.state.seq")
@@ -56,12 +62,13 @@ def test_gamepad_sticks_and_buttons(browser):
         page.goto(f"http://{host}/")
         wait(page, "window.iwsim.stats.frames > 2")
         before = target(page)
-        page.evaluate("window.fakePad.axes = [0.9, 0, 0, -0.9]")  # left stick right, right stick up
+        sx, sy = room(before[0]), room(before[3])  # left stick along x, right stick along y (up is -)
+        page.evaluate(f"window.fakePad.axes = [{0.9 * sx}, 0, 0, {-0.9 * sy}]")
         time.sleep(0.4)
         page.evaluate("window.fakePad.axes = [0, 0, 0, 0]")
         settle(page)
         after = target(page)
-        assert after[0] > before[0] + 0.02 and after[3] > before[3] + 0.02
+        assert sx * (after[0] - before[0]) > 0.02 and sy * (after[3] - before[3]) > 0.02
         assert np.allclose(after[[1, 2]], before[[1, 2]])
         page.evaluate("window.fakePad.buttons[2].pressed = true")  # X: record
         wait(page, "document.getElementById('message').textContent.includes('recording is off')")
@@ -80,14 +87,16 @@ def test_drive_record_and_save_in_chromium(browser, tmp_path):
         assert page.inner_text("#conn") == "connected"
         canvas = page.eval_on_selector("#wm", "c => c.toDataURL()")
 
-        # keys: D moves the left pusher's target right, and the frames follow
+        # keys: D (A) moves the left pusher's target right (left), and the frames follow
         before = target(page)
-        page.keyboard.down("d")
+        sx = room(before[0])
+        key = "d" if sx > 0 else "a"
+        page.keyboard.down(key)
         time.sleep(0.4)
-        page.keyboard.up("d")
+        page.keyboard.up(key)
         settle(page)
         after = target(page)
-        assert after[0] > before[0] + 0.02 and np.allclose(after[1:], before[1:])
+        assert sx * (after[0] - before[0]) > 0.02 and np.allclose(after[1:], before[1:])
         assert page.eval_on_selector("#wm", "c => c.toDataURL()") != canvas
         assert np.allclose(page.evaluate("window.iwsim.state.header.action"), after, atol=1e-6)
         assert page.evaluate("window.iwsim.stats.latencyLast") > 0
