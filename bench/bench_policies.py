@@ -2,15 +2,18 @@
 
     MUJOCO_GL=egl .venv/bin/iwsim collect --policy expert --episodes 100 --steps 300 --workers 2 \\
         --out data/pusht_expert.zarr
-    OMP_NUM_THREADS=1 .venv/bin/iwsim train policy --policy dp --data data/pusht_expert.zarr --out runs/pol/dp --steps 4500 &
-    OMP_NUM_THREADS=1 .venv/bin/iwsim train policy --policy act --data data/pusht_expert.zarr --out runs/pol/act --steps 6000
-    MUJOCO_GL=egl .venv/bin/python bench/bench_policies.py --runs dp=runs/pol/dp,act=runs/pol/act
+    OMP_NUM_THREADS=1 .venv/bin/iwsim train policy --policy dp --data data/pusht_expert.zarr --out runs/pol2/dp --steps 6500 &
+    OMP_NUM_THREADS=1 .venv/bin/iwsim train policy --policy act --data data/pusht_expert.zarr --out runs/pol2/act --steps 7500
+    MUJOCO_GL=egl .venv/bin/python bench/bench_policies.py --runs dp=runs/pol2/dp,act=runs/pol2/act
 
-Scores every policy (its last checkpoint) and the expert on the same MuJoCo seeds
-(100000 + i, ``--episodes`` of them, ``--steps`` steps each): mean max IoU, success rate
-with its Beta posterior and Clopper-Pearson interval, the ratio to the expert, training
-and evaluation time; and the evaluation throughput inside the world model with all
-episodes in parallel. Writes results.json and results.md to ``--out``.
+Checkpoint selection first: every kept checkpoint of a run saved within ``--budget-min``
+minutes of training is scored on validation seeds (200000 + i, ``--select-episodes`` x
+``--select-steps``), and the best goes on. Then every chosen policy and the expert are
+scored on the same test seeds (100000 + i, ``--episodes`` x ``--steps``): mean max IoU,
+success rate with its Beta posterior and Clopper-Pearson interval, the ratio to the
+expert, training and evaluation time. Last, the first policy is evaluated inside the
+world model from the same initial states, all episodes in parallel, for its score there
+and the throughput. Writes results.json and results.md to ``--out``.
 """
 
 from __future__ import annotations
@@ -46,10 +49,31 @@ def expert(seeds: list[int], steps: int) -> dict:
     return {**summarize(max_iou, seeds), "seconds": time.perf_counter() - t0}
 
 
-def training_time(run: Path) -> dict:
+def training_minutes(run: Path) -> dict[int, float]:
+    """Minutes of training at each logged step of a run."""
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line.strip()]
-    last = [r for r in rows if "elapsed_s" in r][-1]
-    return {"steps": last["step"], "train_minutes": last["elapsed_s"] / 60}
+    return {r["step"]: r["elapsed_s"] / 60 for r in rows if "elapsed_s" in r}
+
+
+def select(run: Path, budget_min: float, episodes: int, steps: int, seed: int) -> tuple[Path, dict]:
+    """The run's checkpoint (saved within the budget) with the best mean max IoU on the
+    validation seeds, and every candidate's score."""
+    minutes = training_minutes(run)
+    scores = {}
+    for ckpt in sorted(p for p in (run / "checkpoints").iterdir() if p.name.isdigit()):
+        step = int(ckpt.name)
+        if minutes.get(step, float("inf")) > budget_min:
+            continue
+        policy = load_policy(ckpt)
+        r = evaluate(policy, "pusht", episodes=episodes, seed=seed, steps=steps, image_size=policy.image_size,
+                     progress=False)
+        scores[step] = {"train_minutes": minutes[step], "mean_max_iou": r["mean_max_iou"],
+                        "success_rate": r["success_rate"]}
+        print(f"  step {step} ({minutes[step]:.1f} min): validation mean max IoU {r['mean_max_iou']:.3f}", flush=True)
+    if not scores:
+        raise SystemExit(f"{run} has no checkpoint saved within {budget_min} minutes of training.")
+    best = max(scores, key=lambda k: scores[k]["mean_max_iou"])
+    return run / "checkpoints" / f"{best:08d}", {"step": best, "candidates": scores}
 
 
 def main() -> None:
@@ -58,8 +82,12 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--steps", type=int, default=600)
     p.add_argument("--seed", type=int, default=100000)
+    p.add_argument("--budget-min", type=float, default=60.0, help="training minutes a checkpoint may have had")
+    p.add_argument("--select-episodes", type=int, default=20)
+    p.add_argument("--select-steps", type=int, default=300)
+    p.add_argument("--select-seed", type=int, default=200000)
     p.add_argument("--world-model", default="checkpoints/pusht-64")
-    p.add_argument("--wm-steps", type=int, default=30, help="steps of the world-model throughput run")
+    p.add_argument("--wm-steps", type=int, default=600, help="steps of the world-model evaluation")
     p.add_argument("--out", default="bench/results/policies")
     args = p.parse_args()
     out = Path(args.out)
@@ -71,26 +99,34 @@ def main() -> None:
     results["expert"] = expert(seeds, args.steps)
     print(f"  mean max IoU {results['expert']['mean_max_iou']:.3f}", flush=True)
     results["policies"] = {}
+    chosen = {}
     for spec in args.runs.split(","):
         name, run = spec.split("=")
-        policy = load_policy(run)
-        print(f"{name} in MuJoCo ...", flush=True)
+        print(f"{name}: choosing a checkpoint ...", flush=True)
+        ckpt, selection = select(Path(run), args.budget_min, args.select_episodes, args.select_steps,
+                                 args.select_seed)
+        chosen[name] = ckpt
+        policy = load_policy(ckpt)
+        print(f"{name} ({ckpt}) in MuJoCo ...", flush=True)
         r = evaluate(policy, "pusht", episodes=args.episodes, seed=args.seed, steps=args.steps,
                      image_size=policy.image_size, out=out / name, videos=4, progress=False,
-                     meta={"checkpoint": run})
-        r.update(training_time(Path(run)))
+                     meta={"checkpoint": str(ckpt)})
+        r.update(steps=selection["step"], train_minutes=training_minutes(Path(run))[selection["step"]],
+                 selection=selection)
         r["fraction_of_expert"] = r["mean_max_iou"] / results["expert"]["mean_max_iou"]
         results["policies"][name] = r
         print(f"  mean max IoU {r['mean_max_iou']:.3f} ({100 * r['fraction_of_expert']:.0f}% of the expert)",
               flush=True)
     from iwsim.world_model import WorldModel
 
-    name, run = args.runs.split(",")[0].split("=")
+    name = next(iter(chosen))
     print(f"{name} inside the world model ({args.episodes} in parallel, {args.wm_steps} steps) ...", flush=True)
-    r = evaluate(load_policy(run), "world-model", episodes=args.episodes, seed=args.seed, steps=args.wm_steps,
-                 world_model=WorldModel.load(args.world_model), progress=False)
-    results["world_model_throughput"] = {"policy": name, "episodes": args.episodes, "steps": args.wm_steps,
-                                         "env_steps_per_s": r["env_steps_per_s"], "seconds": r["seconds"]}
+    r = evaluate(load_policy(chosen[name]), "world-model", episodes=args.episodes, seed=args.seed,
+                 steps=args.wm_steps, world_model=WorldModel.load(args.world_model), out=out / f"{name}_world_model",
+                 videos=4, progress=False)
+    results["world_model"] = {"policy": name, "episodes": args.episodes, "steps": args.wm_steps,
+                              "mean_max_iou": r["mean_max_iou"], "success_rate": r["success_rate"],
+                              "env_steps_per_s": r["env_steps_per_s"], "seconds": r["seconds"]}
     (out / "results.json").write_text(json.dumps(results, indent=1))
     (out / "results.md").write_text(markdown(results))
     print((out / "results.md").read_text())
@@ -101,7 +137,9 @@ def markdown(r: dict) -> str:
     lines = [
         "# Imitation policies vs the scripted expert (MuJoCo)", "", f"`{r['command']}`", "",
         f"{r['episodes']} episodes x {r['steps']} steps, seeds 100000 + i; score = max IoU in the episode; "
-        "success = IoU >= 0.9. Intervals: 95%, Beta posterior (uniform prior) and Clopper-Pearson.", "",
+        "success = IoU >= 0.9. Intervals: 95%, Beta posterior (uniform prior) and Clopper-Pearson. "
+        "Each policy is the checkpoint (saved within the training budget) that scored best on other seeds "
+        "(200000 + i); train steps and minutes are that checkpoint's.", "",
         "| policy | train steps | train min | mean max IoU | of expert | success | Beta 95% | Clopper-Pearson 95% "
         "| eval s |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -115,9 +153,16 @@ def markdown(r: dict) -> str:
             f"{100 * p['fraction_of_expert']:.0f}% | {p['success_rate']:.2f} | "
             f"{p['success_beta_posterior']['low']:.2f}-{p['success_beta_posterior']['high']:.2f} | "
             f"{p['success_clopper_pearson'][0]:.2f}-{p['success_clopper_pearson'][1]:.2f} | {p['seconds']:.0f} |")
-    w = r["world_model_throughput"]
-    lines += ["", f"Inside the world model: {w['env_steps_per_s']:.1f} environment steps/s with {w['episodes']} "
-              f"episodes in parallel ({w['policy']}, {w['steps']} steps, {w['seconds']:.0f} s).", ""]
+    lines += ["", "Checkpoint selection (validation mean max IoU):", ""]
+    for name, p in r["policies"].items():
+        cands = ", ".join(f"{s} steps ({c['train_minutes']:.0f} min): {c['mean_max_iou']:.3f}"
+                          for s, c in p["selection"]["candidates"].items())
+        lines.append(f"- {name}: {cands}")
+    w = r["world_model"]
+    lines += ["", f"Inside the world model ({w['policy']}, same seeds, {w['steps']} steps): mean max IoU "
+              f"{w['mean_max_iou']:.3f} (MuJoCo: {r['policies'][w['policy']]['mean_max_iou']:.3f}), success "
+              f"{w['success_rate']:.2f}; {w['env_steps_per_s']:.1f} environment steps/s with {w['episodes']} "
+              f"episodes in parallel ({w['seconds']:.0f} s).", ""]
     return "\n".join(lines)
 
 

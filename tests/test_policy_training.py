@@ -14,7 +14,7 @@ from iwsim.data.store import EpisodeStore
 from iwsim.eval.policy import evaluate, rollout
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.policies import PRESETS, load_policy, make_policy
-from iwsim.policies.common import Normalizer
+from iwsim.policies.common import Normalizer, random_shift
 from iwsim.policies.data import PolicyData, Source, parse_mixture
 from iwsim.training.checkpoint import CheckpointError
 from tests.test_dynamics import tiny_world_model
@@ -52,6 +52,19 @@ def test_windows_pad_like_diffusion_policy(play_store):
     assert obs[1].tolist() == [n0 - 2, n0 - 1] and act[1, :2].tolist() == [n0 - 2, n0 - 1]
     assert act[1, 2:].tolist() == [n0 - 1] * 6 and pad[1].tolist() == [False, False] + [True] * 6
     assert obs[2].tolist() == [n0, n0] and not pad[2].any()  # episode 1 starts fresh
+
+
+def test_random_shift_moves_whole_windows_with_the_border_repeated():
+    image = torch.arange(2 * 2 * 3 * 6 * 6, dtype=torch.float32).view(2, 2, 3, 6, 6)
+    out = random_shift(image, 2, torch.tensor([[2, 0], [2, 4]]))  # window 0 stays in place
+    assert torch.equal(out[0], image[0])
+    # window 1: offset (dy, dx) = (0, 4) of the padded image: row i shows row max(i - 2, 0), column min(j + 2, 5)
+    rows, cols = (torch.arange(6) - 2).clamp(0, 5), (torch.arange(6) + 2).clamp(0, 5)
+    assert torch.equal(out[1], image[1][:, :, rows][:, :, :, cols])
+    assert torch.equal(random_shift(image, 0), image)
+    drawn = random_shift(image, 1)
+    assert drawn.shape == image.shape and all(torch.equal(drawn[b, 0] - image[b, 0], drawn[b, 1] - image[b, 1])
+                                              for b in range(2))  # both frames of a window move together
 
 
 def test_diffusion_policy_overfits_and_acts(play_store):

@@ -32,6 +32,7 @@ class PolicyStageConfig:
     policy: str = "dp"
     model: dict[str, Any] = dataclasses.field(default_factory=dict)  # the policy's config (to_dict)
     train: TrainConfig = TrainConfig()
+    shift: int = 4  # training images move by up to this many pixels (random-shift augmentation)
 
 
 def config_class(policy: str) -> type:
@@ -60,7 +61,7 @@ def make_policy(policy: str, model: dict[str, Any], action_norm: Normalizer, sta
 
 # Presets: the defaults of the paper-sized-down policies, and tiny ones for tests.
 PRESETS: dict[str, PolicyStageConfig] = {
-    "dp": PolicyStageConfig("dp", {}, TrainConfig(steps=20_000, batch_size=64, lr=1e-4, warmup_steps=500,
+    "dp": PolicyStageConfig("dp", {}, TrainConfig(steps=20_000, batch_size=64, lr=3e-4, warmup_steps=500,
                                                   weight_decay=1e-6, eval_every=1000, checkpoint_every=1000)),
     "act": PolicyStageConfig("act", {}, TrainConfig(steps=20_000, batch_size=32, lr=1e-4, warmup_steps=500,
                                                     weight_decay=1e-4, eval_every=1000, checkpoint_every=1000)),
@@ -68,11 +69,11 @@ PRESETS: dict[str, PolicyStageConfig] = {
                                         "down_dims": (16, 32), "horizon": 8, "n_action_steps": 4,
                                         "inference_steps": 4},
                                  TrainConfig(steps=20, batch_size=8, lr=1e-3, warmup_steps=2, eval_every=10,
-                                             checkpoint_every=10, log_every=5)),
+                                             checkpoint_every=10, log_every=5), shift=2),
     "tiny-act": PolicyStageConfig("act", {"chunk_size": 8, "dim": 32, "heads": 2, "enc_layers": 1, "dec_layers": 1,
                                           "ff_dim": 64},
                                   TrainConfig(steps=20, batch_size=8, lr=1e-3, warmup_steps=2, eval_every=10,
-                                              checkpoint_every=10, log_every=5)),
+                                              checkpoint_every=10, log_every=5), shift=2),
 }
 
 

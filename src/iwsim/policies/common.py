@@ -54,6 +54,22 @@ class PolicyBatch:
         return PolicyBatch(*(t.to(device) for t in (self.image, self.agent_pos, self.action, self.action_is_pad)))
 
 
+def random_shift(image: torch.Tensor, pad: int, offsets: torch.Tensor | None = None) -> torch.Tensor:
+    """Shift augmentation (DrQ, Kostrikov et al. 2021; Diffusion Policy's random crop):
+    each window of (B, To, C, H, W) images moves by up to ``pad`` pixels in x and y, the
+    same for its To frames (motion between them stays true), the border repeated.
+    ``offsets`` (2, B) in [0, 2 * pad] are drawn from torch's generator when not given."""
+    if pad <= 0:
+        return image
+    b, to, c, h, w = image.shape
+    padded = F.pad(image.reshape(b, to * c, h, w), (pad, pad, pad, pad), mode="replicate")
+    dy, dx = torch.randint(0, 2 * pad + 1, (2, b)) if offsets is None else offsets
+    rows = (dy[:, None] + torch.arange(h))[:, :, None]  # (B, H, 1)
+    cols = (dx[:, None] + torch.arange(w))[:, None, :]  # (B, 1, W)
+    out = padded[torch.arange(b)[:, None, None], :, rows, cols]  # (B, H, W, To*C)
+    return out.permute(0, 3, 1, 2).reshape(b, to, c, h, w)
+
+
 class SpatialSoftmax(nn.Module):
     """Expected (x, y) image coordinates of each feature map (Levine et al. 2016), as
     Diffusion Policy's and robomimic's image encoders pool."""

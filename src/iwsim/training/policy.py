@@ -12,6 +12,7 @@ from torch import nn
 
 from iwsim.config import from_dict, to_dict
 from iwsim.policies import PolicyStageConfig, config_class, describe, make_policy
+from iwsim.policies.common import random_shift
 from iwsim.policies.data import PolicyData, Source
 from iwsim.training import trainer
 
@@ -32,10 +33,13 @@ class PolicyTask:
 
     def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device):
         t = torch.randint(0, self.data.n_frames, (self.cfg.train.batch_size,), generator=generator)
+        shifts = torch.randint(0, 2 * self.cfg.shift + 1, (2, len(t)), generator=generator)
         # The policies draw their noise (diffusion steps, CVAE samples, dropout) from torch's
         # global generator; seeding it from the step's generator keeps resumption exact.
         torch.manual_seed(int(torch.randint(2**62, (1,), generator=generator)))
-        return self.data.batch(t[part], self.action_norm, self.state_norm).to(device)
+        batch = self.data.batch(t[part], self.action_norm, self.state_norm)
+        batch.image = random_shift(batch.image, self.cfg.shift, shifts[:, part])
+        return batch.to(device)
 
     @torch.no_grad()
     def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
@@ -55,7 +59,7 @@ class PolicyTask:
         return dict(module.state_dict())
 
     def config(self) -> dict[str, Any]:
-        return {**describe(self.module), "train": to_dict(self.cfg.train),
+        return {**describe(self.module), "train": to_dict(self.cfg.train), "shift": self.cfg.shift,
                 "data": [{"path": str(s.path), "episodes": s.episodes} for s in self.sources],
                 "episodes_used": self.data.counts, "image_size": self.data.image_size}
 
