@@ -13,7 +13,9 @@ scored on the same test seeds (100000 + i, ``--episodes`` x ``--steps``): mean m
 success rate with its Beta posterior and Clopper-Pearson interval, the ratio to the
 expert, training and evaluation time. Last, the first policy is evaluated inside the
 world model from the same initial states, all episodes in parallel, for its score there
-and the throughput. Writes results.json and results.md to ``--out``.
+and the throughput. Writes results.json and results.md to ``--out``, and per policy the
+evaluation's results, per-step IoU, videos of 4 episodes and frames.png (their first 300
+steps as frame strips).
 """
 
 from __future__ import annotations
@@ -57,23 +59,39 @@ def training_minutes(run: Path) -> dict[int, float]:
 
 def select(run: Path, budget_min: float, episodes: int, steps: int, seed: int) -> tuple[Path, dict]:
     """The run's checkpoint (saved within the budget) with the best mean max IoU on the
-    validation seeds, and every candidate's score."""
+    validation seeds, and every checkpoint's score (those over the budget, for reference)."""
     minutes = training_minutes(run)
     scores = {}
     for ckpt in sorted(p for p in (run / "checkpoints").iterdir() if p.name.isdigit()):
         step = int(ckpt.name)
-        if minutes.get(step, float("inf")) > budget_min:
-            continue
         policy = load_policy(ckpt)
         r = evaluate(policy, "pusht", episodes=episodes, seed=seed, steps=steps, image_size=policy.image_size,
                      progress=False)
         scores[step] = {"train_minutes": minutes[step], "mean_max_iou": r["mean_max_iou"],
                         "success_rate": r["success_rate"]}
         print(f"  step {step} ({minutes[step]:.1f} min): validation mean max IoU {r['mean_max_iou']:.3f}", flush=True)
-    if not scores:
+    within = [k for k in scores if scores[k]["train_minutes"] <= budget_min]
+    if not within:
         raise SystemExit(f"{run} has no checkpoint saved within {budget_min} minutes of training.")
-    best = max(scores, key=lambda k: scores[k]["mean_max_iou"])
+    best = max(within, key=lambda k: scores[k]["mean_max_iou"])
     return run / "checkpoints" / f"{best:08d}", {"step": best, "candidates": scores}
+
+
+def strip(run_dir: Path, frames: int = 10, until: int = 300) -> None:
+    """frames.png: each recorded episode of ``run_dir`` as a row of ``frames`` frames over
+    its first ``until`` steps (the videos stay out of git; this picture goes in)."""
+    import av
+    from PIL import Image
+
+    rows = []
+    for video in sorted(run_dir.glob("episode_*.mp4")):
+        with av.open(str(video)) as f:
+            decoded = [fr.to_ndarray(format="rgb24") for fr in f.decode(video=0)]
+        pick = np.linspace(0, min(until, len(decoded) - 1), frames).round().astype(int)
+        rows.append(np.concatenate([decoded[i] for i in pick], 1))
+    if rows:
+        image = Image.fromarray(np.concatenate(rows, 0))
+        image.resize((image.width // 4, image.height // 4), Image.NEAREST).save(run_dir / "frames.png")  # 64 px
 
 
 def main() -> None:
@@ -94,7 +112,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     seeds = [args.seed + i for i in range(args.episodes)]
     results: dict = {"command": "MUJOCO_GL=egl .venv/bin/python bench/bench_policies.py " + " ".join(sys.argv[1:]),
-                     "episodes": args.episodes, "steps": args.steps}
+                     "episodes": args.episodes, "steps": args.steps, "budget_min": args.budget_min}
     print("expert ...", flush=True)
     results["expert"] = expert(seeds, args.steps)
     print(f"  mean max IoU {results['expert']['mean_max_iou']:.3f}", flush=True)
@@ -111,6 +129,7 @@ def main() -> None:
         r = evaluate(policy, "pusht", episodes=args.episodes, seed=args.seed, steps=args.steps,
                      image_size=policy.image_size, out=out / name, videos=4, progress=False,
                      meta={"checkpoint": str(ckpt)})
+        strip(out / name)
         r.update(steps=selection["step"], train_minutes=training_minutes(Path(run))[selection["step"]],
                  selection=selection)
         r["fraction_of_expert"] = r["mean_max_iou"] / results["expert"]["mean_max_iou"]
@@ -124,6 +143,7 @@ def main() -> None:
     r = evaluate(load_policy(chosen[name]), "world-model", episodes=args.episodes, seed=args.seed,
                  steps=args.wm_steps, world_model=WorldModel.load(args.world_model), out=out / f"{name}_world_model",
                  videos=4, progress=False)
+    strip(out / f"{name}_world_model")
     results["world_model"] = {"policy": name, "episodes": args.episodes, "steps": args.wm_steps,
                               "mean_max_iou": r["mean_max_iou"], "success_rate": r["success_rate"],
                               "env_steps_per_s": r["env_steps_per_s"], "seconds": r["seconds"]}
@@ -133,6 +153,9 @@ def main() -> None:
 
 
 def markdown(r: dict) -> str:
+    def over(c: dict) -> str:
+        return ", over budget" if c["train_minutes"] > r["budget_min"] else ""
+
     e = r["expert"]
     lines = [
         "# Imitation policies vs the scripted expert (MuJoCo)", "", f"`{r['command']}`", "",
@@ -153,16 +176,19 @@ def markdown(r: dict) -> str:
             f"{100 * p['fraction_of_expert']:.0f}% | {p['success_rate']:.2f} | "
             f"{p['success_beta_posterior']['low']:.2f}-{p['success_beta_posterior']['high']:.2f} | "
             f"{p['success_clopper_pearson'][0]:.2f}-{p['success_clopper_pearson'][1]:.2f} | {p['seconds']:.0f} |")
-    lines += ["", "Checkpoint selection (validation mean max IoU):", ""]
+    lines += ["", f"Checkpoint selection (mean max IoU on the validation seeds; chosen among those saved within "
+              f"{r['budget_min']:.0f} min of training):", ""]
     for name, p in r["policies"].items():
-        cands = ", ".join(f"{s} steps ({c['train_minutes']:.0f} min): {c['mean_max_iou']:.3f}"
+        cands = ", ".join(f"{s} steps ({c['train_minutes']:.1f} min{over(c)}): {c['mean_max_iou']:.3f}"
                           for s, c in p["selection"]["candidates"].items())
         lines.append(f"- {name}: {cands}")
     w = r["world_model"]
     lines += ["", f"Inside the world model ({w['policy']}, same seeds, {w['steps']} steps): mean max IoU "
               f"{w['mean_max_iou']:.3f} (MuJoCo: {r['policies'][w['policy']]['mean_max_iou']:.3f}), success "
               f"{w['success_rate']:.2f}; {w['env_steps_per_s']:.1f} environment steps/s with {w['episodes']} "
-              f"episodes in parallel ({w['seconds']:.0f} s).", ""]
+              f"episodes in parallel ({w['seconds']:.0f} s).", "",
+              "Frame strips of the first 4 episodes (steps 0-300): "
+              + ", ".join(f"`{n}/frames.png`" for n in [*r["policies"], f"{w['policy']}_world_model"]) + ".", ""]
     return "\n".join(lines)
 
 

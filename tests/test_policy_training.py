@@ -161,6 +161,10 @@ def test_evaluation_in_mujoco_writes_results_and_videos(tmp_path):
     assert result["mean_max_iou"] == written["mean_max_iou"] and result["env_steps_per_s"] > 0
     assert set(written["success_beta_posterior"]) == {"mean", "low", "high"}
     assert sorted(p.name for p in tmp_path.glob("*.mp4")) == ["episode_100000.mp4", "episode_100001.mp4"]
+    evaluate(policy, "pusht", episodes=1, seed=7, steps=2, out=tmp_path / "quiet", videos=0, progress=False)
+    assert [p.name for p in (tmp_path / "quiet").iterdir()] and not list((tmp_path / "quiet").glob("*.mp4"))
+    with pytest.raises(ValueError, match="--videos"):
+        evaluate(policy, "pusht", episodes=1, seed=7, steps=2, videos=-1, progress=False)
     with pytest.raises(ValueError, match="--world-model"):
         evaluate(policy, "world-model", episodes=1, seed=0, steps=1, progress=False)
     with pytest.raises(ValueError, match="trained on 96x96"):

@@ -134,6 +134,8 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
     for name, v in (("episodes", episodes), ("steps", steps)):
         if v < 1:
             raise ValueError(f"--{name} must be a positive integer, got {v}.")
+    if videos < 0:
+        raise ValueError(f"--videos must be 0 or more, got {videos}.")
     seeds = [seed + i for i in range(episodes)]
     run = rollout(policy, env, seeds, steps, world_model=world_model, image_size=image_size,
                   record=min(videos, episodes) if out is not None else 0, progress=progress)
@@ -146,7 +148,7 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         write_json_atomic(out / "results.json", result, sort_keys=False)
-        for i in range(len(run["frames"])):
+        for i in range(0 if run["frames"] is None else len(run["frames"])):
             write_video(out / f"episode_{seeds[i]}.mp4", upscale(run["frames"][i], 4), fps=10)
         (out / "iou.json").write_text(json.dumps({"seeds": seeds, "iou_per_step": run["iou"].round(4).tolist()}))
     return result
