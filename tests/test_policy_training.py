@@ -10,6 +10,7 @@ import torch
 from scipy import stats
 
 from iwsim.cli import main
+from iwsim.data.collect import collect
 from iwsim.data.store import EpisodeStore
 from iwsim.eval.policy import evaluate, rollout
 from iwsim.eval.stats import beta_posterior, clopper_pearson
@@ -42,6 +43,17 @@ def test_mixture_takes_exactly_the_requested_episodes(play_store, tmp_path):
         PolicyData([Source(play_store, 5)], 2, 8)
     with pytest.raises(ValueError, match="mixture is empty"):
         PolicyData([], 2, 8)
+    small = tmp_path / "small.zarr"  # 96 px frames do not fit a 64 px mixture
+    collect("pusht", "play", 1, out=small, steps=4, image_size=96, workers=1, seed=0, progress=False)
+    with pytest.raises(ValueError, match=r"frames of shape \(96, 96, 3\).*a mixture must agree"):
+        PolicyData([Source(play_store, 1), Source(small, 1)], 2, 8)
+
+
+def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
+    (tmp_path / "config.json").write_text(json.dumps({"kind": "world_model"}))
+    (tmp_path / "model.safetensors").write_bytes(b"")
+    with pytest.raises(CheckpointError, match="is a 'world_model' checkpoint, not a policy"):
+        load_policy(tmp_path)
 
 
 def test_windows_pad_like_diffusion_policy(play_store):
