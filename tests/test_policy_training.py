@@ -43,10 +43,10 @@ def test_mixture_takes_exactly_the_requested_episodes(play_store, tmp_path):
         PolicyData([Source(play_store, 5)], 2, 8)
     with pytest.raises(ValueError, match="mixture is empty"):
         PolicyData([], 2, 8)
-    small = tmp_path / "small.zarr"  # 96 px frames do not fit a 64 px mixture
-    collect("pusht", "play", 1, out=small, steps=4, image_size=96, workers=1, seed=0, progress=False)
+    big = tmp_path / "big.zarr"  # 96 px frames do not fit a 64 px mixture
+    collect("pusht", "play", 1, out=big, steps=4, image_size=96, workers=1, seed=0, progress=False)
     with pytest.raises(ValueError, match=r"frames of shape \(96, 96, 3\).*a mixture must agree"):
-        PolicyData([Source(play_store, 1), Source(small, 1)], 2, 8)
+        PolicyData([Source(play_store, 1), Source(big, 1)], 2, 8)
 
 
 def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
