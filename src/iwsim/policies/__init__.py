@@ -80,7 +80,7 @@ PRESETS: dict[str, PolicyStageConfig] = {
 def describe(policy: nn.Module) -> dict[str, Any]:
     """The parts of ``config.json`` that :func:`load_policy` reads."""
     return {"kind": KIND, "policy": policy.kind, "model": to_dict(policy.cfg),
-            "action_dim": int(policy.action_norm.low.shape[0]), "state_dim": int(policy.state_norm.low.shape[0])}
+            "action_dim": policy.action_dim, "state_dim": policy.state_dim}
 
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:

@@ -26,7 +26,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.policies.common import ImageEncoder, Normalizer, PolicyBatch, prepare_obs
+from iwsim.policies.common import (
+    ImageEncoder,
+    Normalizer,
+    Policy,
+    PolicyBatch,
+    prepare_obs,
+)
 
 
 @dataclass(frozen=True)
@@ -167,16 +173,13 @@ class TemporalEnsemble:
         return action
 
 
-class ACTPolicy(nn.Module):
+class ACTPolicy(Policy):
     """See the module docstring; the execution contract is in :mod:`iwsim.policies.common`."""
 
     kind = "act"
 
     def __init__(self, cfg: ACTConfig, action_norm: Normalizer, state_norm: Normalizer) -> None:
-        super().__init__()
-        self.cfg, self.action_norm, self.state_norm = cfg, action_norm, state_norm
-        self.action_dim = int(action_norm.low.shape[0])
-        self.state_dim = int(state_norm.low.shape[0])
+        super().__init__(cfg, action_norm, state_norm)
         d, k = cfg.dim, cfg.chunk_size
         # Observation side. The trunk's last 1x1 conv maps to d channels: ACT's input_proj.
         self.backbone = ImageEncoder(channels=cfg.encoder_channels, keypoints=d).net  # (N, 3, H, W) -> (N, d, h, w)
@@ -201,15 +204,6 @@ class ACTPolicy(nn.Module):
             if p.dim() > 1:
                 nn.init.xavier_uniform_(p)  # as DETR's and ACT's transformers
         self.ensemble = TemporalEnsemble(cfg.temporal_ensemble, k) if cfg.temporal_ensemble is not None else None
-
-    @property
-    def obs_horizon(self) -> int:
-        return self.cfg.obs_horizon
-
-    @property
-    def horizon(self) -> int:
-        """Future actions a training window needs, from the current step: the chunk."""
-        return self.cfg.chunk_size
 
     def posterior(self, agent_pos: torch.Tensor, action: torch.Tensor, is_pad: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor]:

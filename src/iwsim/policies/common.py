@@ -54,6 +54,28 @@ class PolicyBatch:
         return PolicyBatch(*(t.to(device) for t in (self.image, self.agent_pos, self.action, self.action_is_pad)))
 
 
+class Policy(nn.Module):
+    """What every policy keeps: its config, the normalisers (buffers, so saved with the
+    weights), the action and state sizes, and the window it trains on: ``obs_horizon``
+    observed steps and ``horizon`` actions from the first of them."""
+
+    kind: str
+
+    def __init__(self, cfg, action_norm: Normalizer, state_norm: Normalizer) -> None:
+        super().__init__()
+        self.cfg, self.action_norm, self.state_norm = cfg, action_norm, state_norm
+        self.action_dim = int(action_norm.low.shape[0])
+        self.state_dim = int(state_norm.low.shape[0])
+
+    @property
+    def obs_horizon(self) -> int:
+        return self.cfg.obs_horizon
+
+    @property
+    def horizon(self) -> int:
+        return self.cfg.horizon
+
+
 def random_shift(image: torch.Tensor, pad: int, offsets: torch.Tensor | None = None) -> torch.Tensor:
     """Shift augmentation (DrQ, Kostrikov et al. 2021; Diffusion Policy's random crop):
     each window of (B, To, C, H, W) images moves by up to ``pad`` pixels in x and y, the

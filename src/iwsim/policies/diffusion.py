@@ -18,7 +18,13 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from iwsim.policies.common import ImageEncoder, Normalizer, PolicyBatch, prepare_obs
+from iwsim.policies.common import (
+    ImageEncoder,
+    Normalizer,
+    Policy,
+    PolicyBatch,
+    prepare_obs,
+)
 
 
 @dataclass(frozen=True)
@@ -118,27 +124,16 @@ class ConditionalUnet1D(nn.Module):
         return self.out(x)
 
 
-class DiffusionPolicy(nn.Module):
+class DiffusionPolicy(Policy):
     """See the module docstring; the execution contract is in :mod:`iwsim.policies.common`."""
 
     kind = "dp"
 
     def __init__(self, cfg: DiffusionConfig, action_norm: Normalizer, state_norm: Normalizer) -> None:
-        super().__init__()
-        self.cfg, self.action_norm, self.state_norm = cfg, action_norm, state_norm
-        self.action_dim = int(action_norm.low.shape[0])
-        state_dim = int(state_norm.low.shape[0])
+        super().__init__(cfg, action_norm, state_norm)
         self.encoder = ImageEncoder(cfg.image_features, cfg.encoder_channels, first_stride=cfg.encoder_stride)
-        self.unet = ConditionalUnet1D(self.action_dim, cfg.obs_horizon * (cfg.image_features + state_dim), cfg)
+        self.unet = ConditionalUnet1D(self.action_dim, cfg.obs_horizon * (cfg.image_features + self.state_dim), cfg)
         self.register_buffer("alphas_cumprod", squared_cosine_alphas_cumprod(cfg.train_steps))
-
-    @property
-    def obs_horizon(self) -> int:
-        return self.cfg.obs_horizon
-
-    @property
-    def horizon(self) -> int:
-        return self.cfg.horizon
 
     def condition(self, image: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
         """image (B, To, 3, H, W), normalised agent_pos (B, To, S) -> (B, To * (F + S))."""
