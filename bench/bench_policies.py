@@ -130,8 +130,8 @@ def main() -> None:
                      image_size=policy.image_size, out=out / name, videos=4, progress=False,
                      meta={"checkpoint": str(ckpt)})
         strip(out / name)
-        r.update(steps=selection["step"], train_minutes=training_minutes(Path(run))[selection["step"]],
-                 selection=selection)
+        step = selection["step"]
+        r.update(steps=step, train_minutes=selection["candidates"][step]["train_minutes"], selection=selection)
         r["fraction_of_expert"] = r["mean_max_iou"] / results["expert"]["mean_max_iou"]
         results["policies"][name] = r
         print(f"  mean max IoU {r['mean_max_iou']:.3f} ({100 * r['fraction_of_expert']:.0f}% of the expert)",
