@@ -41,8 +41,10 @@ def record_episode(task: str, policy: str, seed: int, steps: int, image_size: in
 
     Step t holds the observation before action t and the action itself:
     ``img`` (T, H, W, 3) uint8, ``state`` (T, 4) float32 (agent_pos), ``action`` (T, 4)
-    float32, ``block_pose`` (T, 3) float32, ``iou`` (T,) float32 and ``n_contacts`` (T,)
-    int32, with T = ``steps``. The same arguments give the same arrays.
+    float32 (as commanded), ``target`` (T, 4) float32 (the rate-limited setpoints action t
+    executed, what the world model is conditioned on), ``block_pose`` (T, 3) float32,
+    ``iou`` (T,) float32 and ``n_contacts`` (T,) int32, with T = ``steps``. The same
+    arguments give the same arrays.
     """
     from iwsim.envs.policies import make_policy
 
@@ -51,7 +53,8 @@ def record_episode(task: str, policy: str, seed: int, steps: int, image_size: in
         pol = make_policy(policy, seed)
         obs, info = env.reset(seed=seed)
         pol.reset(obs, info)
-        rows: dict[str, list] = {k: [] for k in ("img", "state", "action", "block_pose", "iou", "n_contacts")}
+        rows: dict[str, list] = {k: [] for k in ("img", "state", "action", "target", "block_pose", "iou",
+                                                 "n_contacts")}
         for _ in range(steps):
             action = np.asarray(pol(obs, info), dtype=np.float32)
             rows["img"].append(obs["pixels"])
@@ -61,6 +64,7 @@ def record_episode(task: str, policy: str, seed: int, steps: int, image_size: in
             rows["iou"].append(info["iou"])
             rows["n_contacts"].append(info["n_contacts"])
             obs, _, _, _, info = env.step(action)
+            rows["target"].append(info["target"])
     finally:
         env.close()
     dtypes = {"img": np.uint8, "n_contacts": np.int32}

@@ -19,7 +19,7 @@ from iwsim.envs import POLICIES
 from iwsim.envs import geometry as geo
 from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.geometry import to_block, to_world
-from iwsim.envs.pusht import GOAL_POSE, PUSHER_RADIUS, WORKSPACE
+from iwsim.envs.pusht import GOAL_POSE, MAX_STEP, PUSHER_RADIUS, WORKSPACE
 
 # The pinch, in the block frame: grip level just under the bar, on both sides of the stem.
 _BAR_BOTTOM = geo.BAR_CENTER[1] - geo.BAR_WIDTH / 2
@@ -133,7 +133,7 @@ class Pinch:
     (move the grasp; translation and rotation rate-limited). Losing the grip restarts it.
     """
 
-    def __init__(self, speed: float = 0.03, carry_speed: float = 0.012, turn_speed: float = 0.3,
+    def __init__(self, speed: float = MAX_STEP, carry_speed: float = 0.012, turn_speed: float = 0.3,
                  gain: float = 2.0) -> None:
         self.speed, self.carry_speed, self.turn_speed, self.gain = speed, carry_speed, turn_speed, gain
         self.reset()
@@ -242,26 +242,32 @@ _OUTLINE, _EDGE_LENGTHS = _outline()
 
 
 class PlayPolicy:
-    """Random interaction for world-model data, biased towards touching the block.
+    """Smooth random interaction for world-model data, biased towards touching the block.
 
-    The episode is cut into segments of 10-40 steps with a random speed. In each segment
-    both pushers pinch and carry the block to a random pose (30%), or each pusher on its
-    own either pokes the block (80%: approach a random point of its outline from outside,
-    then push in by a random depth) or wanders to a random target (20%). Actions get
-    2 mm of Gaussian jitter so that nearby actions are covered too.
+    The episode is cut into segments of 30-80 steps, each with its own speed for pushing
+    (4-14 mm per step; travel in free space goes at 13 mm per step; all within the task's
+    speed limit, so commanded and executed motion agree). In
+    each segment both pushers pinch and carry the block to a random pose (30%), or each
+    pusher on its own either pokes the block (90%: approach a random point of its outline
+    from outside, preferring edges near it, then push in by a random depth) or wanders to
+    a random target (10%).
+    A slowly drifting offset (about 1.5 mm, correlated over ~10 steps) covers nearby
+    actions without making the motion jittery.
     """
 
     def __init__(self, seed: int) -> None:
         self.rng = np.random.default_rng(seed)
-        self.pinch = Pinch()
+        self.pinch = Pinch(turn_speed=0.15)  # gentler turns than the expert's
+        self._drift = np.zeros(4)
 
     def reset(self, obs: dict, info: dict) -> None:
         self._segment_left = 0
+        self._drift = np.zeros(4)
 
-    def _new_segment(self, pose: np.ndarray) -> None:
+    def _new_segment(self, pushers: np.ndarray, pose: np.ndarray) -> None:
         rng = self.rng
-        self._segment_left = int(rng.integers(10, 41))
-        self.speed = float(rng.uniform(0.01, 0.04))
+        self._segment_left = int(rng.integers(30, 81))
+        self.speed = float(rng.uniform(0.004, 0.014))
         self.mode = "pinch" if rng.random() < 0.3 else "solo"
         if self.mode == "pinch":
             self.pinch.reset()
@@ -269,16 +275,20 @@ class PlayPolicy:
             self.target_pose = np.array([*rng.uniform(-0.1, 0.1, 2), rng.uniform(-np.pi, np.pi)])
             return
         self.tasks = []
-        for _ in range(2):
-            if rng.random() < 0.8:
-                e = int(rng.choice(len(_OUTLINE), p=_EDGE_LENGTHS / _EDGE_LENGTHS.sum()))
+        mids = (_OUTLINE + np.roll(_OUTLINE, -1, axis=0)) / 2
+        for p in pushers:
+            if rng.random() < 0.9:
+                # Edges near the pusher are likelier (less time travelling, more in contact).
+                near = np.exp(-np.linalg.norm(mids - to_block(p, pose), axis=1) / 0.03)
+                w = _EDGE_LENGTHS * (0.05 + near)
+                e = int(rng.choice(len(_OUTLINE), p=w / w.sum()))
                 a, b = _OUTLINE[e], _OUTLINE[(e + 1) % len(_OUTLINE)]
                 normal = np.array([b[1] - a[1], a[0] - b[0]]) / _EDGE_LENGTHS[e]
                 contact = a + rng.uniform(0.1, 0.9) * (b - a)
                 self.tasks.append({
                     "kind": "poke", "stage": "approach",
                     "pre": contact + normal * (PUSHER_RADIUS + 0.015),
-                    "through": contact - normal * rng.uniform(0.01, 0.06),
+                    "through": contact - normal * rng.uniform(0.02, 0.08),
                 })
             else:
                 self.tasks.append({"kind": "wander", "target": rng.uniform(-WORKSPACE, WORKSPACE, 2)})
@@ -288,8 +298,8 @@ class PlayPolicy:
             return _advance(p, task["target"], self.speed)
         if task["stage"] == "approach":
             pre = to_world(task["pre"], pose)
-            if np.linalg.norm(p - pre) > 0.005:
-                return plan_step(p, pre, pose, self.speed)
+            if np.linalg.norm(p - pre) > 0.005:  # free space: travel at up to the speed limit
+                return plan_step(p, pre, pose, max(self.speed, 0.8 * MAX_STEP))
             task["stage"] = "push"
         return _advance(p, to_world(task["through"], pose), self.speed)
 
@@ -297,13 +307,14 @@ class PlayPolicy:
         pose = np.asarray(info["block_pose"], dtype=np.float64)
         pushers = np.asarray(obs["agent_pos"], dtype=np.float64).reshape(2, 2)
         if self._segment_left <= 0:
-            self._new_segment(pose)
+            self._new_segment(pushers, pose)
         self._segment_left -= 1
         if self.mode == "pinch":
             targets = self.pinch(pushers, pose, self.target_pose)
         else:
             targets = np.stack([self._solo(p, pose, t) for p, t in zip(pushers, self.tasks)])
-        targets = targets.reshape(4) + self.rng.normal(0.0, 0.002, 4)
+        self._drift = 0.9 * self._drift + self.rng.normal(0.0, 0.0007, 4)
+        targets = targets.reshape(4) + self._drift
         return np.clip(targets, -WORKSPACE, WORKSPACE).astype(np.float32)
 
 

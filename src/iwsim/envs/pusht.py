@@ -30,6 +30,11 @@ VIEW_HALF = 0.26  # the camera sees [-0.26, 0.26]^2 m
 WALL_INNER = 0.24  # walls keep the block on the table
 PUSHER_RADIUS = 0.015
 WORKSPACE = WALL_INNER - PUSHER_RADIUS - 0.005  # pusher targets are clipped to +-WORKSPACE
+# Pusher speed limit: the position setpoint of each pusher moves at most this far per
+# control step (0.16 m/s), about 2 px per step at 64 px. A far target is approached over
+# several steps, like a robot under a velocity limit, instead of being reached within one
+# step with a jump a camera-based model cannot predict.
+MAX_STEP = 0.016
 BLOCK_INIT_HALF = 0.12  # initial block centroid is uniform in +-this
 GOAL_POSE = np.array([0.0, 0.0, np.pi / 4])
 SUCCESS_IOU = 0.9
@@ -133,6 +138,27 @@ class TaskSpec:
     action_names: tuple[str, ...] = ("left_x", "left_y", "right_x", "right_y")
     goal_pose: tuple[float, ...] = tuple(float(v) for v in GOAL_POSE)
     view_half: float = VIEW_HALF
+    max_step: float = MAX_STEP  # pusher speed limit (m per control step), see limit_targets
+    # Which action entries are (x, y) positions in the top-down orthographic camera's
+    # world frame (metres, x right, y up, image centre at 0): the left and right pushers.
+    action_points: tuple[tuple[int, int], ...] = ((0, 1), (2, 3))
+
+
+def limit_targets(setpoint: np.ndarray, command: np.ndarray, max_step: float = MAX_STEP) -> np.ndarray:
+    """The setpoints the pushers' position controllers receive: each pusher's setpoint
+    moves from its previous value towards the commanded target (clipped to the
+    workspace) by at most ``max_step`` metres (Euclidean, per pusher).
+
+    ``setpoint`` and ``command`` are (..., 4) ``[lx, ly, rx, ry]``; returns (..., 4)
+    float64. The one definition of the motion MuJoCo executes: the environment, the
+    stage-2 data (``data/target``), ``iwsim/WorldModel-v0`` and ``iwsim play`` all call it.
+    """
+    s = np.asarray(setpoint, dtype=np.float64)
+    c = np.clip(np.asarray(command, dtype=np.float64), -WORKSPACE, WORKSPACE)
+    d = (c - s).reshape(*c.shape[:-1], 2, 2)
+    n = np.linalg.norm(d, axis=-1, keepdims=True)
+    scale = np.minimum(1.0, max_step / np.maximum(n, 1e-12))
+    return s + (d * scale).reshape(c.shape)
 
 
 def spaces(image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
@@ -147,10 +173,13 @@ def spaces(image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
 class BimanualPushTEnv(gym.Env):
     """Push the T block onto the goal with two pushers.
 
-    Action: ``[lx, ly, rx, ry]``, absolute pusher targets (m), clipped to the workspace.
+    Action: ``[lx, ly, rx, ry]``, absolute pusher targets (m), clipped to the workspace
+    and approached at bounded speed (:func:`limit_targets`, ``max_step`` m per step).
     Observation: ``{"pixels": (H, W, 3) uint8, "agent_pos": (4,) float32}``.
     Reward: the geometric IoU of block and goal. ``info``: ``iou``, ``block_pose``,
-    ``goal_pose``, ``is_success`` (iou >= 0.9) and ``n_contacts`` (pusher-block contacts).
+    ``goal_pose``, ``is_success`` (iou >= 0.9), ``n_contacts`` (pusher-block contacts) and
+    ``target`` (the rate-limited setpoints the last step executed; the pushers' positions
+    after a reset).
     State for ``reset(options={"reset_to_state": s})``: ``[lx, ly, rx, ry, bx, by, byaw]``.
     """
 
@@ -161,6 +190,7 @@ class BimanualPushTEnv(gym.Env):
         image_size: int = 64,
         render_mode: str | None = "rgb_array",
         terminate_on_success: bool = False,
+        max_step: float = MAX_STEP,
     ) -> None:
         if image_size not in IMAGE_SIZES:
             raise ValueError(f"image_size must be one of {IMAGE_SIZES}, got {image_size!r}.")
@@ -169,6 +199,9 @@ class BimanualPushTEnv(gym.Env):
         self.image_size = image_size
         self.render_mode = render_mode
         self.terminate_on_success = terminate_on_success
+        if not max_step > 0:
+            raise ValueError(f"max_step must be a positive distance in metres, got {max_step!r}.")
+        self.max_step = float(max_step)
         self.spec_info = TaskSpec()
         self.goal_pose = GOAL_POSE.copy()
 
@@ -208,7 +241,7 @@ class BimanualPushTEnv(gym.Env):
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[self._pusher_qpos] = np.clip(state[:4], -WORKSPACE, WORKSPACE)
         self.data.qpos[self._block_qpos] = [state[4], state[5], self._block_z0, state[6]]
-        self.data.ctrl[:] = self.data.qpos[self._pusher_qpos]
+        self.data.ctrl[:] = self.data.qpos[self._pusher_qpos]  # the setpoints start at the pushers
         mujoco.mj_forward(self.model, self.data)
 
     def sample_state(self, rng: np.random.Generator) -> np.ndarray:
@@ -239,6 +272,7 @@ class BimanualPushTEnv(gym.Env):
             "goal_pose": self.goal_pose.copy(),
             "is_success": iou >= SUCCESS_IOU,
             "n_contacts": self._n_contacts(),
+            "target": self.data.ctrl.astype(np.float32),
         }
 
     def _obs(self) -> dict:
@@ -262,7 +296,7 @@ class BimanualPushTEnv(gym.Env):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (4,) or not np.all(np.isfinite(action)):
             raise ValueError(f"action must be 4 finite floats [lx, ly, rx, ry], got {action!r}.")
-        self.data.ctrl[:] = np.clip(action, -WORKSPACE, WORKSPACE)
+        self.data.ctrl[:] = limit_targets(self.data.ctrl, action, self.max_step)
         mujoco.mj_step(self.model, self.data, nstep=SUBSTEPS)
         info = self._info()
         terminated = bool(self.terminate_on_success and info["is_success"])
