@@ -80,8 +80,10 @@ def build_parser() -> argparse.ArgumentParser:
     q = train_sub.add_parser("dynamics", help="stage 2: latent consistency dynamics on a frozen stage 1")
     q.add_argument("--ae", required=True, help="stage-1 run directory or checkpoint (e.g. runs/ae)")
     q.add_argument("--variant", default="ours",
-                   help="ours, or a benchmark baseline: deterministic, diffusion, no-context-noise "
-                        "(default: %(default)s)")
+                   help="ours, or a benchmark baseline or ablation: deterministic, diffusion, no-context-noise, "
+                        "film-actions, no-points, no-unroll, no-delta (default: %(default)s)")
+    q.add_argument("--latent-cache", help="file for the encoded latents, shareable by runs on the same store "
+                                          "and autoencoder (default: in the run directory)")
     _train_flags(q, "tiny, pusht-64")
     q.set_defaults(func=_train_dynamics)
     q = train_sub.add_parser("policy", help="an imitation policy (Diffusion Policy or ACT) on a mixture of stores")
@@ -364,7 +366,7 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     from iwsim.training.trainer import resolve_device
 
     _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
-                                  force=args.force, progress=not args.no_progress))
+                                  force=args.force, progress=not args.no_progress, latent_cache=args.latent_cache))
     return 0
 
 

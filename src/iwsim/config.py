@@ -12,6 +12,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+from iwsim.diffusion import objectives
 from iwsim.diffusion.schedule import ScheduleConfig
 from iwsim.models.autoencoder import DecoderConfig, EncoderConfig
 from iwsim.models.dynamics import DynamicsConfig
@@ -90,56 +91,75 @@ class DynamicsStageConfig:
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
-    seq_len: int = 12  # L: a training sequence is L context frames and the L frames they predict
-    context_levels: tuple[int, int] = (1, 100)  # training context noise levels, uniform in [lo, hi)
-    context_level: int = 15  # the level context frames are labelled with at inference
-    jumps: int = 1  # consistency jumps per predicted frame at inference
     # "consistency" (ours); the baselines: "edm" (multi-step diffusion, DIAMOND-style) and
-    # "regression" (a deterministic next-latent predictor, DINO-WM-style); see VARIANTS.
+    # "regression" (a deterministic next-latent predictor, DINO-WM-style); see VARIANTS
+    # and iwsim.diffusion.objectives.
     objective: str = "consistency"
+    predict_delta: bool = True  # generate the change from the newest context latent, not the latent
+    # Context noise in the units the network sees (standardised latents): the context of a
+    # training prediction gets Gaussian noise of a std drawn uniformly from this range, and
+    # is told that std; at inference the context is labelled with ``context_label``.
+    context_sigma: tuple[float, float] = (0.0, 0.3)
+    context_label: float = 0.1
+    jumps: int = 1  # consistency jumps per predicted frame at inference
     euler_steps: int = 3  # the "edm" objective's Euler steps per predicted frame
-    top_fraction: float = 0.5  # share of training jumps from level T - 1, where inference starts
-    zero_fraction: float = 0.5  # share of training jumps that land on level 0, as inference does
+    top_fraction: float = 1.0  # share of training jumps from level T - 1, where inference starts
+    zero_fraction: float = 1.0  # share of training jumps that land on level 0, as inference does
+    # Training on the model's own predictions (a curriculum): from training step k on,
+    # each sequence unrolls n predictions, each from a context holding the earlier ones.
+    unroll: tuple[tuple[int, int], ...] = ((0, 2), (200, 4), (500, 8))
+    unroll_grad: bool = True  # the gradient flows through fed-back predictions (else they are detached)
+    changed_weight: float = 4.0  # extra loss weight on latent cells that change (1 + this)
+    changed_threshold: float = 0.1  # a cell changes when a channel moves by more (standardised)
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
     holdout_every: int = 20
     eval_episodes: int = 4  # held-out episodes rolled out open-loop at each evaluation
     eval_steps: int = 64
 
+    def unroll_at(self, step: int) -> int:
+        """Predictions unrolled per sequence at training step ``step``."""
+        return max(n for k, n in self.unroll if k <= step)
 
-def _dyn(window: int, channels: tuple[int, int], heads: int, emb: int, seq_len: int, **train: Any
-         ) -> DynamicsStageConfig:
-    return DynamicsStageConfig(dynamics=DynamicsConfig(window=window, channels=channels, heads=heads, emb_dim=emb),
-                               seq_len=seq_len, train=TrainConfig(**train))
+
+def _dyn(context: int, channels: int, blocks: int, heads: int, emb: int, action_channels: int,
+         unroll: tuple[tuple[int, int], ...], **train: Any) -> DynamicsStageConfig:
+    return DynamicsStageConfig(
+        dynamics=DynamicsConfig(context=context, channels=channels, blocks=blocks, heads=heads, emb_dim=emb,
+                                action_channels=action_channels),
+        unroll=unroll, train=TrainConfig(**train))
 
 
 DYNAMICS_PRESETS: dict[str, DynamicsStageConfig] = {
     # Seconds on a CPU: for tests.
     "tiny": dataclasses.replace(
-        _dyn(4, (8, 16), 2, 16, 5, steps=6, batch_size=4, warmup_steps=2, log_every=1, eval_every=3,
-             checkpoint_every=3, ema_decay=0.9),
+        _dyn(2, 8, 2, 2, 16, 2, ((0, 1), (3, 2)), steps=6, batch_size=4, warmup_steps=2, log_every=1,
+             eval_every=3, checkpoint_every=3, ema_decay=0.9),
         eval_episodes=2, eval_steps=6,
     ),
-    # The CPU default for 64 px latents (4 x 16 x 16): trains in about 90 minutes on 2 cores.
-    "pusht-64": dataclasses.replace(
-        _dyn(8, (64, 128), 4, 128, 10, steps=1500, batch_size=12, lr=5e-4, warmup_steps=100, eval_every=250,
-             checkpoint_every=250, ema_decay=0.995),
-        top_fraction=0.9,  # inference is one jump from pure noise: train mostly that
-    ),
+    # The CPU default for 64 px latents (4 x 16 x 16): about 45 minutes on one core.
+    "pusht-64": _dyn(3, 64, 8, 4, 128, 8, ((0, 2), (200, 4), (500, 8), (1100, 12)), steps=1400, batch_size=16,
+                     lr=1e-3, warmup_steps=50, eval_every=250, checkpoint_every=250, ema_decay=0.995),
 }
 
 
-OBJECTIVES = ("consistency", "edm", "regression")
+OBJECTIVES = tuple(objectives.OBJECTIVES)
 
-# The baselines of the benchmark: the same network, data and budget as ours, trained
-# differently (``iwsim train dynamics --variant NAME``).
+# The baselines and ablations of the benchmark: the same network, data and budget as ours,
+# trained differently (``iwsim train dynamics --variant NAME``). A "dynamics" entry
+# changes fields of the network's config.
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": {},
     # Ablation: ours without context-noise augmentation (clean context in training and inference).
-    "no-context-noise": {"context_levels": (0, 1), "context_level": 0},
+    "no-context-noise": {"context_sigma": (0.0, 0.0), "context_label": 0.0},
     # Next latent by MSE regression from a clean context (like DINO-WM's predictor).
-    "deterministic": {"objective": "regression", "context_levels": (0, 1), "context_level": 0},
+    "deterministic": {"objective": "regression", "context_sigma": (0.0, 0.0), "context_label": 0.0},
     # EDM denoiser sampled by 3 Euler steps (like DIAMOND), with our context noise.
     "diffusion": {"objective": "edm"},
+    # Ablations of the action pathway, the unrolled training and the change parameterisation.
+    "film-actions": {"dynamics": {"spatial_actions": False, "positional_actions": False, "action_film": True}},
+    "no-points": {"dynamics": {"positional_actions": False}},
+    "no-unroll": {"unroll": ((0, 1),)},
+    "no-delta": {"predict_delta": False},
 }
 
 
@@ -147,7 +167,10 @@ def variant(cfg: DynamicsStageConfig, name: str) -> DynamicsStageConfig:
     """``cfg`` changed into the named benchmark variant (see VARIANTS)."""
     if name not in VARIANTS:
         raise ValueError(f"unknown variant {name!r}; expected one of {', '.join(VARIANTS)}.")
-    return dataclasses.replace(cfg, **VARIANTS[name])
+    changes = dict(VARIANTS[name])
+    if "dynamics" in changes:
+        changes["dynamics"] = dataclasses.replace(cfg.dynamics, **changes["dynamics"])
+    return dataclasses.replace(cfg, **changes)
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:
@@ -168,6 +191,11 @@ def from_dict(cls: type[T], data: dict[str, Any]) -> T:
         if dataclasses.is_dataclass(hint):
             value = from_dict(hint, value)
         elif typing.get_origin(hint) is tuple:
-            value = tuple(value)
+            value = _tuples(value)
         kwargs[name] = value
     return cls(**kwargs)
+
+
+def _tuples(value: Any) -> Any:
+    """JSON lists (nested too) back into the tuples a config holds."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list | tuple) else value

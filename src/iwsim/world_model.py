@@ -5,13 +5,15 @@
     frame = wm.step(actions)            # actions (B, A) in the data's units -> uint8 (B, H, W, 3)
     video = wm.rollout(frames, actions) # actions (B, N, A) -> uint8 (B, N, H, W, 3)
 
-Streaming inference: the latest context frame and the new frame go through the dynamics
-network together; the keys and values of the last N - 1 context frames are cached, so a
-step costs the same at step 10 and at step 10,000, and memory stays flat.
+A step predicts the next latent from a sliding window of the last K latents (older ones
+are dropped), so a step costs the same at step 10 and at step 10,000, and memory stays
+flat. The actions are the motion the robot executes: for a task with a speed limit,
+the rate-limited targets (``iwsim.envs.pusht.limit_targets``), which the task-aware
+callers (``iwsim/WorldModel-v0``, ``iwsim play``) compute from commands.
 
 Objectives: a new latent comes from one consistency jump from noise (ours), or, for the
 benchmark's baselines, Euler steps of an EDM denoiser or one pass of a regressor
-(``cfg.objective``); the streaming cache is the same for all three.
+(``cfg.objective``, :mod:`iwsim.diffusion.objectives`).
 
 Randomness: the noise of batch item i comes from its own generator, seeded by
 ``seed + i`` (or ``seeds[i]``) at reset, so a batched rollout equals per-item rollouts.
@@ -23,7 +25,7 @@ passes: ``wm.state`` is a :class:`StreamState`, which ``StreamState.cat`` joins 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,21 +36,12 @@ from torch import nn
 from iwsim.autoencoder import Autoencoder
 from iwsim.config import OBJECTIVES, AEConfig, DynamicsStageConfig, from_dict
 from iwsim.data.frames import to_model, to_uint8
-from iwsim.diffusion import edm
-from iwsim.diffusion.consistency import jump, jump_levels
+from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
 from iwsim.diffusion.schedule import Schedule, gaussian
-from iwsim.models.dynamics import Cache, Dynamics
+from iwsim.models.dynamics import Dynamics
 from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors, save_model_dir
 
 KIND = "world_model"
-
-
-def level_input(objective: str, schedule: Schedule, levels: torch.Tensor) -> torch.Tensor:
-    """What the dynamics network is told about frames at DDPM noise ``levels``: the level
-    itself, or for the "edm" objective the EDM noise input of the same noise."""
-    if objective == "edm":
-        return edm.noise_input(edm.level_sigma(schedule, levels))
-    return levels.float()
 
 
 def scale_actions(a: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
@@ -56,69 +49,39 @@ def scale_actions(a: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> tor
     return (a - low) / (high - low) * 2 - 1
 
 
+def label(sigma: float | torch.Tensor) -> float | torch.Tensor:
+    """The context-noise std (standardised latent units) in the network's level units."""
+    return sigma * 1000.0
+
+
 @dataclass
 class StreamState:
-    """The state of B streaming rollouts between two steps.
+    """The state of B rollouts between two steps: the window ``context`` (B, K, C, h, w)
+    of standardised latents, newest last; the normalised action (B, A) that produced the
+    newest one and whether it is known (B,) (not right after a reset from one frame,
+    where the first action stands in for it); each item's noise generator."""
 
-    ``cache`` holds the keys and values of up to N - 1 context frames (None right after
-    a one-frame reset); ``z`` (B, C, h, w) is the newest context latent (standardised),
-    not yet in the cache, with the action (B, A) and known flag (B,) that produced it and
-    its time ``tau``; ``generators`` draw each item's noise.
-    """
-
-    cache: Cache | None
-    z: torch.Tensor
+    context: torch.Tensor
     action: torch.Tensor
     known: torch.Tensor
-    tau: int
     generators: list[torch.Generator]
 
     @property
     def batch_size(self) -> int:
-        return self.z.shape[0]
-
-    @property
-    def context_frames(self) -> int:
-        """Context frames in the cache: states join only with states of the same count."""
-        return 0 if self.cache is None else len(self.cache)
+        return self.context.shape[0]
 
     @staticmethod
     def cat(states: Sequence[StreamState]) -> StreamState:
-        """One state for the rollouts of ``states`` (all with the same ``context_frames``).
-
-        Attention sees only time offsets, so times are renumbered from 0 and rollouts that
-        started at different steps can share a pass."""
+        """One state for the rollouts of ``states``."""
         if not states:
             raise ValueError("StreamState.cat needs at least one state.")
-        m = states[0].context_frames
-        if any(s.context_frames != m for s in states):
-            raise ValueError(f"states with different context lengths cannot share a step: "
-                             f"{sorted({s.context_frames for s in states})}.")
-        cache = None
-        if m:
-            first = states[0].cache
-            cache = Cache([torch.cat([s.cache.keys[i] for s in states]) for i in range(len(first.keys))],
-                          [torch.cat([s.cache.values[i] for s in states]) for i in range(len(first.values))],
-                          torch.arange(m, device=first.times.device))
-        return StreamState(cache, torch.cat([s.z for s in states]), torch.cat([s.action for s in states]),
-                           torch.cat([s.known for s in states]), m,
-                           [g for s in states for g in s.generators])
+        return StreamState(torch.cat([s.context for s in states]), torch.cat([s.action for s in states]),
+                           torch.cat([s.known for s in states]), [g for s in states for g in s.generators])
 
     def split(self) -> list[StreamState]:
         """One state per rollout (views, no copies)."""
-        b = self.batch_size
-
-        def item(t: torch.Tensor, i: int) -> torch.Tensor:  # cache rows are (B*h*w, ...), item-major
-            n = t.shape[0] // b
-            return t[i * n:(i + 1) * n]
-
-        out = []
-        for i in range(b):
-            cache = None if self.cache is None else Cache(
-                [item(k, i) for k in self.cache.keys], [item(v, i) for v in self.cache.values], self.cache.times)
-            out.append(StreamState(cache, self.z[i:i + 1], self.action[i:i + 1], self.known[i:i + 1], self.tau,
-                                   [self.generators[i]]))
-        return out
+        return [StreamState(self.context[i:i + 1], self.action[i:i + 1], self.known[i:i + 1], [self.generators[i]])
+                for i in range(self.batch_size)]
 
 
 class WorldModel(nn.Module):
@@ -155,8 +118,9 @@ class WorldModel(nn.Module):
         self.register_buffer("latent_mean", mean)
         self.latent_scale = float(latent_scale)
         # Inference knobs, from the config and settable: consistency jumps (or Euler steps
-        # of the "edm" objective) per new frame and the level context frames are labelled with.
-        self.jumps, self.euler_steps, self.context_level = cfg.jumps, cfg.euler_steps, cfg.context_level
+        # of the "edm" objective) per new frame and the context-noise std the context is
+        # labelled with (standardised latent units).
+        self.jumps, self.euler_steps, self.context_label = cfg.jumps, cfg.euler_steps, cfg.context_label
         self._state: StreamState | None = None
 
     # -- properties -------------------------------------------------------------------------
@@ -236,30 +200,21 @@ class WorldModel(nn.Module):
     @torch.inference_mode()
     def reset_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
                       seed: int | Sequence[int] = 0) -> None:
-        """Start rollouts from context latents (B, K, C, h, w) (as ``encode`` returns them)
-        and the normalised actions (B, K-1, A) between them. Frames before the last fill
-        the cache; the last one joins the context together with the first predicted frame."""
-        b, k = latents.shape[:2]
+        """Start rollouts from context latents (B, K0, C, h, w) (as ``encode`` returns them)
+        and the normalised actions (B, K0-1, A) between them. The window keeps the last K;
+        fewer are padded by repeating the first, as in training at an episode's start."""
+        b, k0 = latents.shape[:2]
         z = self.standardize(latents.to(self.device))
-        if k > 1 and (actions is None or actions.shape[:2] != (b, k - 1)):
-            raise ValueError(f"{k} context frames need actions (B, {k - 1}, A) between them.")
-        zero = torch.zeros(b, 1, self.action_dim, device=self.device)
-        acts = zero if k == 1 else torch.cat([zero, actions.to(self.device)], 1)
-        known = torch.ones(b, k, device=self.device)
-        known[:, 0] = 0  # the first frame's producing action is unknown
-        # Only the last N - 1 context frames matter, but frames before them shape their
-        # activations (as in a long rollout), so all of them run through the network.
-        cache = None
-        if k > 1:
-            lv = level_input(self.cfg.objective, self.schedule,
-                             torch.full((b, k - 1), self.context_level, device=self.device))
-            times = torch.arange(k - 1, device=self.device)
-            _, cache = self.dynamics(z[:, :-1], lv, lv, acts[:, :-1], known[:, :-1], times,
-                                     torch.ones(k - 1, dtype=torch.bool, device=self.device))
+        if k0 > 1 and (actions is None or actions.shape[:2] != (b, k0 - 1)):
+            raise ValueError(f"{k0} context frames need actions (B, {k0 - 1}, A) between them.")
+        k = self.cfg.dynamics.context
+        if k0 < k:
+            z = torch.cat([z[:, :1].expand(b, k - k0, *z.shape[2:]), z], 1)
         seeds = [seed + i for i in range(b)] if isinstance(seed, int) else list(seed)
         if len(seeds) != b:
             raise ValueError(f"got {len(seeds)} seeds for a batch of {b}.")
-        self._state = StreamState(cache, z[:, -1], acts[:, -1], known[:, -1], k - 1,
+        action = torch.zeros(b, self.action_dim, device=self.device) if k0 == 1 else actions[:, -1].to(self.device)
+        self._state = StreamState(z[:, -k:].contiguous(), action, torch.full((b,), k0 > 1, device=self.device),
                                   [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
 
     def _noise(self, shape: tuple[int, ...]) -> torch.Tensor:
@@ -270,59 +225,28 @@ class WorldModel(nn.Module):
     def step_latent(self, actions: torch.Tensor) -> torch.Tensor:
         """Normalised actions (B, A) -> the next latents (B, C, h, w), as ``encode`` gives them."""
         st = self.state
-        z_ctx, a_ctx, k_ctx, tau = st.z, st.action, st.known, st.tau
-        b = z_ctx.shape[0]
+        b = st.batch_size
         if actions.shape != (b, self.action_dim):
             raise ValueError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
-        dev = self.device
-        ctx_in = level_input(self.cfg.objective, self.schedule, torch.full((b,), self.context_level, device=dev))
-        one = torch.ones(b, device=dev)
-        new_cache: Cache | None = None
+        prev = torch.where(st.known[:, None], st.action, actions)
+        y = self.predict(st.context, torch.stack([prev, actions], 1), self._noise(tuple(st.context.shape[2:])))
+        z = y + st.context[:, -1] if self.cfg.predict_delta else y
+        self._state = StreamState(torch.cat([st.context[:, 1:], z[:, None]], 1), actions,
+                                  torch.ones_like(st.known), st.generators)
+        return self.unstandardize(z)
+
+    def predict(self, context: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """What the objective generates for the next frame (its change from the newest
+        context latent when ``predict_delta``), from the window (B, K, C, h, w), the
+        previous and current normalised actions (B, 2, A) and the noise (B, C, h, w)."""
+        b = context.shape[0]
+        ctx_label = torch.full((b,), float(label(self.context_label)), device=context.device)
 
         def net(x: torch.Tensor, t: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-            """The network's output for the new frame x (B, C, h, w) told levels t, s (B,)."""
-            nonlocal new_cache
-            if new_cache is None:  # the first pass: the pending context frame joins the cache
-                v, new_cache = self.dynamics(
-                    torch.stack([z_ctx, x], 1), torch.stack([ctx_in, t], 1), torch.stack([ctx_in, s], 1),
-                    torch.stack([a_ctx, actions], 1), torch.stack([k_ctx, one], 1),
-                    torch.tensor([tau, tau + 1], device=dev), torch.tensor([True, False], device=dev), st.cache)
-            else:
-                v, _ = self.dynamics(x[:, None], t[:, None], s[:, None], actions[:, None], one[:, None],
-                                     torch.tensor([tau + 1], device=dev), torch.tensor([False], device=dev),
-                                     new_cache)
-            return v[:, -1]
+            return self.dynamics(x, context, t, s, ctx_label, actions)
 
-        x = self._sample(net, tuple(z_ctx.shape[1:]), b)
-        self._state = StreamState(new_cache, x, actions, one, tau + 1, st.generators)
-        return self.unstandardize(x)
-
-    def _sample(self, net: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
-                shape: tuple[int, ...], b: int) -> torch.Tensor:
-        """The new standardised latent (B, *shape) by the config's objective."""
-        dev = self.device
-
-        def full(v: float) -> torch.Tensor:
-            return torch.full((b,), float(v), device=dev)
-
-        if self.cfg.objective == "regression":
-            return net(torch.zeros(b, *shape, device=dev), full(self.schedule.T), full(0))
-        x = self._noise(shape)
-        if self.cfg.objective == "edm":  # Euler steps along the Karras sigmas
-            sigmas = edm.karras_sigmas(self.euler_steps)
-            x = x * sigmas[0]
-            for sigma, nxt in zip(sigmas[:-1], sigmas[1:]):
-                c_skip, c_in, c_out = edm.precondition(full(sigma), x)
-                c = edm.noise_input(full(sigma))
-                denoised = c_skip * x + c_out * net(c_in * x, c, c)
-                x = denoised if nxt == 0 else x + (nxt - sigma) / sigma * (x - denoised)
-            return x
-        levels = jump_levels(self.jumps, self.schedule.T - 1)
-        for t, s in zip(levels[:-1], levels[1:]):
-            t_b, s_b = full(t), full(s)
-            v = net(x, t_b, s_b)
-            x = jump(lambda *_: v, self.schedule, x, t_b.long(), s_b.long(), None)
-        return x
+        steps = self.euler_steps if self.cfg.objective == "edm" else self.jumps
+        return OBJECTIVE_TABLE[self.cfg.objective].sample(net, self.schedule, noise, steps)
 
     # -- the public, uint8 API ----------------------------------------------------------------
     def reset(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,

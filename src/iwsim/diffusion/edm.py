@@ -9,6 +9,8 @@ sigma_data = 1.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from iwsim.diffusion.schedule import Schedule
@@ -61,3 +63,19 @@ def karras_sigmas(steps: int) -> list[float]:
     ramp = torch.linspace(0, 1, steps, dtype=torch.float64)
     lo, hi = SIGMA_MIN ** (1 / RHO), SIGMA_MAX ** (1 / RHO)
     return [float(s) for s in (hi + ramp * (lo - hi)) ** RHO] + [0.0]
+
+
+def sample(net: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor], noise: torch.Tensor, steps: int) -> torch.Tensor:
+    """Euler steps of the denoiser D(x; sigma) = c_skip x + c_out net(c_in x, c, c) along
+    the Karras sigmas (EDM, Algorithm 1 without the second-order correction), from unit
+    ``noise`` (B, ...) scaled to SIGMA_MAX."""
+    sigmas = karras_sigmas(steps)
+    x = noise * sigmas[0]
+    b = x.shape[0]
+    for sigma, nxt in zip(sigmas[:-1], sigmas[1:]):
+        sig = torch.full((b,), sigma, device=x.device)
+        c_skip, c_in, c_out = precondition(sig, x)
+        c = noise_input(sig)
+        denoised = c_skip * x + c_out * net(c_in * x, c, c)
+        x = denoised if nxt == 0 else x + (nxt - sigma) / sigma * (x - denoised)
+    return x

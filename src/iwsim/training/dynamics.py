@@ -1,15 +1,21 @@
 """Stage 2 training: the latent dynamics on the frozen stage-1 encoder (``iwsim train dynamics``).
 
-A training sequence is L + 1 consecutive frames of one episode. Its first L latents are
-the context, each noised to its own small level drawn from ``context_levels`` (never
-denoised: the model must cope with imperfect context, its own predictions at inference);
-the last L latents are the targets, each noised to its own level t and jumped to s by the
-consistency objective. The attention mask of :mod:`iwsim.models.dynamics` lets target
-k + 1 see only the context up to k (N - 1 frames back), so one pass trains L predictions.
+A training sequence holds the K latents of a window and the n frames after it. The model
+predicts them one after the other, each from a window that holds its own earlier
+predictions (training on the model's own unrolled predictions, as Self-Forcing and
+DIAMOND's autoregressive training do; n grows over training, ``cfg.unroll``). Each
+prediction's context gets Gaussian noise of a random std in the standardised units the
+network sees (``cfg.context_sigma``), and the network is told that std. The loss weights
+latent cells that change ``1 + cfg.changed_weight`` times more than static ones.
 
-The benchmark's baselines train in the same way with another ``objective`` (see
-``iwsim.config.VARIANTS``): EDM denoising of the targets (sampled by Euler steps) or
-plain MSE regression of the next latent from zeros, each with its own context noise.
+The gradient flows through the fed-back predictions (back-propagation through the whole
+unroll) unless ``cfg.unroll_grad`` is off. The benchmark's baselines train in the same
+way with another ``objective`` (see ``iwsim.config.VARIANTS``); the "edm" objective's
+fed-back context is a real sample (Euler steps, no gradient), since its one-pass
+estimate is not what inference produces.
+
+The conditioning actions are the motion the robot executed: ``data/target`` when the
+store has it (the task's rate-limited setpoints), else ``data/action``.
 
 Every checkpoint of a dynamics run is a complete world model (autoencoder + dynamics +
 action normalisation + config), loadable with :meth:`iwsim.WorldModel.load`.
@@ -35,13 +41,15 @@ from iwsim.config import OBJECTIVES, DynamicsStageConfig
 from iwsim.data.frames import split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.diffusion import edm
-from iwsim.diffusion.consistency import jump_loss, sample_levels
+from iwsim.diffusion.consistency import sample_levels
+from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
+from iwsim.diffusion.objectives import Levels
 from iwsim.diffusion.schedule import Schedule, gaussian
 from iwsim.eval.metrics import psnr
-from iwsim.models.dynamics import Dynamics, sequence_layout
+from iwsim.models.dynamics import Dynamics
 from iwsim.training import trainer
 from iwsim.training.checkpoint import CheckpointError, last_checkpoint
-from iwsim.world_model import KIND, WorldModel, level_input, scale_actions
+from iwsim.world_model import KIND, WorldModel, label, scale_actions
 
 log = logging.getLogger(__name__)
 
@@ -58,69 +66,79 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return last
 
 
+def conditioning_key(keys: list[str]) -> str:
+    """The store array the dynamics is conditioned on: the executed motion when recorded."""
+    return "target" if "target" in keys else "action"
+
+
 @dataclass
 class DynBatch:
-    """Latents z (B, L+1, C, h, w); normalised producing actions (B, L+1, A) and whether
-    they are known (B, L+1); context levels (B, L) and noise (B, L, C, h, w); target
-    levels t, s (B, L), or sigmas (B, L), and noise (B, L, C, h, w)."""
+    """Standardised latents z (B, K+n, C, h, w): the window, then the n frames to predict;
+    normalised actions (B, n+1, A): prediction u takes actions u (the one that produced its
+    newest context frame) and u+1 (the one that produces its frame); whether frame K+u
+    changed from K+u-1 per cell (B, n, 1, h, w); context-noise stds (B, n) and noise
+    (B, n, K, C, h, w); target levels t, s and EDM sigmas (B, n) and noise (B, n, C, h, w)."""
 
     z: torch.Tensor
     actions: torch.Tensor
-    known: torch.Tensor
-    ctx_levels: torch.Tensor
+    ctx_sigma: torch.Tensor
     ctx_eps: torch.Tensor
     t: torch.Tensor
     s: torch.Tensor
+    sigma: torch.Tensor
     eps: torch.Tensor
-    sigma: torch.Tensor  # (B, L) EDM noise levels (the "edm" objective's targets)
 
     def to(self, device: torch.device) -> DynBatch:
         return DynBatch(*(v.to(device) for v in vars(self).values()))
 
 
 class DynamicsTrainModule(nn.Module):
-    """forward(batch) -> the loss of the L targets of each sequence under the config's
-    objective: the consistency jump loss (ours), EDM denoising or MSE regression."""
+    """forward(batch) -> the loss of the n unrolled predictions of each sequence under the
+    config's objective (see the module docstring)."""
 
-    def __init__(self, dynamics: Dynamics, schedule: Schedule, objective: str = "consistency") -> None:
+    def __init__(self, dynamics: Dynamics, schedule: Schedule, cfg: DynamicsStageConfig) -> None:
         super().__init__()
-        if objective not in OBJECTIVES:
-            raise ValueError(f"unknown objective {objective!r}; expected one of {', '.join(OBJECTIVES)}.")
-        self.dynamics, self.schedule, self.objective = dynamics, schedule, objective
+        if cfg.objective not in OBJECTIVES:
+            raise ValueError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
+        self.dynamics, self.schedule, self.cfg = dynamics, schedule, cfg
+        self.objective = OBJECTIVE_TABLE[cfg.objective]
+        # Whether the loss's one-pass estimate is exactly what inference generates (then it
+        # is fed back with its gradient); otherwise a real sample is fed back.
+        one_jump = cfg.jumps == 1 and cfg.top_fraction == 1 and cfg.zero_fraction == 1
+        self.feeds_estimate = cfg.objective == "regression" or (cfg.objective == "consistency" and one_jump)
 
     def forward(self, batch: DynBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        b, l1 = batch.z.shape[:2]
-        n = l1 - 1
-        times, is_ctx = sequence_layout(n, batch.z.device)
-        ctx = self.schedule.noise(batch.z[:, :n].flatten(0, 1), batch.ctx_levels.flatten(),
-                                  batch.ctx_eps.flatten(0, 1)).unflatten(0, (b, n))
-        ctx_in = level_input(self.objective, self.schedule, batch.ctx_levels)
-        actions = torch.cat([batch.actions[:, :n], batch.actions[:, 1:]], 1)
-        known = torch.cat([batch.known[:, :n], batch.known[:, 1:]], 1)
+        cfg = self.cfg
+        k = cfg.dynamics.context
+        n = batch.z.shape[1] - k
+        ctx = batch.z[:, :k]
+        losses = []
+        for u in range(n):
+            sig = batch.ctx_sigma[:, u]
+            ctx_in = ctx + sig.view(-1, 1, 1, 1, 1) * batch.ctx_eps[:, u]
+            acts = batch.actions[:, u:u + 2]
+            ctx_label = label(sig)
 
-        def net(x_t: torch.Tensor, t: torch.Tensor, s: torch.Tensor, cond: None = None) -> torch.Tensor:
-            x = torch.cat([ctx, x_t.unflatten(0, (b, n))], 1)
-            levels = torch.cat([ctx_in, t.view(b, n)], 1)
-            jump_to = torch.cat([ctx_in, s.view(b, n)], 1)
-            v, _ = self.dynamics(x, levels, jump_to, actions, known, times, is_ctx)
-            return v[:, n:].flatten(0, 1)
+            def net(x: torch.Tensor, t: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+                return self.dynamics(x, ctx_in, t, s, ctx_label, acts)  # noqa: B023  (called in this iteration)
 
-        x0, eps = batch.z[:, 1:].flatten(0, 1), batch.eps.flatten(0, 1)
-        if self.objective == "regression":
-            t = torch.full((b * n,), float(self.schedule.T), device=x0.device)
-            per = ((net(torch.zeros_like(x0), t, torch.zeros_like(t)) - x0) ** 2).mean((1, 2, 3))
-            return per.mean(), {}
-        if self.objective == "edm":
-            sigma = batch.sigma.flatten()
-            x_noisy = x0 + sigma.view(-1, 1, 1, 1) * eps
-            _, c_in, _ = edm.precondition(sigma, x0)
-            c = edm.noise_input(sigma)
-            per = edm.loss(net(c_in * x_noisy, c, c), x0, x_noisy, sigma)
-            return per.mean(), {}
-        per = jump_loss(net, self.schedule, x0, None, batch.t.flatten(), batch.s.flatten(), eps)
-        top = batch.t.flatten() == self.schedule.T - 1
-        parts = {"loss_from_noise": per[top].mean().item() if top.any() else float("nan")}
-        return per.mean(), parts
+            target = batch.z[:, k + u]
+            base = ctx_in[:, -1] if cfg.predict_delta else torch.zeros_like(target)
+            levels = Levels(batch.t[:, u], batch.s[:, u], batch.sigma[:, u])
+            err, estimate = self.objective.loss(net, self.schedule, target - base, levels, batch.eps[:, u])
+            changed = (target - batch.z[:, k + u - 1]).abs().amax(1, keepdim=True) > cfg.changed_threshold
+            losses.append((err * (1 + cfg.changed_weight * changed)).mean((1, 2, 3)))
+            if u == n - 1:
+                break
+            if not self.feeds_estimate:
+                with torch.no_grad():
+                    steps = cfg.euler_steps if cfg.objective == "edm" else cfg.jumps
+                    estimate = self.objective.sample(net, self.schedule, torch.randn_like(target), steps)
+            pred = base + estimate
+            ctx = torch.cat([ctx[:, 1:], (pred if cfg.unroll_grad else pred.detach())[:, None]], 1)
+        per = torch.stack(losses, 1)  # (B, n)
+        return per.mean(), {"loss_first": per[:, 0].mean().item(), "loss_last": per[:, -1].mean().item(),
+                            "unroll": float(n)}
 
 
 class DynamicsTask:
@@ -140,35 +158,37 @@ class DynamicsTask:
         if size != self.ae.image_size:
             raise ValueError(f"{data} holds {size}x{size} frames but the autoencoder {self.ae_path} expects "
                              f"{self.ae.image_size}x{self.ae.image_size}.")
-        actions = np.asarray(store.array("action")[:], dtype=np.float32)
+        self.action_key = conditioning_key(store.keys)
+        actions = np.asarray(store.array(self.action_key)[:], dtype=np.float32)
         if actions.ndim != 2:
-            raise StoreError(f"{data}: data/action must be (frames, action_dim), got {actions.shape}.")
-        # The action size follows the data.
-        cfg = replace(cfg, dynamics=replace(cfg.dynamics, action_dim=actions.shape[1],
-                                            latent_channels=self.ae.cfg.encoder.latent_channels))
+            raise StoreError(f"{data}: data/{self.action_key} must be (frames, action_dim), got {actions.shape}.")
         if store.n_episodes < 2:
             raise ValueError(f"{data} holds {store.n_episodes} episode(s); training needs at least 2 "
                              "(one is held out for evaluation).")
-        self.cfg = cfg
         self.train_episodes, self.heldout_episodes = split_episodes(store.n_episodes, cfg.holdout_every)
         ends = store.episode_ends.astype(np.int64)
         starts = np.concatenate([[0], ends[:-1]])
-        n = cfg.seq_len
-        train_long = [e for e in self.train_episodes if ends[e] - starts[e] >= n + 1]
+        longest = max(cfg.unroll_at(s) for s, _ in cfg.unroll) if cfg.unroll else 1
+        train_long = [e for e in self.train_episodes if ends[e] - starts[e] >= longest + 1]
         if not train_long:
-            raise ValueError(f"no training episode of {data} has the {n + 1} frames a sequence needs "
-                             f"(seq_len {n}); lower seq_len or collect longer episodes.")
-        self.seq_starts = torch.from_numpy(np.concatenate([np.arange(starts[e], ends[e] - n) for e in train_long]))
-        self.episode_starts = torch.from_numpy(starts[train_long])
+            raise ValueError(f"no training episode of {data} has the {longest + 1} frames the longest unroll "
+                             f"needs ({longest} predictions); lower cfg.unroll or collect longer episodes.")
+        self.ep_starts = torch.from_numpy(starts[train_long])
+        self.ep_lengths = torch.from_numpy(ends[train_long] - starts[train_long])
         train_idx = np.concatenate([np.arange(starts[e], ends[e]) for e in self.train_episodes])
         low, high = actions[train_idx].min(0), actions[train_idx].max(0)
         span = np.maximum(high - low, 1e-3)  # a constant action dimension still normalises
         self.action_low, self.action_high = (low + high) / 2 - span / 2, (low + high) / 2 + span / 2
         self.actions = scale_actions(torch.from_numpy(actions), torch.from_numpy(self.action_low),
                                      torch.from_numpy(self.action_high))
-        self.known = torch.ones(len(actions), dtype=torch.float32)
-        self.known[torch.from_numpy(starts)] = 0.0
         self.latents = self._encode(store, device, progress, latent_cache)
+        # The action size and latent shape follow the data; positional actions where the
+        # task declares them (see iwsim.models.dynamics).
+        cfg = replace(cfg, dynamics=replace(cfg.dynamics, action_dim=actions.shape[1],
+                                            latent_channels=self.latents.shape[1],
+                                            latent_size=self.latents.shape[-1],
+                                            **self._points(store.attrs, cfg)))
+        self.cfg = cfg
         # Standardisation of the latents for the dynamics (see WorldModel): per-element
         # mean over the training frames, and the RMS of the per-element standard deviation.
         train_z = self.latents[torch.from_numpy(train_idx)]
@@ -177,7 +197,19 @@ class DynamicsTask:
         self.store, self.starts, self.ends = store, starts, ends
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
-            self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule), cfg.objective)
+            self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule), cfg)
+
+    def _points(self, attrs: dict, cfg: DynamicsStageConfig) -> dict:
+        """The positional-action fields of the network's config: which action entries are
+        image positions and the map from normalised actions to image coordinates, from the
+        task's declaration in the store (``action_points``, ``view_half``), if any."""
+        points, view = attrs.get("action_points"), attrs.get("view_half")
+        if not (cfg.dynamics.positional_actions and points and view):
+            return {"point_index": (), "point_scale": (), "point_offset": ()}
+        half = (self.action_high - self.action_low) / 2 / view
+        mid = (self.action_high + self.action_low) / 2 / view
+        return {"point_index": tuple(tuple(int(i) for i in p) for p in points),
+                "point_scale": tuple(float(v) for v in half), "point_offset": tuple(float(v) for v in mid)}
 
     @torch.no_grad()
     def _encode(self, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
@@ -207,26 +239,29 @@ class DynamicsTask:
 
     def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device) -> DynBatch:
         cfg = self.cfg
-        b, n = cfg.train.batch_size, cfg.seq_len
-        first = self.seq_starts[torch.randint(0, len(self.seq_starts), (b,), generator=generator)]
-        at_start = torch.rand(b, generator=generator) < cfg.start_fraction
-        first = torch.where(at_start, self.episode_starts[torch.randint(0, len(self.episode_starts), (b,),
-                                                                        generator=generator)], first)
-        idx = first[:, None] + torch.arange(n + 1)  # (B, L+1) global frame indices
-        lo, hi = cfg.context_levels
-        ctx_levels = torch.randint(lo, hi, (b, n), generator=generator)
+        b, k, n = cfg.train.batch_size, cfg.dynamics.context, cfg.unroll_at(step)
+        # Windows end anywhere in a training episode that leaves n frames after them (a
+        # share at its first frame); frames before the episode repeat its first frame.
+        room = (self.ep_lengths - n).clamp_min(0).double()
+        ep = torch.multinomial(room, b, replacement=True, generator=generator)
+        offset = (torch.rand(b, generator=generator) * room[ep]).long()
+        offset = torch.where(torch.rand(b, generator=generator) < cfg.start_fraction, 0, offset)
+        start = self.ep_starts[ep]
+        anchor = start + offset  # the newest context frame
+        idx = torch.maximum(anchor[:, None] + torch.arange(-(k - 1), n + 1), start[:, None])  # (B, K+n)
+        act = anchor[:, None] + torch.arange(-1, n)  # (B, n+1): before the episode, its first action
+        act = torch.maximum(act, start[:, None])
+        lo, hi = cfg.context_sigma
+        ctx_sigma = lo + (hi - lo) * torch.rand(b, n, generator=generator)
+        shape = tuple(self.latents.shape[1:])
+        ctx_eps = torch.randn(b, n, k, *shape, generator=generator)
         t, s = sample_levels(b * n, cfg.schedule.num_levels, generator, cfg.top_fraction,
                              zero_fraction=cfg.zero_fraction)
-        shape = tuple(self.latents.shape[1:])
-        ctx_eps = gaussian((b, n, *shape), generator)
         eps = gaussian((b, n, *shape), generator)
         sigma = edm.training_sigmas(b * n, generator).view(b, n)
-        idx = idx[part]
-        producing = (idx - 1).clamp_min(0)  # frame k was produced by action k - 1 (unknown at k = 0)
-        z = (self.latents[idx] - self.latent_mean) / self.latent_scale
-        return DynBatch(z, self.actions[producing], self.known[idx], ctx_levels[part],
-                        ctx_eps[part], t.view(b, n)[part], s.view(b, n)[part], eps[part],
-                        sigma[part]).to(device)
+        z = (self.latents[idx[part]] - self.latent_mean) / self.latent_scale
+        return DynBatch(z, self.actions[act[part]], ctx_sigma[part], ctx_eps[part], t.view(b, n)[part],
+                        s.view(b, n)[part], sigma[part], eps[part]).to(device)
 
     def world_model(self, dynamics: Dynamics) -> WorldModel:
         return WorldModel(self.ae, dynamics, self.cfg, self.action_low.tolist(), self.action_high.tolist(),
@@ -269,10 +304,13 @@ class DynamicsTask:
 
 
 def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path, out: str | Path, *,
-                   device: torch.device, force: bool = False, progress: bool = True) -> dict[str, float]:
-    """Train (or resume) stage 2 into the run directory ``out``."""
-    # The frozen encoder's latents are cached in the run directory for resumption.
-    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=Path(out) / "latents.safetensors")
+                   device: torch.device, force: bool = False, progress: bool = True,
+                   latent_cache: str | Path | None = None) -> dict[str, float]:
+    """Train (or resume) stage 2 into the run directory ``out``. The frozen encoder's
+    latents are cached in ``latent_cache`` (default: the run directory), which runs on the
+    same store and encoder can share; a cache of other frames or weights is rewritten."""
+    cache = Path(latent_cache) if latent_cache is not None else Path(out) / "latents.safetensors"
+    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache)
     config = task.config(data)
     assert config["kind"] == KIND
     return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress)

@@ -1,0 +1,278 @@
+"""Stage-2 research loop: train candidates at a fixed budget on cached latents, then score
+them (and any checkpoint) on held-out episodes of smooth actions.
+
+    # train variants of the pusht-64 preset for 300 steps each (one core each)
+    OMP_NUM_THREADS=1 python bench/ablate_dynamics.py train --variants ours,deterministic \\
+        --steps 300 --data data/play.zarr --ae runs/ae_shipped --latent-cache runs/latents_play.safetensors
+    # score runs or checkpoints on a store of episodes never used in training
+    MUJOCO_GL=egl python bench/ablate_dynamics.py eval --models ours=runs/ablate/ours,... \\
+        --data data/play_eval.zarr --out bench/results/dynamics
+
+A variant's curriculum (``unroll``) is scaled with its step budget, so a short run goes
+through the same stages as the preset's full run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from iwsim import WorldModel  # noqa: E402
+from iwsim.config import DYNAMICS_PRESETS, variant  # noqa: E402
+from iwsim.data.frames import to_model  # noqa: E402
+from iwsim.data.store import EpisodeStore  # noqa: E402
+from iwsim.envs import pixels  # noqa: E402
+from iwsim.envs.pusht import VIEW_HALF  # noqa: E402
+from iwsim.eval.metrics import psnr  # noqa: E402
+from iwsim.training.dynamics import conditioning_key, resolve_checkpoint, train_dynamics  # noqa: E402
+
+STEPS = (1, 5, 10, 20, 32)
+POSE_STEPS = (10, 20, 32)
+CHANGED = 0.1  # a latent cell changed when a standardised channel moved by more (as in training)
+
+
+def budget(name: str, steps: int, preset: str = "pusht-64"):
+    """The preset turned into variant ``name`` at ``steps`` training steps."""
+    cfg = variant(DYNAMICS_PRESETS[preset], name)
+    scale = steps / cfg.train.steps
+    return dataclasses.replace(
+        cfg, unroll=tuple((round(k * scale), n) for k, n in cfg.unroll),
+        train=dataclasses.replace(cfg.train, steps=steps, eval_every=steps, checkpoint_every=steps,
+                                  warmup_steps=min(cfg.train.warmup_steps, steps // 10)))
+
+
+def train(args: argparse.Namespace) -> None:
+    for name in args.variants.split(","):
+        t0 = time.time()
+        train_dynamics(budget(name, args.steps, args.preset), args.data, args.ae, Path(args.out) / name,
+                       device=torch.device("cpu"), latent_cache=args.latent_cache, progress=False)
+        logging.info("%s: %d steps in %.1f min", name, args.steps, (time.time() - t0) / 60)
+
+
+class Episodes:
+    """The evaluation store's episodes as arrays: frames, conditioning actions, pusher
+    positions and block poses; all episodes cut to the shortest length."""
+
+    def __init__(self, path: str, n: int) -> None:
+        store = EpisodeStore.open(path)
+        ends = store.episode_ends.astype(int)
+        starts = np.concatenate([[0], ends[:-1]])[:n]
+        length = int((ends[:n] - starts).min())
+        idx = starts[:, None] + np.arange(length)
+        get = lambda k: np.asarray(store.array(k).oindex[idx.ravel()]).reshape(*idx.shape, -1)  # noqa: E731
+        self.img = get("img").reshape(*idx.shape, *store.array("img").shape[1:])
+        self.actions = get(conditioning_key(store.keys)).astype(np.float32)
+        self.state, self.pose = get("state"), get("block_pose")
+        self.n, self.length = idx.shape
+
+
+def px(metres: np.ndarray) -> np.ndarray:
+    return metres * 64 / (2 * VIEW_HALF)
+
+
+def block_errors(frames: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame (N, H, W, 3): block position error (px), yaw error (deg) against poses
+    (N, 3), and whether a T fits (IoU >= 0.8); a frame without a T counts as lost (NaN)."""
+    pos, yaw, fits = [], [], []
+    for f, p in zip(frames, poses):
+        est = pixels.estimate_block_pose(f)
+        ok = est.found and est.fit_iou >= 0.8
+        fits.append(ok)
+        pos.append(px(np.linalg.norm(est.pose[:2] - p[:2])) if est.found else np.nan)
+        d = (est.pose[2] - p[2] + np.pi) % (2 * np.pi) - np.pi
+        yaw.append(abs(np.degrees(d)) if est.found else np.nan)
+    return np.array(pos), np.array(yaw), np.array(fits)
+
+
+@torch.inference_mode()
+def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0) -> tuple[dict, np.ndarray]:
+    """Everything the table reports for one model; also its PSNR per step (horizon,)."""
+    k = wm.cfg.dynamics.context
+    z = wm.standardize(wm.encode(ep.img.reshape(-1, *ep.img.shape[2:])).unflatten(0, (ep.n, ep.length)))
+    a = wm.normalize_actions(ep.actions)
+    out: dict = {}
+    # Teacher-forced one step, from windows of true latents (padded at the start).
+    t_idx = torch.arange(ep.length - 1)
+    win = (t_idx[:, None] + torch.arange(-(k - 1), 1)).clamp_min(0)
+    ctx = z[:, win].flatten(0, 1)  # (E*T, K, C, h, w)
+    acts = torch.stack([a[:, (t_idx - 1).clamp_min(0)], a[:, t_idx]], 2).flatten(0, 1)
+    true, prev = z[:, 1:].flatten(0, 1), z[:, :-1].flatten(0, 1)
+    changed = ((true - prev).abs().amax(1, keepdim=True) > CHANGED).expand_as(true)
+    g = torch.Generator().manual_seed(seed)
+
+    def one_step(context: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        y = wm.predict(context, actions, torch.randn(context[:, -1].shape, generator=g))
+        return y + context[:, -1] if wm.cfg.predict_delta else y
+
+    for lab in (0.0, wm.cfg.context_label, 0.3):
+        wm.context_label = lab
+        err = (one_step(ctx, acts) - true) ** 2
+        out[f"one_step_label{lab:g}"] = err.mean().item()
+        if lab == wm.cfg.context_label:
+            out["one_step"], out["one_step_changed"] = err.mean().item(), err[changed].mean().item()
+    wm.context_label = wm.cfg.context_label
+    copy = (prev - true) ** 2
+    out["copy_prev"], out["copy_prev_changed"] = copy.mean().item(), copy[changed].mean().item()
+    # Open loop from the first frame: true and shuffled actions (another episode's).
+    true_z = z[:, 1:horizon + 1]
+
+    def rollout(actions: torch.Tensor) -> torch.Tensor:
+        wm.reset_latents(wm.unstandardize(z[:, :1]), seed=seed)
+        return torch.stack([wm.standardize(wm.step_latent(actions[:, i])) for i in range(horizon)], 1)
+
+    pred = rollout(a)
+    err = ((pred - true_z) ** 2).mean((2, 3, 4))  # (E, S)
+    shuf = ((rollout(a.roll(1, 0)) - true_z) ** 2).mean((2, 3, 4))
+    for s in STEPS:
+        out[f"latent_err_{s}"] = err[:, s - 1].mean().item()
+    out["action_gap_5"] = (shuf[:, 4].mean() / err[:, 4].mean()).item()
+    out["action_gap_10"] = (shuf[:, 9].mean() / err[:, 9].mean()).item()
+    # Frames: PSNR, pushers and the block.
+    wm.reset_latents(wm.unstandardize(z[:, :1]), seed=seed)  # fresh generators for decoding
+    frames = wm.decode_latents(wm.unstandardize(pred)).clamp(-1, 1)
+    truth = to_model(ep.img[:, 1:horizon + 1]).to(frames.device)
+    first = to_model(ep.img[:, :1]).expand_as(truth)
+    p = psnr(((frames + 1) / 2).flatten(0, 1), ((truth + 1) / 2).flatten(0, 1)).view(ep.n, horizon)
+    p0 = psnr(((first + 1) / 2).flatten(0, 1), ((truth + 1) / 2).flatten(0, 1)).view(ep.n, horizon)
+    for lo, hi in ((1, 32), (1, horizon)):
+        out[f"psnr_{lo}_{hi}"] = p[:, lo - 1:hi].mean().item()
+        out[f"psnr_first_{lo}_{hi}"] = p0[:, lo - 1:hi].mean().item()
+    u8 = ((frames.clamp(-1, 1) + 1) * 127.5).round().byte().movedim(-3, -1).numpy()  # (E, S, H, W, 3)
+    xy, peak = pixels.pusher_peaks(u8)
+    perr = px(np.linalg.norm((xy - ep.state[:, 1:horizon + 1]).reshape(ep.n, horizon, 2, 2), axis=-1))
+    first_perr = px(np.linalg.norm((ep.state[:, :1] - ep.state[:, 1:horizon + 1]).reshape(ep.n, horizon, 2, 2),
+                                   axis=-1))
+    for s in POSE_STEPS:
+        out[f"pusher_err_{s}"] = float(np.median(perr[:, s - 1]))
+        out[f"pusher_err_first_{s}"] = float(np.median(first_perr[:, s - 1]))
+    out["pusher_peak_min"] = float(np.median(peak.min(-1), 0).min())  # worst step of the median episode
+    out["pusher_visible"] = float((peak >= 0.8).mean())
+    for s in POSE_STEPS:
+        pos, yaw, _ = block_errors(u8[:, s - 1], ep.pose[:, s])
+        pos0, yaw0, _ = block_errors(ep.img[:, 0], ep.pose[:, s])
+        out[f"block_pos_{s}"], out[f"block_yaw_{s}"] = float(np.nanmedian(pos)), float(np.nanmedian(yaw))
+        out[f"block_pos_first_{s}"], out[f"block_yaw_first_{s}"] = float(np.median(pos0)), float(np.median(yaw0))
+    fit_steps = np.arange(0, horizon, 4)
+    _, _, fits = block_errors(u8[:, fit_steps].reshape(-1, *u8.shape[2:]), ep.pose[:, fit_steps + 1].reshape(-1, 3))
+    out["t_found"] = float(fits.mean())
+    return out, p.mean(0).numpy(), u8
+
+
+ROWS = [  # (column, key, baseline key, format)
+    ("1-step err (copy-prev)", "one_step", "copy_prev", "{:.3f}"),
+    ("1-step err changed cells (copy-prev)", "one_step_changed", "copy_prev_changed", "{:.3f}"),
+    ("action gap @5 / @10", "action_gap_5", "action_gap_10", "{:.2f}"),
+    ("latent err @1/5/10/20/32", None, None, None),
+    ("PSNR 1-32 (copy-first)", "psnr_1_32", "psnr_first_1_32", "{:.2f}"),
+    ("PSNR 1-H (copy-first)", "psnr_1_H", "psnr_first_1_H", "{:.2f}"),
+    ("pusher err px @10/20/32 (copy-first)", None, None, None),
+    ("pusher visible / min peak", "pusher_visible", "pusher_peak_min", "{:.2f}"),
+    ("block pos px @10/20/32 (copy-first)", None, None, None),
+    ("block yaw deg @10/20/32 (copy-first)", None, None, None),
+    ("T found", "t_found", None, "{:.2f}"),
+    ("1-step err, context label 0 / cfg / 0.3", None, None, None),
+]
+
+
+def cell(r: dict, col: str, key: str | None, base: str | None, fmt: str | None) -> str:
+    if col.startswith("latent err"):
+        return " / ".join(f"{r[f'latent_err_{s}']:.3f}" for s in STEPS)
+    if col.startswith("1-step err, context"):
+        return " / ".join(f"{v:.4f}" for k, v in r.items() if k.startswith("one_step_label"))
+    for name, pre in (("pusher err", "pusher_err"), ("block pos", "block_pos"), ("block yaw", "block_yaw")):
+        if col.startswith(name):
+            return " / ".join(f"{r[f'{pre}_{s}']:.1f}" for s in POSE_STEPS) + " (" + " / ".join(
+                f"{r[f'{pre}_first_{s}']:.1f}" for s in POSE_STEPS) + ")"
+    if col == "action gap @5 / @10":
+        return f"{r[key]:.2f} / {r[base]:.2f}"
+    if col.startswith("pusher visible"):
+        return f"{r[key]:.2f} / {r[base]:.2f}"
+    text = fmt.format(r[key.replace("H", str(r["horizon"]))])
+    return text + (f" ({fmt.format(r[base.replace('H', str(r['horizon']))])})" if base else "")
+
+
+def strip_steps(horizon: int) -> list[int]:
+    """Indices of the predicted frames shown in frames.png: steps 1, 10, 20, 32, 64, last."""
+    return sorted({min(s, horizon) - 1 for s in (1, 10, 20, 32, 64, horizon)})
+
+
+def evaluate(args: argparse.Namespace) -> None:
+    torch.set_num_threads(args.threads)
+    ep = Episodes(args.data, args.episodes)
+    horizon = min(args.horizon, ep.length - 1)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results, curves, strips = {}, {}, {}
+    for item in args.models.split(","):
+        name, path = item.split("=", 1)
+        wm = WorldModel.load(resolve_checkpoint(path))
+        t0 = time.time()
+        r, curve, u8 = score(wm, ep, horizon)
+        config = json.loads((resolve_checkpoint(path) / "config.json").read_text())
+        r.update(horizon=horizon, checkpoint=str(path), step=resolve_checkpoint(path).name, seconds=time.time() - t0)
+        results[name], curves[name], strips[name] = r, curve, u8[0, strip_steps(horizon)]
+        logging.info("%s: %s", name, {k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, curve in curves.items():
+        ax.plot(np.arange(1, horizon + 1), curve, label=name)
+    ax.set_xlabel("step"), ax.set_ylabel("PSNR (dB)"), ax.legend(), ax.grid(alpha=0.3)
+    ax.set_title(f"open loop from one frame, {ep.n} held-out episodes")
+    fig.tight_layout(), fig.savefig(out / "psnr.png", dpi=100)
+    cols = strip_steps(horizon)
+    rows = [np.concatenate(list(ep.img[0, [c + 1 for c in cols]]), 1)] + [np.concatenate(list(s), 1)
+                                                                            for s in strips.values()]
+    import imageio.v2 as imageio
+    imageio.imwrite(out / "frames.png", np.kron(np.concatenate(rows, 0), np.ones((2, 2, 1), np.uint8)))
+    lines = [f"\n## {time.strftime('%Y-%m-%d %H:%M')} `{' '.join(['python', *sys.argv])}`\n",
+             f"{ep.n} held-out episodes of `{args.data}`, horizon {horizon}; baselines in brackets "
+             f"(copy-previous latent, repeat the first frame). Frames: `{out / 'frames.png'}` (truth first row, "
+             f"steps {', '.join(str(c + 1) for c in cols)}).\n",
+             "| model | " + " | ".join(c for c, *_ in ROWS) + " |", "|---" * (len(ROWS) + 1) + "|"]
+    for name, r in results.items():
+        lines.append(f"| {name} (step {r['step']}) | " + " | ".join(cell(r, *row) for row in ROWS) + " |")
+    with open(args.table, "a") as f:
+        f.write("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    q = sub.add_parser("train")
+    q.add_argument("--variants", required=True)
+    q.add_argument("--steps", type=int, default=300)
+    q.add_argument("--preset", default="pusht-64")
+    q.add_argument("--data", default="data/play.zarr")
+    q.add_argument("--ae", default="runs/ae_shipped")
+    q.add_argument("--latent-cache", default="runs/latents_play.safetensors")
+    q.add_argument("--out", default="runs/ablate")
+    q.set_defaults(func=train)
+    q = sub.add_parser("eval")
+    q.add_argument("--models", required=True, help="NAME=RUN_OR_CHECKPOINT[,...]")
+    q.add_argument("--data", default="data/play_eval.zarr")
+    q.add_argument("--episodes", type=int, default=20)
+    q.add_argument("--horizon", type=int, default=192)
+    q.add_argument("--threads", type=int, default=2)
+    q.add_argument("--out", default="bench/results/dynamics")
+    q.add_argument("--table", default="bench/results/ablations.md")
+    q.set_defaults(func=evaluate)
+    args = p.parse_args()
+    args.func(args)
+
+
+if __name__ == "__main__":
+    main()
