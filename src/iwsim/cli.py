@@ -9,6 +9,7 @@ import sys
 from collections.abc import Sequence
 
 from iwsim.errors import IwsimError
+from iwsim.resources import human_bytes, set_threads
 
 log = logging.getLogger("iwsim")
 
@@ -18,6 +19,7 @@ EXIT_USER_ERROR = 1  # bad values the library rejected (argparse's own usage err
 def build_parser() -> argparse.ArgumentParser:
     from iwsim.envs import POLICIES, TASKS
     from iwsim.envs.pusht import IMAGE_SIZES
+    from iwsim.resources import available_cores
 
     parser = argparse.ArgumentParser(prog="iwsim", description="Interactive world simulator for robot learning.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -36,11 +38,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--workers",
         type=int,
-        default=os.cpu_count() or 1,
-        help="worker processes (default: the number of CPUs, %(default)s)",
+        default=available_cores(),
+        help="worker processes (default: the CPU cores this process may use, %(default)s)",
     )
     p.add_argument("--seed", type=int, default=0, help="episode i uses seed SEED + i (default: %(default)s)")
     p.add_argument("--out", help="store path (default: data/<task>_<policy>.zarr)")
+    _wait_for_lock_flag(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_collect)
 
@@ -169,16 +172,39 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("play", help="drive a world model from the browser and record demonstrations")
     p.add_argument("--checkpoint", default="checkpoints/pusht-64", help="world model (default: %(default)s)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind; others need --token (default: %(default)s)")
-    p.add_argument("--port", type=int, default=8000, help="port (default: %(default)s)")
-    p.add_argument("--token", help="secret clients must send (open the page as /?token=SECRET)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind; others need a token of your choice (default: %(default)s)")
+    p.add_argument("--port", type=int, default=8000, help="port, 0 for any free one (default: %(default)s)")
+    p.add_argument("--token-file", help="file whose first line is the secret sessions need (default: "
+                                        "$IWSIM_PLAY_TOKEN, else a random one the page served here knows)")
+    p.add_argument("--token", help="the secret on the command line (visible to other users in ps; "
+                                   "prefer --token-file or $IWSIM_PLAY_TOKEN)")
+    p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+                   help="another web origin (http://host:port) whose pages may open sessions; repeatable")
     p.add_argument("--record-to", help="episode store that saved demonstrations are appended to")
     p.add_argument("--store", help="episode store to draw 'frame from store' starts from")
     p.add_argument("--hz", type=float, default=10.0, help="control rate, steps per second (default: %(default)s)")
     p.add_argument("--max-sessions", type=int, default=4, help="concurrent sessions (default: %(default)s)")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    _wait_for_lock_flag(p)
     p.set_defaults(func=_play)
+    for q in _leaf_parsers(parser):
+        q.add_argument("--threads", type=int,
+                       help="torch threads (default: $OMP_NUM_THREADS, else the CPU cores this process may use)")
     return parser
+
+
+def _wait_for_lock_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--wait-for-lock", action="store_true",
+                   help="when another process is writing the store, wait for it instead of stopping")
+
+
+def _leaf_parsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """The parsers of every (sub)command that runs something."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        return [parser]
+    return [leaf for a in subs for p in dict.fromkeys(a.choices.values()) for leaf in _leaf_parsers(p)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -188,6 +214,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if rank == 0 else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
+        set_threads(args.threads)
         return args.func(args)
     except BrokenPipeError:  # e.g. `iwsim data info x | head`: the reader left, nothing to say
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -220,6 +247,7 @@ def _collect(args: argparse.Namespace) -> int:
         workers=args.workers,
         seed=args.seed,
         progress=not args.no_progress,
+        wait_for_lock=args.wait_for_lock,
     )
     return 0
 
@@ -236,7 +264,7 @@ def _data_info(args: argparse.Namespace) -> int:
         ("frames", info["frames"]),
         ("fps", info["fps"]),
         ("image size", info["image_size"]),
-        ("size on disk", _human_bytes(info["bytes_on_disk"])),
+        ("size on disk", human_bytes(info["bytes_on_disk"])),
     ]
     width = max(len(k) for k, _ in rows)
     lines = [f"{k:<{width}}  {v}" for k, v in rows]
@@ -278,15 +306,6 @@ def _data_validate(args: argparse.Namespace) -> int:
     for p in problems:
         print(f"  {p}", file=sys.stderr)
     return EXIT_USER_ERROR
-
-
-def _human_bytes(n: int) -> str:
-    size = float(n)
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if size < 1024 or unit == "GiB":
-            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
-        size /= 1024
-    raise AssertionError("unreachable")
 
 
 def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
@@ -476,25 +495,35 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _play(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from iwsim.play.access import LOOPBACK, Access, bind, check_bind, resolve_token
 
-    from iwsim.play.engine import Engine, PlayConfig
-    from iwsim.play.server import check_bind, serve
-    from iwsim.training.trainer import resolve_device
-    from iwsim.world_model import WorldModel
+    # Before the slow imports and the model: a bad token or a taken port fails at once.
+    token, source = resolve_token(args.token, args.token_file)
+    check_bind(args.host, token)
+    sock = bind(args.host, args.port)
+    try:
+        access = Access.create(token, args.host, sock.getsockname()[1], args.allow_origin)
+        from pathlib import Path
 
-    check_bind(args.host, args.token)  # before the slow part
-    if not 0 < args.port < 65536:
-        raise ValueError(f"--port must be in 1..65535, got {args.port}.")
-    cfg = PlayConfig(hz=args.hz, max_sessions=args.max_sessions, checkpoint=args.checkpoint,
-                     record_to=Path(args.record_to) if args.record_to else None,
-                     store=Path(args.store) if args.store else None)
-    engine = Engine(WorldModel.load(args.checkpoint, resolve_device(args.device)), cfg)
-    shown = "localhost" if args.host in ("0.0.0.0", "::") else args.host
-    url = f"http://{shown}:{args.port}/" + (f"?token={args.token}" if args.token else "")
-    log.info("serving %s at %s (%s Hz, up to %d sessions%s); Ctrl-C stops", args.checkpoint, url, args.hz,
-             args.max_sessions, f", recording to {args.record_to}" if args.record_to else "")
-    serve(engine, args.host, args.port, args.token)
+        from iwsim.play.engine import Engine, PlayConfig
+        from iwsim.play.server import serve
+        from iwsim.training.trainer import resolve_device
+        from iwsim.world_model import WorldModel
+
+        port = access.port
+        cfg = PlayConfig(hz=args.hz, max_sessions=args.max_sessions, checkpoint=args.checkpoint,
+                         record_to=Path(args.record_to) if args.record_to else None,
+                         store=Path(args.store) if args.store else None, wait_for_lock=args.wait_for_lock)
+        engine = Engine(WorldModel.load(args.checkpoint, resolve_device(args.device)), cfg)
+        shown = "localhost" if args.host in ("0.0.0.0", "::") else args.host
+        # The token is never logged: the page served here carries it, remote users know their own.
+        how = "" if args.host in LOOPBACK else f"; from elsewhere open /?token=... with the token of {source}"
+        log.info("serving %s at http://%s:%d/ (%s Hz, up to %d sessions%s%s); Ctrl-C stops", args.checkpoint,
+                 shown, port, args.hz, args.max_sessions,
+                 f", recording to {args.record_to}" if args.record_to else "", how)
+        serve(engine, sock, access)
+    finally:
+        sock.close()
     return 0
 
 
