@@ -406,10 +406,11 @@ def _train_policy(args: argparse.Namespace) -> int:
 
 
 def _eval_policy(args: argparse.Namespace) -> int:
-    from iwsim.eval.policy import evaluate
+    from iwsim.eval.policy import check_args, evaluate
     from iwsim.policies import load_policy
     from iwsim.training.trainer import resolve_device
 
+    check_args(args.episodes, args.seed, args.steps, args.videos)
     device = resolve_device(args.device)
     policy = load_policy(args.checkpoint, device)
     wm = None
@@ -458,8 +459,12 @@ def _rollout(args: argparse.Namespace) -> int:
 
     if not str(args.out).endswith(".mp4"):
         raise ValueError(f"--out must be an .mp4 path, got {args.out!r}.")
-    wm = WorldModel.load(args.checkpoint, resolve_device(args.device))
+    _check_positive(args, "steps", "context")
     store = EpisodeStore.open(args.data, "r")
+    if not 0 <= args.episode < store.n_episodes:  # (a negative index would silently count from the end)
+        raise ValueError(f"--episode must be in 0..{store.n_episodes - 1} ({args.data} holds {store.n_episodes} "
+                         f"episodes), got {args.episode}.")
+    wm = WorldModel.load(args.checkpoint, resolve_device(args.device))
     result = open_loop(wm, store, [args.episode], args.steps, args.context, args.seed, progress=True)
     path = write_side_by_side(result, args.out)
     s = result.summary()

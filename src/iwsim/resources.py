@@ -67,9 +67,10 @@ def set_threads(requested: int | None = None) -> int:
     if n > available_cores():
         log.warning("using %d threads on %d available cores: they will compete with each other", n,
                     available_cores())
-    os.environ["OMP_NUM_THREADS"] = str(n)
     torch = sys.modules.get("torch")
-    if torch is not None:
+    if torch is None:
+        os.environ["OMP_NUM_THREADS"] = str(n)
+    else:
         torch.set_num_threads(n)
     return n
 
