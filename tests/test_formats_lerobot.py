@@ -17,6 +17,7 @@ from iwsim.cli import main
 from iwsim.data.formats import FormatError, export, import_, validate
 from iwsim.data.formats.lerobot import QUANTILES, PathTemplate, read_v3
 from iwsim.data.formats.video import probe, write_video
+from iwsim.data.lock import DirLock
 from iwsim.data.store import EpisodeStore
 
 FRAME_TOLERANCE = 4.0  # mean absolute error of a frame after H.264 in yuv420p (0..255)
@@ -396,3 +397,17 @@ def test_resolved_paths_stay_inside_the_dataset(exports, tmp_path):
     assert t.resolve(root, video_key="observation.image", file_index=7) == root / "videos/observation.image/file-007.mp4"
     with pytest.raises(FormatError, match="outside the dataset"):
         t.resolve(root, video_key="../..", file_index=0)
+
+
+def test_a_killed_exports_temporary_directory_is_removed_by_the_next_run(play_store, tmp_path):
+    out = tmp_path / "lr"
+    stale = tmp_path / ".lr.0123abcd.tmp"  # what a killed export leaves (its lock died with it)
+    (stale / "data").mkdir(parents=True)
+    (stale / ".iwsim.lock").write_text("pid 1 (iwsim data export), writing since ...")
+    live = tmp_path / ".lr.89abcdef.tmp"  # one another run is writing right now
+    live.mkdir()
+    with DirLock(live):
+        export("lerobot-v3", play_store, out, progress=False)
+        assert not stale.exists() and live.exists()
+    assert validate(out)[1] == [] and not (out / ".iwsim.lock").exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == [live.name]

@@ -76,6 +76,19 @@ class DirLock:
     def held(self) -> bool:
         return self._fd is not None
 
+    def unlink(self) -> None:
+        """Remove the lock file (still holding the lock) if it is still ours, e.g. before a
+        finished temporary directory becomes a result that should not carry it."""
+        if self._fd is None:
+            return
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return
+        mine = os.fstat(self._fd)
+        if (st.st_dev, st.st_ino) == (mine.st_dev, mine.st_ino):
+            self.path.unlink()
+
     def release(self) -> None:
         if self._fd is not None:
             fd, self._fd = self._fd, None
