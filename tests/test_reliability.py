@@ -89,3 +89,26 @@ def test_every_command_takes_threads(store, tmp_path, capsys, monkeypatch):
 
     for parser in _leaf_parsers(build_parser()):
         assert "--threads" in parser._option_string_actions, parser.prog
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["train", "ae", "--preset", "tiny", "--batch-size", "100000"], "--batch-size 100000 (about 20.0 MiB per sample)"),
+    (["train", "dynamics", "--preset", "tiny", "--ae", "unused", "--batch-size", "100000"], "--batch-size 100000"),
+    (["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--batch-size", "100000000"], "--batch-size"),
+    (["data", "import", "--format", "zarr", "--image-size", "100000"], "--image-size 100000 (for a single frame)"),
+    (["collect", *TINY_COLLECT[:-2], "--workers", "1", "--episodes", "1", "--steps", "99999999999"],
+     "episodes of 99999999999 steps at 64x64 with 1 worker(s)"),
+    (["eval", "policy", "--checkpoint", "unused", "--steps", "10000000000", "--videos", "4"], "--steps 10000000000"),
+    (["demo", "--steps", "10000000000"], "--steps 10000000000"),
+])
+def test_flags_that_size_memory_are_refused_before_allocating(store, tmp_path, capsys, argv, message):
+    out = tmp_path / "out"
+    argv = [*argv, "--out", str(out)]
+    if argv[0] in ("train",):
+        argv += ["--data", str(store)]
+    if argv[:2] == ["data", "import"]:
+        argv += ["--in", str(store)]
+    assert main(argv) == 1
+    line = error_line(capsys)
+    assert message in line and "would need about" in line and "available" in line
+    assert not out.exists()

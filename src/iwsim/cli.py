@@ -321,6 +321,14 @@ def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
+def _check_frames_memory(what: str, frames: int, copies: int = 1) -> None:
+    """Refuse flags that keep more frames in memory than fit: a lower bound, counted as RGB
+    frames of the smallest image size (64x64; the model's may be larger)."""
+    from iwsim.resources import require_memory
+
+    require_memory(frames * copies * 64 * 64 * 3, f"{what} (at least {frames * copies} frames in memory)")
+
+
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
     """Each named integer flag, when given, must be >= 1."""
     for name in names:
@@ -351,7 +359,37 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
     if args.dry_run:
         print(json.dumps({"preset": args.preset, **to_dict(cfg)}, indent=2))
         return None
+    _check_batch_memory(args.train_command, cfg.train.batch_size, args.data)
     return cfg
+
+
+# Peak memory per sample of one training step on CPU at 64x64, measured with the pusht-64
+# (ae, dynamics) and dp presets as the growth of peak RSS from batch 4 to 64 (2 to 16 for
+# dynamics), rounded down: enough to refuse a batch that cannot fit before allocating it.
+TRAIN_MIB_PER_SAMPLE = {"ae": 20.0, "decoder-finetune": 20.0, "dynamics": 60.0, "policy": 0.75}
+
+
+def _check_batch_memory(stage: str, batch_size: int, data: str) -> None:
+    """Refuse a global batch that cannot fit in this machine's memory (this process's share
+    of it under torchrun), scaled to the frame size of the training stores."""
+    from iwsim.data.store import EpisodeStore, StoreError
+    from iwsim.resources import MiB, require_memory
+
+    if stage == "policy":
+        from iwsim.policies.data import parse_mixture
+
+        paths = [src.path for src in parse_mixture(data)]
+    else:
+        paths = [data]
+    sizes = []
+    for path in paths:
+        try:
+            sizes.append(int(EpisodeStore.open(path).attrs.get("image_size") or 64))
+        except (StoreError, TypeError, ValueError):
+            pass  # training reports a bad store itself
+    per_sample = TRAIN_MIB_PER_SAMPLE[stage] * MiB * (max(sizes, default=64) / 64) ** 2
+    per_rank = -(-batch_size // int(os.environ.get("WORLD_SIZE", "1")))
+    require_memory(per_rank * per_sample, f"--batch-size {batch_size} (about {human_bytes(per_sample)} per sample)")
 
 
 def _print_metrics(metrics: dict[str, float]) -> None:
@@ -411,6 +449,8 @@ def _eval_policy(args: argparse.Namespace) -> int:
     from iwsim.training.trainer import resolve_device
 
     check_args(args.episodes, args.seed, args.steps, args.videos)
+    _check_frames_memory(f"--steps {args.steps} with --videos {args.videos}",
+                         args.steps * min(args.videos, args.episodes))
     device = resolve_device(args.device)
     policy = load_policy(args.checkpoint, device)
     wm = None
@@ -437,6 +477,8 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
     _check_positive(args, "steps", "batch_size")
     if not args.lr > 0:
         raise ValueError(f"--lr must be positive, got {args.lr}.")
+    if args.batch_size is not None:
+        _check_batch_memory("decoder-finetune", args.batch_size, args.data)
     _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
                                     steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                                     force=args.force, progress=not args.no_progress))
@@ -490,6 +532,9 @@ def _bench(args: argparse.Namespace) -> int:
     _check_positive(args, "episodes", "steps", "stability_every", "speed_batch", "speed_calls")
     if args.stability_steps < 0:
         raise ValueError(f"--stability-steps must be >= 0, got {args.stability_steps}.")
+    # the recorded episodes and every model's rollout of them
+    _check_frames_memory(f"--episodes {args.episodes} x --steps {args.steps}", args.episodes * (args.steps + 1),
+                         len(models) + 1)
     run_benchmark(models, args.out, args.data, episodes=args.episodes, steps=args.steps,
                   stability_steps=args.stability_steps, stability_every=args.stability_every,
                   speed_batch=args.speed_batch, speed_calls=args.speed_calls, seed=args.seed,
@@ -534,6 +579,8 @@ def _play(args: argparse.Namespace) -> int:
 
 def _demo(args: argparse.Namespace) -> int:
     from iwsim import demo
+
+    _check_frames_memory(f"--steps {args.steps}", args.steps + 1, 2)  # MuJoCo's frames and the model's
 
     return demo.main(args)
 

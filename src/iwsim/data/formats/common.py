@@ -19,6 +19,7 @@ import numpy as np
 
 from iwsim.data.lock import LOCK_NAME, DirLock, remove_stale_temps, temp_sibling
 from iwsim.data.store import EpisodeStore
+from iwsim.resources import require_memory
 
 REQUIRED = ("img", "state", "action")
 
@@ -106,6 +107,14 @@ def output_dir(out: str | os.PathLike, force: bool = False) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+RESIZE_BYTES_PER_VALUE = 9  # the float32 interpolation, its rounded float32 copy, the uint8 result
+
+
+def check_resize_memory(frames: int, size: int, what: str) -> None:
+    """Refuse to resize ``frames`` frames to ``size`` x ``size`` when the buffers cannot fit."""
+    require_memory(frames * size * size * 3 * RESIZE_BYTES_PER_VALUE, what)
+
+
 def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
     """uint8 (T, H, W, 3) -> (T, size, size, 3): a centred square crop, then area
     averaging when shrinking (bilinear when growing)."""
@@ -140,6 +149,8 @@ def write_store(out: str | os.PathLike, episodes: Iterable[tuple[dict[str, np.nd
         store = EpisodeStore.create(tmp / "store.zarr", dict(attrs))
         for ep, seed in tqdm(episodes, total=total, unit="ep", desc=f"import {Path(out).name}", disable=not progress):
             if image_size is not None:
+                check_resize_memory(len(ep["img"]), image_size,
+                                    f"resizing an episode of {len(ep['img'])} frames to {image_size}x{image_size}")
                 ep = {**ep, "img": resize_frames(ep["img"], image_size)}
             store.append(ep, seed=seed)
         if store.n_episodes == 0:
