@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -63,8 +64,8 @@ class Server:
         while True:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"iwsim play exited: see {log}")
-            try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=0.2).close()
+            try:  # the port listens before the model is loaded: wait for the page itself
+                urllib.request.urlopen(f"http://127.0.0.1:{self.port}/", timeout=1).close()
                 return
             except OSError:
                 if time.monotonic() > deadline:
