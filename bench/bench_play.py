@@ -19,11 +19,13 @@ import argparse
 import json
 import os
 import random
+import secrets
 import socket
 import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -45,28 +47,34 @@ def free_port() -> int:
 
 
 class Server:
-    """``iwsim play`` in a subprocess, for one configuration."""
+    """``iwsim play`` in a subprocess, for one configuration; sessions need ``self.token``
+    (handed to it in the environment, as a user would, not on the command line)."""
 
     def __init__(self, checkpoint: str, hz: float, sessions: int, log: Path) -> None:
         self.port = free_port()
+        self.token = secrets.token_urlsafe(16)
         iwsim = str(Path(sys.executable).with_name("iwsim"))
         log.parent.mkdir(parents=True, exist_ok=True)
         self.log = open(log, "w")
         self.proc = subprocess.Popen(
             [iwsim, "play", "--checkpoint", checkpoint, "--port", str(self.port), "--hz", str(hz),
-             "--max-sessions", str(sessions)], env={**os.environ, "MUJOCO_GL": "egl"},
+             "--max-sessions", str(sessions)], env={**os.environ, "MUJOCO_GL": "egl", "IWSIM_PLAY_TOKEN": self.token},
             stdout=self.log, stderr=subprocess.STDOUT, text=True)
         deadline = time.monotonic() + 120
         while True:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"iwsim play exited: see {log}")
-            try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=0.2).close()
+            try:  # the port listens before the model is loaded: wait for the page itself
+                urllib.request.urlopen(f"http://127.0.0.1:{self.port}/", timeout=1).close()
                 return
             except OSError:
                 if time.monotonic() > deadline:
                     raise RuntimeError("iwsim play did not start within 120 s") from None
                 time.sleep(0.2)
+
+    @property
+    def ws_url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}/ws?token={self.token}"
 
     def close(self) -> None:
         self.proc.terminate()
@@ -74,15 +82,16 @@ class Server:
         self.log.close()
 
 
-def client(port: int, hz: float, warmup: float, seconds: float, seed: int, out: dict) -> None:
-    """One page-like client; fills ``out`` with frame times, latencies and step times."""
+def client(url: str, hz: float, warmup: float, seconds: float, seed: int, out: dict) -> None:
+    """One page-like client of the session socket ``url``; fills ``out`` with frame times,
+    latencies and step times."""
     from websockets.sync.client import connect
 
     rng = random.Random(seed)
     sent: dict[int, float] = {}  # seq of a press's first action -> send time
     lock = threading.Lock()
     latencies, frame_times, step_ms = [], [], []
-    with connect(f"ws://127.0.0.1:{port}/ws", max_size=None) as ws:
+    with connect(url, max_size=None) as ws:
         hello = json.loads(ws.recv())
         if hello["type"] != "hello":
             raise RuntimeError(f"expected hello, got {hello}")
@@ -139,7 +148,8 @@ def run_clients(checkpoint: str, hz: float, n: int, warmup: float, seconds: floa
     server = Server(checkpoint, hz, n, SERVER_LOG)
     try:
         outs = [{} for _ in range(n)]
-        threads = [threading.Thread(target=client, args=(server.port, hz, warmup, seconds, i, outs[i])) for i in range(n)]
+        threads = [threading.Thread(target=client, args=(server.ws_url, hz, warmup, seconds, i, outs[i]))
+                   for i in range(n)]
         for t in threads:
             t.start()
         for t in threads:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +14,8 @@ import pytest
 
 from iwsim.cli import main
 from iwsim.data.collect import store_attrs
-from iwsim.data.store import EpisodeStore
+from iwsim.data.lock import LOCK_NAME, is_locked
+from iwsim.data.store import EpisodeStore, StoreLockedError
 
 IWSIM = Path(sys.executable).parent / "iwsim"  # the console script of this environment
 TINY = ["--task", "pusht", "--policy", "play", "--steps", "5", "--image-size", "64", "--seed", "3", "--no-progress"]
@@ -35,8 +38,10 @@ def assert_same_stores(a: Path, b: Path) -> None:
 
 
 def snapshot(path: Path) -> dict[str, tuple[bytes, int]]:
-    """Every file under ``path`` with its bytes and mtime."""
-    return {str(p.relative_to(path)): (p.read_bytes(), p.stat().st_mtime_ns) for p in path.rglob("*") if p.is_file()}
+    """Every file under ``path`` with its bytes and mtime, except the writers' lock file
+    (each writer notes itself there; it is not data)."""
+    return {str(p.relative_to(path)): (p.read_bytes(), p.stat().st_mtime_ns) for p in path.rglob("*")
+            if p.is_file() and p.name != LOCK_NAME}
 
 
 def one_error_line(err: str) -> str:
@@ -145,6 +150,7 @@ def _existing_store(path: Path, **changes: object) -> Path:
         },
         seed=3,
     )
+    store.close()
     return path
 
 
@@ -203,3 +209,52 @@ def test_argparse_errors_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as e:
         main(["collect", "--episodes", "two"])
     assert e.value.code == 2
+
+
+def test_two_collect_processes_on_one_store_take_turns(tmp_path: Path) -> None:
+    """Two real `iwsim collect` processes appending to one store: while the first holds the
+    store, a second is refused with one line naming it, or waits with --wait-for-lock and
+    then finds nothing missing; the store equals a single writer's."""
+    out, alone = tmp_path / "shared.zarr", tmp_path / "alone.zarr"
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    assert main(collect_args(out, 1)) == 0
+    assert main(collect_args(alone, 4)) == 0
+    first = subprocess.Popen([str(IWSIM), *collect_args(out, 4)], stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while not is_locked(out):  # the first writer holds the store ...
+            assert first.poll() is None and time.monotonic() < deadline, "the first writer never took the lock"
+            time.sleep(0.01)
+        os.kill(first.pid, signal.SIGSTOP)  # ... and keeps it while the second one tries
+        refused = subprocess.run([str(IWSIM), *collect_args(out, 4)], capture_output=True, text=True, env=env)
+        waiting = subprocess.Popen([str(IWSIM), *collect_args(out, 4, 1, "--wait-for-lock")],
+                                   stderr=subprocess.PIPE, text=True, env=env)
+        time.sleep(1.0)
+        assert waiting.poll() is None  # still waiting
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
+    assert first.wait(60) == 0, first.stderr.read()
+    assert waiting.wait(60) == 0
+    assert refused.returncode == 1
+    line = one_error_line(refused.stderr)
+    assert f"{out} is being written by pid {first.pid} (iwsim collect)" in line and "--wait-for-lock" in line
+    assert "nothing to do" in waiting.stderr.read()
+    first.stderr.close()
+    waiting.stderr.close()
+    assert_same_stores(out, alone)
+
+
+def test_a_killed_writers_lock_is_free(tmp_path: Path) -> None:
+    out = tmp_path / "s.zarr"
+    assert main(collect_args(out, 1)) == 0
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from iwsim.data.store import EpisodeStore; "
+                               "s = EpisodeStore.open(sys.argv[1], 'a'); print('locked', flush=True); time.sleep(60)",
+                               str(out)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline() == "locked\n"
+    with pytest.raises(StoreLockedError, match=f"pid {holder.pid}"):
+        EpisodeStore.open(out, "a")
+    holder.kill()
+    holder.wait()
+    holder.stdout.close()
+    assert main(collect_args(out, 2)) == 0  # the lock died with its holder
+    assert EpisodeStore.open(out).n_episodes == 2

@@ -15,8 +15,9 @@ from hypothesis import strategies as st
 
 from iwsim.cli import main
 from iwsim.data.formats import FormatError, export, import_, validate
-from iwsim.data.formats.lerobot import QUANTILES
+from iwsim.data.formats.lerobot import QUANTILES, PathTemplate, read_v3
 from iwsim.data.formats.video import probe, write_video
+from iwsim.data.lock import DirLock
 from iwsim.data.store import EpisodeStore
 
 FRAME_TOLERANCE = 4.0  # mean absolute error of a frame after H.264 in yuv420p (0..255)
@@ -344,3 +345,69 @@ def test_hf_datasets_loads_the_v3_files_as_lerobot_does(exports, tmp_path, monke
     eps = datasets.Dataset.from_parquet(str(root / "meta/episodes/chunk-000/file-000.parquet"),
                                         cache_dir=str(tmp_path / "hf"))
     assert eps.num_rows == info["total_episodes"] and eps[0]["tasks"] == ["push the T"]
+
+
+HOSTILE_TEMPLATES = {
+    "absolute": ("data_path", "/etc/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet", "not allowed"),
+    "parent": ("data_path", "../outside/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet", "not allowed"),
+    "inner parent": ("data_path", "data/../../x/{chunk_index}/{file_index}.parquet", "not allowed"),
+    "attribute": ("data_path", "data/{chunk_index.__class__.__mro__}/{file_index}.parquet", "not allowed"),
+    "index": ("data_path", "data/{chunk_index[0]}/{file_index}.parquet", "not allowed"),
+    "unknown field": ("data_path", "data/{episode_index:03d}/{file_index}.parquet", "has the field"),
+    "conversion": ("data_path", "data/{chunk_index!r}/{file_index}.parquet", "not allowed"),
+    "format spec": ("data_path", "data/{chunk_index:>999}/{file_index}.parquet", "not allowed"),
+    "width on text": ("video_path", "videos/{video_key:03d}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4",
+                      "has the field"),
+    "not text": ("video_path", ["videos"], "not a path template"),
+}
+
+
+@pytest.mark.parametrize("name", HOSTILE_TEMPLATES)
+def test_hostile_path_templates_are_refused(exports, tmp_path, capsys, name):
+    """Templates are parsed strictly, never str.format-ted, and never lead outside the dataset."""
+    key, template, match = HOSTILE_TEMPLATES[name]
+    root = tmp_path / "v3"
+    shutil.copytree(exports["lerobot-v3"], root)
+    shutil.copytree(root / "data", tmp_path / "outside")  # what ../ would reach
+    info = json.loads((root / "meta/info.json").read_text())
+    (root / "meta/info.json").write_text(json.dumps({**info, key: template}))
+    with pytest.raises(FormatError, match=match) as refused:
+        list(read_v3(root, camera=None)[2])
+    assert f"key '{key}'" in str(refused.value) and "mro" not in str(refused.value).replace(str(template), "")
+    _, problems = validate(root)
+    assert len(problems) == 1 and f"key '{key}'" in problems[0]
+    assert main(["data", "import", "--format", "lerobot-v3", "--in", str(root), "--out", str(tmp_path / "x.zarr"),
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"key '{key}'" in err[0]
+    assert not (tmp_path / "x.zarr").exists()
+
+
+def test_resolved_paths_stay_inside_the_dataset(exports, tmp_path):
+    """A template that parses may still be led out by a value (a camera named '..') or a
+    symlink; both are refused, and validate no longer calls such a dataset valid."""
+    root = tmp_path / "v3"
+    shutil.copytree(exports["lerobot-v3"], root)
+    elsewhere = tmp_path / "elsewhere"
+    shutil.move(root / "data", elsewhere)
+    (root / "data").symlink_to(elsewhere)
+    _, problems = validate(root)
+    assert len(problems) == 1 and "outside the dataset" in problems[0]
+    t = PathTemplate.parse("videos/{video_key}/file-{file_index:03d}.mp4", ("video_key", "file_index"), "t")
+    assert t.resolve(root, video_key="observation.image", file_index=7) == root / "videos/observation.image/file-007.mp4"
+    with pytest.raises(FormatError, match="outside the dataset"):
+        t.resolve(root, video_key="../..", file_index=0)
+
+
+def test_a_killed_exports_temporary_directory_is_removed_by_the_next_run(play_store, tmp_path):
+    out = tmp_path / "lr"
+    stale = tmp_path / ".lr.0123abcd.tmp"  # what a killed export leaves (its lock died with it)
+    (stale / "data").mkdir(parents=True)
+    (stale / ".iwsim.lock").write_text("pid 1 (iwsim data export), writing since ...")
+    live = tmp_path / ".lr.89abcdef.tmp"  # one another run is writing right now
+    live.mkdir()
+    with DirLock(live):
+        export("lerobot-v3", play_store, out, progress=False)
+        assert not stale.exists() and live.exists()
+    assert validate(out)[1] == [] and not (out / ".iwsim.lock").exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == [live.name]

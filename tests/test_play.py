@@ -2,11 +2,16 @@
 over real WebSockets, on a tiny world model."""
 
 import json
+import os
+import socket
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from iwsim.cli import main
@@ -14,8 +19,11 @@ from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.envs import make_env
 from iwsim.play import protocol as proto
 from iwsim.play.engine import EPISODE_KEYS, Engine, PlayConfig
-from iwsim.play.server import WS_MAX_BYTES, check_bind, running
+from iwsim.play.access import TOKEN_ENV, Access, PlayError, bind, resolve_token
+from iwsim.play.server import WS_MAX_BYTES, check_bind, running, serve
 from tests.test_dynamics import tiny_world_model
+
+SRC = Path(__file__).resolve().parents[1] / "src"
 
 # -- helpers -------------------------------------------------------------------------------
 
@@ -155,7 +163,9 @@ def test_record_save_and_discard(tmp_path):
     assert json.loads(eng.handle(s, proto.Command("save"))[0])["message"] == "saving 5 steps"
     eng.recorder.close()  # waits for the write
     (who, text), = eng.finished_saves()
-    assert who is s and json.loads(text) == {"type": "saved", "episode": 0, "steps": 5, "store": str(store)}
+    # the store's name only: no filesystem path goes to clients
+    assert who is s and json.loads(text) == {"type": "saved", "episode": 0, "steps": 5, "store": "demos.zarr"}
+    assert json.loads(eng.hello(s))["recording_to"] == "demos.zarr"
     back = EpisodeStore.open(store)
     ep = back.episode(0)
     assert sorted(ep) == sorted(EPISODE_KEYS) and back.seeds == [s.seed]
@@ -226,7 +236,7 @@ def test_side_by_side_and_store_starts(play_store):
 
 def test_server_streams_frames_and_survives_bad_messages():
     eng = engine(hz=20)
-    with running(eng) as host, connect(f"ws://{host}/ws") as ws:
+    with running(eng) as srv, connect(srv.ws) as ws:
         hello = receive(ws, "hello")
         assert hello["image_size"] == 64 and hello["hz"] == 20 and hello["reset_sources"] == ["mujoco"]
         first, _ = receive(ws, "frame")
@@ -242,20 +252,29 @@ def test_server_streams_frames_and_survives_bad_messages():
         # a message over the transport limit closes only this connection
         ws.send("x" * (WS_MAX_BYTES + 1))
         assert close_code(ws) == 1009
-        with connect(f"ws://{host}/ws") as again:
+        with connect(srv.ws) as again:
             assert receive(again, "hello")
 
 
-def test_server_token_and_session_limit():
+def test_server_token_origin_and_session_limit():
     eng = engine(max_sessions=1)
-    with running(eng, token="s3cret") as host:
-        for url in (f"ws://{host}/ws", f"ws://{host}/ws?token=wrong"):
-            with connect(url) as ws:
+    with running(eng, token="s3cret-token", origins=["http://tool.example:9000"]) as srv:
+        base = f"ws://{srv.address}/ws"
+        for query in ("", "?token=wrong", "?token=wrong&token=s3cret-token", "?token=s3cret-token&token=s3cret-token"):
+            with connect(base + query) as ws:  # missing, wrong or repeated: refused
                 assert "token" in receive(ws, "error")["message"]
                 assert close_code(ws) == 1008
-        with connect(f"ws://{host}/ws?token=s3cret") as ws:
+        # a foreign page is refused at the handshake, even with the token
+        for origin in ("http://evil.example", f"http://evil.example:{srv.address.split(':')[1]}", "null"):
+            with pytest.raises(InvalidStatus) as refused:
+                connect(srv.ws, origin=origin)
+            assert refused.value.response.status_code == 403
+        for origin in (f"http://{srv.address}", "http://tool.example:9000"):  # its own page; --allow-origin
+            with connect(srv.ws, origin=origin) as ws:
+                assert receive(ws, "hello")
+        with connect(srv.ws) as ws:
             assert receive(ws, "hello")
-            with connect(f"ws://{host}/ws?token=s3cret") as extra:
+            with connect(srv.ws) as extra:
                 assert "busy" in receive(extra, "busy")["message"]
                 assert close_code(extra) == 1013
             assert receive(ws, "frame")  # the first session goes on
@@ -264,8 +283,8 @@ def test_server_token_and_session_limit():
 def test_a_client_vanishing_mid_recording_leaves_no_episode(tmp_path):
     store = tmp_path / "demos.zarr"
     eng = engine(record_to=store, hz=20)
-    with running(eng) as host:
-        ws = connect(f"ws://{host}/ws")
+    with running(eng) as srv:
+        ws = connect(srv.ws)
         receive(ws, "hello")
         ws.send(json.dumps({"type": "record"}))
         receive(ws, "frame", where=lambda h: (h["recording"] or 0) >= 3)
@@ -274,7 +293,7 @@ def test_a_client_vanishing_mid_recording_leaves_no_episode(tmp_path):
         while eng.sessions and time.monotonic() < deadline:
             time.sleep(0.05)
         assert not eng.sessions
-        with connect(f"ws://{host}/ws") as ws:  # the server serves on; a saved take lands
+        with connect(srv.ws) as ws:  # the server serves on; a saved take lands
             receive(ws, "hello")
             ws.send(json.dumps({"type": "record"}))
             receive(ws, "frame", where=lambda h: (h["recording"] or 0) >= 2)
@@ -295,13 +314,101 @@ def test_binding_beyond_loopback_needs_a_token(capsys, tmp_path):
     assert "not a checkpoint directory" in capsys.readouterr().err
 
 
-def test_page_is_served():
+def test_page_is_served_with_the_token_only_to_this_machine():
+    import urllib.error
     import urllib.request
 
-    with running(engine()) as host:
-        page = urllib.request.urlopen(f"http://{host}/").read().decode()
-        script = urllib.request.urlopen(f"http://{host}/play.js").read().decode()
+    def get(url: str, host: str | None = None) -> str:
+        request = urllib.request.Request(url, headers={"Host": host} if host else {})
+        return urllib.request.urlopen(request).read().decode()
+
+    with running(engine()) as srv:
+        port = srv.address.split(":")[1]
+        page = get(srv.page)
+        script = get(srv.page + "play.js")
+        assert f'<meta name="iwsim-token" content="{srv.token}">' in page
+        assert srv.token in get(srv.page, f"localhost:{port}")
+        # a foreign name resolving here (DNS rebinding) gets nothing, not even the page
+        for host in (f"evil.example:{port}", "127.0.0.1:1"):
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                get(srv.page, host)
+            assert refused.value.code == 421
     assert '<script src="/play.js">' in page and "new WebSocket" in script
+
+
+def test_page_on_all_interfaces_carries_no_token_for_other_names():
+    import urllib.request
+
+    with running(engine(), host="0.0.0.0", token="chosen-token") as srv:
+        port = srv.address.split(":")[1]
+        mine = urllib.request.urlopen(f"http://127.0.0.1:{port}/").read().decode()
+        other = urllib.request.urlopen(urllib.request.Request(f"http://127.0.0.1:{port}/",
+                                                              headers={"Host": f"myhost.lan:{port}"})).read().decode()
+    assert "chosen-token" in mine and "chosen-token" not in other
+
+
+def test_token_comes_from_a_file_or_the_environment(tmp_path):
+    file = tmp_path / "token"
+    file.write_text("from-the-file\n")
+    assert resolve_token("from-the-flag", file, {TOKEN_ENV: "from-the-env"}) == ("from-the-file", f"--token-file {file}")
+    assert resolve_token("from-the-flag", None, {TOKEN_ENV: "from-the-env"}) == ("from-the-env", f"${TOKEN_ENV}")
+    assert resolve_token("from-the-flag", None, {}) == ("from-the-flag", "--token")
+    assert resolve_token(None, None, {}) == (None, "random")
+    for bad in ("short", "has space in it", ""):
+        file.write_text(bad)
+        with pytest.raises(ValueError, match="at least 8 printable characters"):
+            resolve_token(None, file, {})
+    with pytest.raises(ValueError, match="cannot read the token file"):
+        resolve_token(None, tmp_path / "missing", {})
+
+
+def test_play_never_logs_the_token(tmp_path, monkeypatch, caplog):
+    import iwsim.play.server
+    import iwsim.world_model
+
+    served = {}
+    monkeypatch.setattr(iwsim.world_model.WorldModel, "load", staticmethod(lambda *a, **k: tiny_world_model()))
+    monkeypatch.setattr(iwsim.play.server, "serve", lambda engine, sock, access: served.update(access=access))
+    (tmp_path / "token").write_text("file-secret-123")
+    monkeypatch.setenv(TOKEN_ENV, "env-secret-1234")
+    with caplog.at_level("INFO"):
+        assert main(["play", "--host", "0.0.0.0", "--port", "0", "--token-file", str(tmp_path / "token")]) == 0
+    assert served["access"].token == "file-secret-123"
+    assert "serving" in caplog.text and "file-secret-123" not in caplog.text and "--token-file" in caplog.text
+
+
+def test_play_on_a_taken_port_exits_at_once(tmp_path):
+    """A real `iwsim play` process: one line, exit code 1, within seconds (it used to hang)."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        t0 = time.monotonic()
+        proc = subprocess.run([sys.executable, "-m", "iwsim.cli", "play", "--port", str(port),
+                               "--checkpoint", str(tmp_path / "unused")], capture_output=True, text=True, timeout=60,
+                              env={**os.environ, "PYTHONPATH": str(SRC)})
+        seconds = time.monotonic() - t0
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.strip() == (f"iwsim: error: cannot serve on 127.0.0.1:{port}: the address is already in use "
+                                   "(another iwsim play?); choose another --port.")
+    assert seconds < 10  # the interpreter's start-up; the port is checked before anything slow
+
+
+def test_a_failing_web_server_stops_the_engine_and_the_process(monkeypatch):
+    import uvicorn
+
+    def crash(self, sockets=None):
+        raise RuntimeError("the event loop broke")
+
+    monkeypatch.setattr(uvicorn.Server, "run", crash)
+    eng = engine()
+    shut = []
+    monkeypatch.setattr(eng, "shutdown", lambda: shut.append(True))
+    sock = bind("127.0.0.1", 0)
+    t0 = time.monotonic()
+    with pytest.raises(PlayError, match="the web server did not start: RuntimeError: the event loop broke"):
+        serve(eng, sock, Access.create(None, "127.0.0.1", sock.getsockname()[1]))
+    assert time.monotonic() - t0 < 5 and shut == [True] and sock.fileno() == -1
 
 
 def test_play_config_rejects_bad_values():

@@ -56,10 +56,10 @@ navigator.getGamepads = () => [window.fakePad];
 
 
 def test_gamepad_sticks_and_buttons(browser):
-    with running(engine(hz=20)) as host:
+    with running(engine(hz=20)) as srv:
         page = browser.new_page()
         page.add_init_script(FAKE_PAD)
-        page.goto(f"http://{host}/")
+        page.goto(srv.page)  # the page it serves here carries the token
         wait(page, "window.iwsim.stats.frames > 2")
         before = target(page)
         sx, sy = room(before[0]), room(before[3])  # left stick along x, right stick along y (up is -)
@@ -79,10 +79,10 @@ def test_drive_record_and_save_in_chromium(browser, tmp_path):
     store = tmp_path / "demos.zarr"
     eng = engine(record_to=store, hz=20)
     errors: list[str] = []
-    with running(eng) as host:
+    with running(eng) as srv:
         page = browser.new_page(viewport={"width": 1500, "height": 900})
         page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(f"http://{host}/")
+        page.goto(srv.page)  # the page it serves here carries the token
         wait(page, "window.iwsim.stats.frames > 2")
         assert page.inner_text("#conn") == "connected"
         canvas = page.eval_on_selector("#wm", "c => c.toDataURL()")

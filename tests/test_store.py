@@ -115,6 +115,7 @@ def test_crash_before_commit_leaves_whole_episodes(store_path: Path, monkeypatch
         m.setattr(EpisodeStore, "_commit", crash)
         with pytest.raises(RuntimeError):
             store.append(fake_episode(1), seed=1)
+    store.close()  # the crashed writer is gone, and its lock with it
     raw = zarr.open(store_path, mode="r")
     assert raw["data/img"].shape[0] > raw["meta/episode_ends"][-1]  # frames were written
 
@@ -134,6 +135,7 @@ def test_crash_between_growing_and_writing_episode_ends(store_path: Path) -> Non
     store = EpisodeStore.create(store_path)
     for j in range(2):
         store.append(fake_episode(j), seed=j)
+    store.close()
     zarr.open_array(store_path / "meta/episode_ends", mode="r+").resize((3,))  # reads back as 0
 
     assert EpisodeStore.open(store_path).n_episodes == 2
@@ -157,7 +159,7 @@ while True:
 
 
 def test_sigkill_mid_append_leaves_whole_episodes(store_path: Path) -> None:
-    EpisodeStore.create(store_path)
+    EpisodeStore.create(store_path).close()
     rng = random.Random(0)
     for _ in range(3):  # each round resumes from what the previous kill left
         proc = subprocess.Popen(

@@ -189,3 +189,25 @@ def test_store_without_frames_is_refused(tmp_path):
     s.append({"action": torch.zeros(3, 4).numpy()}, seed=1)
     with pytest.raises(StoreError, match="no data/img"):
         AETask(TINY, tmp_path / "s.zarr")
+
+
+def test_resume_falls_back_past_a_truncated_newest_checkpoint(play_store, tmp_path, caplog):
+    """A truncated optimizer.safetensors in the newest checkpoint: resumption warns, naming
+    it, and goes on from the checkpoint before it, bit-identically to an uninterrupted run."""
+    cpu = torch.device("cpu")
+    train_autoencoder(tiny(6), play_store, tmp_path / "a", device=cpu, progress=False)
+    b = tmp_path / "b"
+    train_autoencoder(tiny(6), play_store, b, device=cpu, progress=False)
+    damaged = b / "checkpoints" / "00000006" / "training_state" / "optimizer.safetensors"
+    damaged.write_bytes(damaged.read_bytes()[:100])
+    with caplog.at_level("INFO"):
+        train_autoencoder(tiny(6), play_store, b, device=cpu, progress=False)  # redoes steps 4-6
+    assert f"{damaged} is unreadable" in caplog.text and "resuming from the checkpoint before it" in caplog.text
+    assert "resuming from" in caplog.text and "(step 3)" in caplog.text
+    for part in ("model", "ema", "optimizer"):
+        assert_same(state(tmp_path / "a", 6, part), state(b, 6, part))
+    # nothing whole left: one clear error, nothing trained from scratch over it
+    for step in (3, 6):
+        (b / "checkpoints" / f"{step:08d}" / "model.safetensors").write_bytes(b"")
+    with pytest.raises(CheckpointError, match="no checkpoint in .* is whole \\(damaged: 00000006, 00000003\\)"):
+        train_autoencoder(tiny(6), play_store, b, device=cpu, progress=False)

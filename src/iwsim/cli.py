@@ -9,6 +9,7 @@ import sys
 from collections.abc import Sequence
 
 from iwsim.errors import IwsimError
+from iwsim.resources import human_bytes, set_threads
 
 log = logging.getLogger("iwsim")
 
@@ -18,6 +19,7 @@ EXIT_USER_ERROR = 1  # bad values the library rejected (argparse's own usage err
 def build_parser() -> argparse.ArgumentParser:
     from iwsim.envs import POLICIES, TASKS
     from iwsim.envs.pusht import IMAGE_SIZES
+    from iwsim.resources import available_cores
 
     parser = argparse.ArgumentParser(prog="iwsim", description="Interactive world simulator for robot learning.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -36,11 +38,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--workers",
         type=int,
-        default=os.cpu_count() or 1,
-        help="worker processes (default: the number of CPUs, %(default)s)",
+        default=available_cores(),
+        help="worker processes (default: the CPU cores this process may use, %(default)s)",
     )
     p.add_argument("--seed", type=int, default=0, help="episode i uses seed SEED + i (default: %(default)s)")
     p.add_argument("--out", help="store path (default: data/<task>_<policy>.zarr)")
+    _wait_for_lock_flag(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_collect)
 
@@ -171,16 +174,39 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("play", help="drive a world model from the browser and record demonstrations")
     p.add_argument("--checkpoint", default="checkpoints/pusht-64", help="world model (default: %(default)s)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind; others need --token (default: %(default)s)")
-    p.add_argument("--port", type=int, default=8000, help="port (default: %(default)s)")
-    p.add_argument("--token", help="secret clients must send (open the page as /?token=SECRET)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind; others need a token of your choice (default: %(default)s)")
+    p.add_argument("--port", type=int, default=8000, help="port, 0 for any free one (default: %(default)s)")
+    p.add_argument("--token-file", help="file whose first line is the secret sessions need (default: "
+                                        "$IWSIM_PLAY_TOKEN, else a random one the page served here knows)")
+    p.add_argument("--token", help="the secret on the command line (visible to other users in ps; "
+                                   "prefer --token-file or $IWSIM_PLAY_TOKEN)")
+    p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+                   help="another web origin (http://host:port) whose pages may open sessions; repeatable")
     p.add_argument("--record-to", help="episode store that saved demonstrations are appended to")
     p.add_argument("--store", help="episode store to draw 'frame from store' starts from")
     p.add_argument("--hz", type=float, default=10.0, help="control rate, steps per second (default: %(default)s)")
     p.add_argument("--max-sessions", type=int, default=4, help="concurrent sessions (default: %(default)s)")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
+    _wait_for_lock_flag(p)
     p.set_defaults(func=_play)
+    for q in _leaf_parsers(parser):
+        q.add_argument("--threads", type=int,
+                       help="torch threads (default: $OMP_NUM_THREADS, else the CPU cores this process may use)")
     return parser
+
+
+def _wait_for_lock_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--wait-for-lock", action="store_true",
+                   help="when another process is writing the store, wait for it instead of stopping")
+
+
+def _leaf_parsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """The parsers of every (sub)command that runs something."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        return [parser]
+    return [leaf for a in subs for p in dict.fromkeys(a.choices.values()) for leaf in _leaf_parsers(p)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -190,6 +216,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if rank == 0 else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
+        set_threads(args.threads)
         return args.func(args)
     except BrokenPipeError:  # e.g. `iwsim data info x | head`: the reader left, nothing to say
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -222,6 +249,7 @@ def _collect(args: argparse.Namespace) -> int:
         workers=args.workers,
         seed=args.seed,
         progress=not args.no_progress,
+        wait_for_lock=args.wait_for_lock,
     )
     return 0
 
@@ -238,7 +266,7 @@ def _data_info(args: argparse.Namespace) -> int:
         ("frames", info["frames"]),
         ("fps", info["fps"]),
         ("image size", info["image_size"]),
-        ("size on disk", _human_bytes(info["bytes_on_disk"])),
+        ("size on disk", human_bytes(info["bytes_on_disk"])),
     ]
     width = max(len(k) for k, _ in rows)
     lines = [f"{k:<{width}}  {v}" for k, v in rows]
@@ -282,15 +310,6 @@ def _data_validate(args: argparse.Namespace) -> int:
     return EXIT_USER_ERROR
 
 
-def _human_bytes(n: int) -> str:
-    size = float(n)
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if size < 1024 or unit == "GiB":
-            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
-        size /= 1024
-    raise AssertionError("unreachable")
-
-
 def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
     q.add_argument("--data", required=True, help="episode store to train on")
     q.add_argument("--preset", default="pusht-64", help=f"config preset: {presets} (default: %(default)s)")
@@ -302,6 +321,14 @@ def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
     q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
     q.add_argument("--dry-run", action="store_true", help="print the resolved config and exit")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _check_frames_memory(what: str, frames: int, copies: int = 1) -> None:
+    """Refuse flags that keep more frames in memory than fit: a lower bound, counted as RGB
+    frames of the smallest image size (64x64; the model's may be larger)."""
+    from iwsim.resources import require_memory
+
+    require_memory(frames * copies * 64 * 64 * 3, f"{what} (at least {frames * copies} frames in memory)")
 
 
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
@@ -334,7 +361,37 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
     if args.dry_run:
         print(json.dumps({"preset": args.preset, **to_dict(cfg)}, indent=2))
         return None
+    _check_batch_memory(args.train_command, cfg.train.batch_size, args.data)
     return cfg
+
+
+# Peak memory per sample of one training step on CPU at 64x64, measured with the pusht-64
+# (ae, dynamics) and dp presets as the growth of peak RSS from batch 4 to 64 (2 to 16 for
+# dynamics), rounded down: enough to refuse a batch that cannot fit before allocating it.
+TRAIN_MIB_PER_SAMPLE = {"ae": 20.0, "decoder-finetune": 20.0, "dynamics": 60.0, "policy": 0.75}
+
+
+def _check_batch_memory(stage: str, batch_size: int, data: str) -> None:
+    """Refuse a global batch that cannot fit in this machine's memory (this process's share
+    of it under torchrun), scaled to the frame size of the training stores."""
+    from iwsim.data.store import EpisodeStore, StoreError
+    from iwsim.resources import MiB, require_memory
+
+    if stage == "policy":
+        from iwsim.policies.data import parse_mixture
+
+        paths = [src.path for src in parse_mixture(data)]
+    else:
+        paths = [data]
+    sizes = []
+    for path in paths:
+        try:
+            sizes.append(int(EpisodeStore.open(path).attrs.get("image_size") or 64))
+        except (StoreError, TypeError, ValueError):
+            pass  # training reports a bad store itself
+    per_sample = TRAIN_MIB_PER_SAMPLE[stage] * MiB * (max(sizes, default=64) / 64) ** 2
+    per_rank = -(-batch_size // int(os.environ.get("WORLD_SIZE", "1")))
+    require_memory(per_rank * per_sample, f"--batch-size {batch_size} (about {human_bytes(per_sample)} per sample)")
 
 
 def _print_metrics(metrics: dict[str, float]) -> None:
@@ -389,10 +446,13 @@ def _train_policy(args: argparse.Namespace) -> int:
 
 
 def _eval_policy(args: argparse.Namespace) -> int:
-    from iwsim.eval.policy import evaluate
+    from iwsim.eval.policy import check_args, evaluate
     from iwsim.policies import load_policy
     from iwsim.training.trainer import resolve_device
 
+    check_args(args.episodes, args.seed, args.steps, args.videos)
+    _check_frames_memory(f"--steps {args.steps} with --videos {args.videos}",
+                         args.steps * min(args.videos, args.episodes))
     device = resolve_device(args.device)
     policy = load_policy(args.checkpoint, device)
     wm = None
@@ -419,6 +479,8 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
     _check_positive(args, "steps", "batch_size")
     if not args.lr > 0:
         raise ValueError(f"--lr must be positive, got {args.lr}.")
+    if args.batch_size is not None:
+        _check_batch_memory("decoder-finetune", args.batch_size, args.data)
     _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
                                     steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                                     force=args.force, progress=not args.no_progress))
@@ -441,8 +503,12 @@ def _rollout(args: argparse.Namespace) -> int:
 
     if not str(args.out).endswith(".mp4"):
         raise ValueError(f"--out must be an .mp4 path, got {args.out!r}.")
-    wm = WorldModel.load(args.checkpoint, resolve_device(args.device))
+    _check_positive(args, "steps", "context")
     store = EpisodeStore.open(args.data, "r")
+    if not 0 <= args.episode < store.n_episodes:  # (a negative index would silently count from the end)
+        raise ValueError(f"--episode must be in 0..{store.n_episodes - 1} ({args.data} holds {store.n_episodes} "
+                         f"episodes), got {args.episode}.")
+    wm = WorldModel.load(args.checkpoint, resolve_device(args.device))
     result = open_loop(wm, store, [args.episode], args.steps, args.context, args.seed, progress=True)
     path = write_side_by_side(result, args.out)
     s = result.summary()
@@ -468,6 +534,9 @@ def _bench(args: argparse.Namespace) -> int:
     _check_positive(args, "episodes", "steps", "stability_every", "speed_batch", "speed_calls")
     if args.stability_steps < 0:
         raise ValueError(f"--stability-steps must be >= 0, got {args.stability_steps}.")
+    # the recorded episodes and every model's rollout of them
+    _check_frames_memory(f"--episodes {args.episodes} x --steps {args.steps}", args.episodes * (args.steps + 1),
+                         len(models) + 1)
     run_benchmark(models, args.out, args.data, episodes=args.episodes, steps=args.steps,
                   stability_steps=args.stability_steps, stability_every=args.stability_every,
                   speed_batch=args.speed_batch, speed_calls=args.speed_calls, seed=args.seed,
@@ -478,30 +547,42 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _play(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from iwsim.play.access import LOOPBACK, Access, bind, check_bind, resolve_token
 
-    from iwsim.play.engine import Engine, PlayConfig
-    from iwsim.play.server import check_bind, serve
-    from iwsim.training.trainer import resolve_device
-    from iwsim.world_model import WorldModel
+    # Before the slow imports and the model: a bad token or a taken port fails at once.
+    token, source = resolve_token(args.token, args.token_file)
+    check_bind(args.host, token)
+    sock = bind(args.host, args.port)
+    try:
+        access = Access.create(token, args.host, sock.getsockname()[1], args.allow_origin)
+        from pathlib import Path
 
-    check_bind(args.host, args.token)  # before the slow part
-    if not 0 < args.port < 65536:
-        raise ValueError(f"--port must be in 1..65535, got {args.port}.")
-    cfg = PlayConfig(hz=args.hz, max_sessions=args.max_sessions, checkpoint=args.checkpoint,
-                     record_to=Path(args.record_to) if args.record_to else None,
-                     store=Path(args.store) if args.store else None)
-    engine = Engine(WorldModel.load(args.checkpoint, resolve_device(args.device)), cfg)
-    shown = "localhost" if args.host in ("0.0.0.0", "::") else args.host
-    url = f"http://{shown}:{args.port}/" + (f"?token={args.token}" if args.token else "")
-    log.info("serving %s at %s (%s Hz, up to %d sessions%s); Ctrl-C stops", args.checkpoint, url, args.hz,
-             args.max_sessions, f", recording to {args.record_to}" if args.record_to else "")
-    serve(engine, args.host, args.port, args.token)
+        from iwsim.play.engine import Engine, PlayConfig
+        from iwsim.play.server import serve
+        from iwsim.training.trainer import resolve_device
+        from iwsim.world_model import WorldModel
+
+        port = access.port
+        cfg = PlayConfig(hz=args.hz, max_sessions=args.max_sessions, checkpoint=args.checkpoint,
+                         record_to=Path(args.record_to) if args.record_to else None,
+                         store=Path(args.store) if args.store else None, wait_for_lock=args.wait_for_lock)
+        engine = Engine(WorldModel.load(args.checkpoint, resolve_device(args.device)), cfg)
+        shown = "localhost" if args.host in ("0.0.0.0", "::") else args.host
+        # The token is never logged: the page served here carries it, remote users know their own.
+        how = "" if args.host in LOOPBACK else f"; from elsewhere open /?token=... with the token of {source}"
+        log.info("serving %s at http://%s:%d/ (%s Hz, up to %d sessions%s%s); Ctrl-C stops", args.checkpoint,
+                 shown, port, args.hz, args.max_sessions,
+                 f", recording to {args.record_to}" if args.record_to else "", how)
+        serve(engine, sock, access)
+    finally:
+        sock.close()
     return 0
 
 
 def _demo(args: argparse.Namespace) -> int:
     from iwsim import demo
+
+    _check_frames_memory(f"--steps {args.steps}", args.steps + 1, 2)  # MuJoCo's frames and the model's
 
     return demo.main(args)
 

@@ -24,10 +24,12 @@ import iwsim
 from iwsim.data.store import EpisodeStore
 from iwsim.envs import POLICIES, check_task, record_episode
 from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU, TaskSpec
+from iwsim.resources import require_memory
 
 log = logging.getLogger(__name__)
 
 TASK_SPECS = {"pusht": TaskSpec}
+STEP_LOWDIM_BYTES = 256  # per step besides the frame: state, action, poses, IoU, contacts (generous)
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps")
 
@@ -72,30 +74,38 @@ def collect(
     workers: int = 1,
     seed: int = 0,
     progress: bool = True,
+    wait_for_lock: bool = False,
 ) -> CollectStats:
     """Record episodes ``0..episodes-1`` (seeds ``seed + i``) into the store at ``out``.
 
     Creates the store, or appends the episodes it lacks to one made by the same command
     with fewer episodes. Everything is checked before the store is created or touched.
     ``workers`` > 1 records in spawned processes (MuJoCo's EGL contexts must not be forked);
-    episodes are appended in order as they finish.
+    episodes are appended in order as they finish. The store's lock is held throughout: a
+    second writer is refused (a StoreLockedError naming it) or, with ``wait_for_lock``,
+    waited for, after which only the episodes still missing are recorded.
     """
     _check_args(task, policy, episodes, steps, image_size, workers, seed)
     out = Path(out)
     attrs = store_attrs(task, policy, steps, image_size)
-    start = 0
     if out.exists():
-        start = _check_existing(out, attrs, seed)
         if not os.access(out, os.W_OK | os.X_OK):
             raise ValueError(f"cannot append to {out}: the directory is not writable.")
     else:
         _check_creatable(out)
-    n_new = max(0, episodes - start)
-    if n_new == 0:
-        log.info("%s already holds %d episodes (>= %d requested); nothing to do", out, start, episodes)
-        return CollectStats(0, start, 0, 0.0, 0.0, float("nan"), float("nan"), float("nan"))
+    with EpisodeStore.open_or_create(out, attrs, check=lambda s: _check_existing(s, attrs, seed),
+                                     wait=wait_for_lock) as store:
+        start = store.n_episodes
+        if start >= episodes:
+            log.info("%s already holds %d episodes (>= %d requested); nothing to do", out, start, episodes)
+            return CollectStats(0, start, 0, 0.0, 0.0, float("nan"), float("nan"), float("nan"))
+        return _collect_into(store, task, policy, start, episodes, steps, image_size, workers, seed, progress)
 
-    store = EpisodeStore.open(out, "a") if out.exists() else EpisodeStore.create(out, attrs)
+
+def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episodes: int, steps: int,
+                  image_size: int, workers: int, seed: int, progress: bool) -> CollectStats:
+    """Record episodes ``start..episodes-1`` and append them to ``store``, in order."""
+    out, n_new = store.path, episodes - start
     log.info(
         f"collecting {n_new} episodes (seeds {seed + start}..{seed + episodes - 1}) of {task}/{policy}: "
         f"{steps} steps at {image_size}x{image_size}, {workers} worker(s) -> {out}"
@@ -141,6 +151,10 @@ def _check_args(task: str, policy: str, episodes: int, steps: int, image_size: i
             raise ValueError(f"{name} must be a positive integer, got {value!r}.")
     if not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}.")
+    # An episode is held in memory until appended, in each worker and again in this process.
+    step_bytes = image_size * image_size * 3 + STEP_LOWDIM_BYTES
+    require_memory(2 * min(workers, episodes) * steps * step_bytes,
+                   f"episodes of {steps} steps at {image_size}x{image_size} with {min(workers, episodes)} worker(s)")
 
 
 def _check_creatable(out: Path) -> None:
@@ -155,10 +169,9 @@ def _check_creatable(out: Path) -> None:
         raise ValueError(f"cannot create {out}: {ancestor} is not writable.")
 
 
-def _check_existing(out: Path, attrs: dict[str, Any], seed: int) -> int:
-    """Number of episodes already in the store at ``out``, after checking (read-only) that
-    this run may append to it."""
-    store = EpisodeStore.open(out, "r")
+def _check_existing(store: EpisodeStore, attrs: dict[str, Any], seed: int) -> None:
+    """Raise unless this run may append to ``store`` (same command, same seeds)."""
+    out = store.path
     stored = store.attrs
     diffs = [k for k in MATCHING_ATTRS if stored.get(k) != attrs[k]]
     if diffs:
@@ -179,7 +192,6 @@ def _check_existing(out: Path, attrs: dict[str, Any], seed: int) -> int:
             stored.get("iwsim_version"),
             attrs["iwsim_version"],
         )
-    return store.n_episodes
 
 
 def _record(job: tuple[str, str, int, int, int]) -> dict[str, np.ndarray]:

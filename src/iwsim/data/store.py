@@ -15,6 +15,10 @@ to a temporary name, then renamed), so a process killed at any point leaves a st
 length of the data (arrays may hold a few uncommitted frames past it) and ignore a trailing
 entry that is not yet written (it reads as the fill value 0, so ends must strictly
 increase). Opening in mode ``"a"`` repairs such leftovers before anything is appended.
+
+One writer at a time: mode ``"a"`` holds the store's lock (``root/.iwsim.lock``, see
+:mod:`iwsim.data.lock`) until :meth:`EpisodeStore.close`; a second writer is refused, or
+waits with ``wait=True``. Readers take no lock.
 """
 
 from __future__ import annotations
@@ -23,14 +27,15 @@ import json
 import logging
 import os
 import shutil
-import uuid
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import zarr
 from numcodecs import Blosc
+
+from iwsim.data.lock import DirLock, LockedError, remove_stale_temps, temp_sibling
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +51,10 @@ _EXPECTED = "an episode store (a Zarr format 2 group with data/ and meta/episode
 
 class StoreError(ValueError):
     """A path that is not a usable episode store, or an episode that does not fit it."""
+
+
+class StoreLockedError(StoreError):
+    """Another process is writing the store."""
 
 
 def chunk_frames(frame_shape: tuple[int, ...], dtype: np.dtype) -> int:
@@ -77,16 +86,30 @@ def _committed_ends(raw: np.ndarray) -> np.ndarray:
     return raw if ok.all() else raw[: int(np.argmin(ok))]
 
 
+def lock_store(path: str | os.PathLike, wait: bool = False) -> DirLock:
+    """The writer's lock of the store at ``path`` (see :mod:`iwsim.data.lock`); raises
+    StoreLockedError naming the holder, or waits for it with ``wait``."""
+    try:
+        return DirLock(path, wait=wait, what="appending")
+    except LockedError as e:
+        raise StoreLockedError(e.strerror) from None
+    except OSError as e:
+        raise StoreError(f"cannot lock {path} for writing: {e.strerror or e}.") from None
+
+
 class EpisodeStore:
     """Episodes in a Zarr directory; open with :meth:`create` or :meth:`open`.
 
     ``episode(i)`` returns ``{key: (T_i, ...) array}``; ``append(episode, seed)`` adds one.
+    A store opened for appending holds the store's lock until :meth:`close` (or the end of
+    a ``with`` block, or the process).
     """
 
-    def __init__(self, root: zarr.Group, path: Path, mode: Literal["r", "a"]) -> None:
+    def __init__(self, root: zarr.Group, path: Path, mode: Literal["r", "a"], lock: DirLock | None = None) -> None:
         self._root = root
         self.path = path
         self.mode = mode
+        self._lock = lock
         self._ends_array = root["meta/episode_ends"]
         self._data = root["data"]
         self._arrays: dict[str, zarr.Array] = dict(self._data.arrays())
@@ -109,10 +132,12 @@ class EpisodeStore:
     # --- opening -----------------------------------------------------------------------
     @classmethod
     def create(cls, path: str | os.PathLike, attrs: Mapping[str, Any] | None = None) -> EpisodeStore:
-        """Create an empty store at ``path`` (which must not exist) with root ``attrs``.
+        """Create an empty store at ``path`` (which must not exist) with root ``attrs``,
+        open for appending (it holds the store's lock).
 
         The store is built under a temporary name next to ``path`` and renamed into place,
-        so ``path`` never holds a half-created store. Parent directories are created.
+        so ``path`` never holds a half-created store. Parent directories are created;
+        temporary stores that killed runs left next to ``path`` are removed.
         """
         path = Path(path)
         attrs = dict(attrs or {})
@@ -124,10 +149,14 @@ class EpisodeStore:
             raise ValueError(f"store attributes must be JSON-serialisable: {e}.") from None
         if path.exists():
             raise StoreError(f"cannot create an episode store at {path}: it already exists.")
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+        tmp = temp_sibling(path)
+        lock = None
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            root = zarr.open_group(tmp, mode="w-", zarr_format=2)
+            remove_stale_temps(path)
+            tmp.mkdir()
+            lock = DirLock(tmp, what="appending")  # renamed with the directory, so the new store is locked from the start
+            root = zarr.open_group(tmp, mode="a", zarr_format=2)  # "w" would clear the lock file
             root.require_group("data")
             meta = root.require_group("meta")
             # Like Diffusion Policy: episode_ends uncompressed, int64.
@@ -138,19 +167,28 @@ class EpisodeStore:
             os.rename(tmp, path)
         except OSError as e:
             shutil.rmtree(tmp, ignore_errors=True)
+            if lock is not None:
+                lock.release()
+            if path.exists():  # another process created it meanwhile
+                raise StoreError(f"cannot create an episode store at {path}: it already exists.") from None
             raise StoreError(f"cannot create an episode store at {path}: {e.strerror or e}.") from e
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
+            if lock is not None:
+                lock.release()
             raise
         log.debug("created episode store %s", path)
-        return cls.open(path, "a")
+        return cls.open(path, "a", lock=lock)
 
     @classmethod
-    def open(cls, path: str | os.PathLike, mode: Literal["r", "a"] = "r") -> EpisodeStore:
+    def open(cls, path: str | os.PathLike, mode: Literal["r", "a"] = "r", *, wait: bool = False,
+             lock: DirLock | None = None) -> EpisodeStore:
         """Open an existing store, read-only (``"r"``) or for appending (``"a"``).
 
-        Mode ``"a"`` first repairs what an interrupted append left behind (frames past
-        ``episode_ends[-1]``, an unwritten trailing end, temporary files).
+        Mode ``"a"`` takes the store's lock first (``lock``, when the caller already holds
+        it): another writer means a StoreLockedError naming it, or with ``wait`` a wait
+        until it is done. Then it repairs what an interrupted append left behind (frames
+        past ``episode_ends[-1]``, an unwritten trailing end, temporary files).
         """
         if mode not in ("r", "a"):
             raise ValueError(f"mode must be 'r' or 'a', got {mode!r}.")
@@ -159,6 +197,41 @@ class EpisodeStore:
             raise StoreError(f"{path} does not exist; expected {_EXPECTED}.")
         if not path.is_dir():
             raise StoreError(f"{path} is a file, not {_EXPECTED}.")
+        if mode == "a" and lock is None:
+            lock = lock_store(path, wait=wait)
+        try:
+            return cls._open(path, mode, lock)
+        except BaseException:
+            if lock is not None:
+                lock.release()
+            raise
+
+    @classmethod
+    def open_or_create(cls, path: str | os.PathLike, attrs: Mapping[str, Any], *,
+                       check: Callable[[EpisodeStore], None] | None = None, wait: bool = False) -> EpisodeStore:
+        """The store at ``path`` open for appending: created with ``attrs`` when missing,
+        else locked, then ``check``-ed read-only (it raises if this writer must not append,
+        and nothing is touched), then opened. Locking comes before reading, so what
+        ``check`` sees cannot change until :meth:`close`."""
+        path = Path(path)
+        if not path.exists():
+            try:
+                return cls.create(path, attrs)
+            except StoreError:
+                if not path.exists():
+                    raise
+                # another process created it meanwhile: append to it like to any existing store
+        lock = lock_store(path, wait=wait)
+        try:
+            if check is not None:
+                check(cls._open(path, "r", None))
+            return cls.open(path, "a", lock=lock)
+        except BaseException:
+            lock.release()
+            raise
+
+    @classmethod
+    def _open(cls, path: Path, mode: Literal["r", "a"], lock: DirLock | None) -> EpisodeStore:
         try:
             root = zarr.open_group(path, mode="r" if mode == "r" else "r+")
         except (OSError, ValueError, KeyError, TypeError):
@@ -170,12 +243,25 @@ class EpisodeStore:
             raise StoreError(f"{path} is a Zarr group without meta/episode_ends, not {_EXPECTED}.")
         if not isinstance(root.get("data"), zarr.Group):
             raise StoreError(f"{path} is a Zarr group without data/, not {_EXPECTED}.")
-        store = cls(root, path, mode)
+        store = cls(root, path, mode, lock)
         if mode == "a":
             store._repair()
         elif store._n_uncommitted_ends or store._n_uncommitted_frames():
             log.warning("%s holds leftovers of an interrupted append; they are ignored", path)
         return store
+
+    def close(self) -> None:
+        """Release the store's lock (a no-op when read-only); the store is read-only after."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+        self.mode = "r"
+
+    def __enter__(self) -> EpisodeStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def _n_uncommitted_frames(self) -> int:
         return max((a.shape[0] - self.n_frames for a in self._arrays.values()), default=0)

@@ -126,16 +126,27 @@ def summarize(max_iou: np.ndarray, seeds: list[int]) -> dict[str, Any]:
     }
 
 
-def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
-             image_size: int = 64, out: str | Path | None = None, videos: int = 4, progress: bool = True,
-             meta: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Evaluate ``policy`` on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``,
-    write ``results.json`` and videos of the first ``videos`` episodes."""
+MAX_SEED = 2**32 - 1  # numpy's SeedSequence, behind gymnasium's reset(seed=), takes 32-bit seeds here
+
+
+def check_args(episodes: int, seed: int, steps: int, videos: int) -> None:
+    """Raise ValueError for evaluation flags that cannot work (before anything is loaded)."""
     for name, v in (("episodes", episodes), ("steps", steps)):
         if v < 1:
             raise ValueError(f"--{name} must be a positive integer, got {v}.")
     if videos < 0:
         raise ValueError(f"--videos must be 0 or more, got {videos}.")
+    if not 0 <= seed <= MAX_SEED - episodes + 1:  # episode i uses the MuJoCo seed seed + i
+        raise ValueError(f"--seed must be in 0..{MAX_SEED - episodes + 1} for {episodes} episodes (MuJoCo seeds "
+                         f"are 0..2**32-1), got {seed}.")
+
+
+def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
+             image_size: int = 64, out: str | Path | None = None, videos: int = 4, progress: bool = True,
+             meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Evaluate ``policy`` on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``,
+    write ``results.json`` and videos of the first ``videos`` episodes."""
+    check_args(episodes, seed, steps, videos)
     seeds = [seed + i for i in range(episodes)]
     run = rollout(policy, env, seeds, steps, world_model=world_model, image_size=image_size,
                   record=min(videos, episodes) if out is not None else 0, progress=progress)

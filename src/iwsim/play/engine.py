@@ -48,6 +48,7 @@ class PlayConfig:
     task: str = "pusht"
     max_record_steps: int = 6000  # 10 minutes at 10 Hz
     checkpoint: str = ""  # recorded in the store's attributes
+    wait_for_lock: bool = False  # when another process writes record_to: wait for it (else refuse)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.hz, (int, float)) and 0 < self.hz <= 60):
@@ -84,11 +85,10 @@ class Session:
 class Recorder:
     """Appends saved takes to an episode store, one at a time, on a writer thread."""
 
-    def __init__(self, path: Path, attrs: dict[str, Any]) -> None:
+    def __init__(self, path: Path, attrs: dict[str, Any], wait_for_lock: bool = False) -> None:
         from iwsim.data.store import EpisodeStore, StoreError
 
-        if path.exists():
-            store = EpisodeStore.open(path, "a")
+        def check(store: EpisodeStore) -> None:
             have = store.attrs
             for key in ("task", "image_size"):
                 if have.get(key) != attrs[key]:
@@ -97,9 +97,10 @@ class Recorder:
             if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
                 raise StoreError(f"{path} holds arrays {store.keys}, not the recorded {sorted(EPISODE_KEYS)} "
                                  "(a store of iwsim collect?); record into another store.")
-        else:
-            store = EpisodeStore.create(path, attrs)
-        self.store, self.path = store, path
+
+        # Held (locked) for the whole session: another writer would invalidate what we know of the store.
+        self.store = EpisodeStore.open_or_create(path, attrs, check=check, wait=wait_for_lock)
+        self.path = path
         self._writer = ThreadPoolExecutor(1, thread_name_prefix="iwsim-recorder")
 
     def save(self, episode: dict[str, np.ndarray], seed: int) -> Future[int]:
@@ -112,6 +113,7 @@ class Recorder:
 
     def close(self) -> None:
         self._writer.shutdown(wait=True)
+        self.store.close()
 
 
 class Engine:
@@ -131,7 +133,7 @@ class Engine:
 
             attrs = {**store_attrs(cfg.task, "teleop", 0, model.image_size), "steps": None,
                      "source": "world_model", "world_model": cfg.checkpoint, "keys": list(EPISODE_KEYS)}
-            self.recorder = Recorder(Path(cfg.record_to), attrs)
+            self.recorder = Recorder(Path(cfg.record_to), attrs, cfg.wait_for_lock)
         self.sessions: dict[int, Session] = {}
         self._saves: list[tuple[Session, Future[int], int]] = []
         self._next_id = 0
@@ -164,7 +166,7 @@ class Engine:
             action_low=self.low.tolist(), action_high=self.high.tolist(),
             action_names=list(self.spec.action_names), view_half=self.spec.view_half,
             reset_sources=["mujoco", *(["store"] if self.starts.has_store else [])],
-            recording_to=None if self.recorder is None else str(self.recorder.path),
+            recording_to=None if self.recorder is None else self.recorder.path.name,  # a name, never a path
             max_message_bytes=proto.MAX_MESSAGE_BYTES)
 
     # -- messages -------------------------------------------------------------------------
@@ -227,7 +229,7 @@ class Engine:
         for s, future, n in done:
             try:
                 out.append((s, proto.event("saved", episode=future.result(), steps=n,
-                                           store=str(self.recorder.path))))
+                                           store=self.recorder.path.name)))
             except Exception as e:  # noqa: BLE001 - the client hears why; the server goes on
                 log.error("saving a take of session %d failed: %s", s.id, e)
                 out.append((s, proto.event("error", message=f"saving failed: {e}")))

@@ -10,6 +10,10 @@ during step k is applied before step k + 1.
 
 Why the engine gets the main thread: PyTorch's CPU kernels ran this model about half as
 fast when called from a second thread (measured: 63 vs 30 ms per step at batch 1).
+
+Access (the token, allowed origins and hosts) is decided in :mod:`iwsim.play.access`.
+Either thread failing stops the other and the process: a web server that cannot serve
+must not leave a simulator running that nobody can reach.
 """
 
 from __future__ import annotations
@@ -17,34 +21,30 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import html
 import queue
-import secrets
 import signal
+import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 
-from fastapi import FastAPI, WebSocket, WebSocketDisconnect
-from fastapi.responses import HTMLResponse, Response
+from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
+from fastapi.responses import HTMLResponse, PlainTextResponse, Response
 
 from iwsim.play import protocol as proto
+from iwsim.play.access import Access, PlayError, bind, check_bind
 from iwsim.play.engine import Engine, Session
 
 log = logging.getLogger(__name__)
 
-LOOPBACK = ("127.0.0.1", "localhost", "::1")
 WS_MAX_BYTES = 1 << 20  # larger messages close the connection (1009); smaller bad ones get an error
 STATIC = ("index.html", "play.js")
-
-
-def check_bind(host: str, token: str | None) -> None:
-    """Refuse to serve beyond this machine without a token."""
-    if host not in LOOPBACK and not token:
-        raise ValueError(f"refusing to bind {host} without --token: anyone who can reach it could drive "
-                         "the simulator and write to the store; pass --token SECRET (clients add ?token=SECRET).")
+TOKEN_META = '<meta name="iwsim-token" content="{}">'  # where the page finds its token
 
 
 class Runner:
@@ -164,9 +164,10 @@ class Outbox:
                 await self.ws.send_bytes(frame)
 
 
-def create_app(runner: Runner, token: str | None = None) -> FastAPI:
-    """The app: ``/`` (the page), ``/play.js`` and the ``/ws`` session socket. Someone must
-    call ``runner.run()`` (see :func:`serve` and :func:`running`)."""
+def create_app(runner: Runner, access: Access) -> FastAPI:
+    """The app: ``/`` (the page), ``/play.js`` and the ``/ws`` session socket, open to whom
+    ``access`` allows. Someone must call ``runner.run()`` (see :func:`serve` and
+    :func:`running`)."""
     engine = runner.engine
     outboxes: dict[int, Outbox] = {}
 
@@ -192,9 +193,21 @@ def create_app(runner: Runner, token: str | None = None) -> FastAPI:
     app = FastAPI(title="iwsim play", lifespan=lifespan)
     pages = {name: resources.files("iwsim.play").joinpath("static", name).read_text() for name in STATIC}
 
+    @app.middleware("http")
+    async def known_hosts_only(request: Request, call_next: Callable) -> Response:
+        # A foreign name resolving to this machine (DNS rebinding) gets nothing, not even the page.
+        if not access.known_host(request.headers.get("host")):
+            return PlainTextResponse("unknown host", status_code=421)
+        return await call_next(request)
+
     @app.get("/")
-    async def index() -> HTMLResponse:
-        return HTMLResponse(pages["index.html"])
+    async def index(request: Request) -> HTMLResponse:
+        token = access.page_token(request.headers.get("host"), request.client.host if request.client else None)
+        page = pages["index.html"]
+        if token is not None:
+            page = page.replace("<head>", "<head>\n" + TOKEN_META.format(html.escape(token)), 1)
+        # no-store: the page may carry the token, which belongs to this run only
+        return HTMLResponse(page, headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"})
 
     @app.get("/play.js")
     async def script() -> Response:
@@ -202,10 +215,15 @@ def create_app(runner: Runner, token: str | None = None) -> FastAPI:
 
     @app.websocket("/ws")
     async def session_socket(ws: WebSocket) -> None:
+        host = ws.headers.get("host")
+        if not access.origin_allowed(ws.headers.get("origin"), host):
+            log.warning("refused a session from origin %r (host %r)", ws.headers.get("origin"), host)
+            await ws.close(code=1008)  # before accepting: the handshake fails with HTTP 403
+            return
         await ws.accept()
-        given = ws.query_params.get("token") or ""
-        if token and not secrets.compare_digest(given.encode(), token.encode()):
-            await _refuse(ws, "error", "wrong or missing token: open the page as /?token=SECRET.", 1008)
+        if not access.token_ok(ws.query_params.getlist("token")):
+            await _refuse(ws, "error", "wrong, missing or repeated token: open the page this server serves, "
+                                       "or add ?token=SECRET once.", 1008)
             return
         s = await runner.call(engine.open)
         if s is None:
@@ -254,21 +272,44 @@ async def _refuse(ws: WebSocket, kind: str, message: str, code: int) -> None:
         await ws.close(code=code, reason=kind)
 
 
-def _uvicorn(runner: Runner, host: str, port: int, token: str | None):
+def _uvicorn(runner: Runner, access: Access):
     import uvicorn
 
-    config = uvicorn.Config(create_app(runner, token), host=host, port=port, ws_max_size=WS_MAX_BYTES,
-                            log_level="warning", timeout_graceful_shutdown=5)
+    # access_log off: request lines would carry ?token= into the log
+    config = uvicorn.Config(create_app(runner, access), ws_max_size=WS_MAX_BYTES, log_level="warning",
+                            access_log=False, timeout_graceful_shutdown=5)
     return uvicorn.Server(config)
 
 
+@dataclass(frozen=True)
+class Served:
+    """Where a :func:`running` server is and the token its sessions need."""
+
+    address: str  # host:port
+    token: str
+
+    @property
+    def page(self) -> str:
+        return f"http://{self.address}/"
+
+    @property
+    def ws(self) -> str:
+        """The session socket's URL, token included."""
+        return f"ws://{self.address}/ws?token={self.token}"
+
+
 @contextlib.contextmanager
-def running(engine: Engine, host: str = "127.0.0.1", port: int = 0, token: str | None = None) -> Iterator[str]:
-    """The server in background threads (for tests and scripts); yields ``host:port``."""
+def running(engine: Engine, host: str = "127.0.0.1", port: int = 0, token: str | None = None,
+            origins: Iterable[str] = ()) -> Iterator[Served]:
+    """The server in background threads (for tests and scripts); ``token`` None means a
+    random one, as ``iwsim play`` does."""
     check_bind(host, token)
+    sock = bind(host, port)
+    port = sock.getsockname()[1]
+    access = Access.create(token, host, port, origins)
     runner = Runner(engine)
-    server = _uvicorn(runner, host, port, token)
-    web = threading.Thread(target=server.run, daemon=True)
+    server = _uvicorn(runner, access)
+    web = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     steps = threading.Thread(target=_run_engine, args=(runner,), daemon=True)
     web.start()
     steps.start()
@@ -276,10 +317,11 @@ def running(engine: Engine, host: str = "127.0.0.1", port: int = 0, token: str |
     while not server.started:
         if not web.is_alive() or time.monotonic() > deadline:
             runner.stop()
+            sock.close()
             raise RuntimeError(f"the play server did not start on {host}:{port}.")
         time.sleep(0.02)
     try:
-        yield f"{host}:{server.servers[0].sockets[0].getsockname()[1]}"
+        yield Served(f"{host}:{port}", access.token)
     finally:
         server.should_exit = True  # the web side closes its sessions through the engine first
         web.join(30)
@@ -295,15 +337,25 @@ def _run_engine(runner: Runner) -> None:
         runner.engine.shutdown()
 
 
-def serve(engine: Engine, host: str = "127.0.0.1", port: int = 8000, token: str | None = None) -> None:
-    """Run the server until Ctrl-C or SIGTERM: the engine on this (the main) thread, uvicorn
-    on another. Stopping closes the web side first (its sessions close through the engine),
-    then the engine."""
-    check_bind(host, token)
+def serve(engine: Engine, sock: socket.socket, access: Access) -> None:
+    """Run the server on the bound ``sock`` until Ctrl-C or SIGTERM: the engine on this (the
+    main) thread, uvicorn on another. Stopping closes the web side first (its sessions close
+    through the engine), then the engine. If either side fails, the other stops too and a
+    PlayError says so."""
     runner = Runner(engine)
-    server = _uvicorn(runner, host, port, token)
-    web = threading.Thread(target=lambda: (server.run(), runner.stop()), name="iwsim-server", daemon=True)
-    web.start()  # when uvicorn ends (stopped, or failing to start: port in use, ...), so does the engine
+    server = _uvicorn(runner, access)
+    failure: list[BaseException] = []
+
+    def web_side() -> None:
+        try:
+            server.run(sockets=[sock])
+        except BaseException as e:  # noqa: BLE001 - incl. the SystemExit uvicorn raises on a failed start
+            failure.append(e)
+        finally:
+            runner.stop()  # whatever ended the web side ends the engine
+
+    web = threading.Thread(target=web_side, name="iwsim-server", daemon=True)
+    web.start()
 
     def stop(*_: Any) -> None:
         server.should_exit = True
@@ -317,7 +369,16 @@ def serve(engine: Engine, host: str = "127.0.0.1", port: int = 8000, token: str 
             except KeyboardInterrupt:  # Ctrl-C: stop the web side, and serve it until it is done
                 stop()
     finally:
+        stop()  # an engine that failed takes the web side down with it
         engine.shutdown()
         web.join(10)
-    if not server.started:
-        raise OSError(f"could not serve on {host}:{port} (is the port in use? see uvicorn's message above).")
+        sock.close()
+    if failure or not server.started:
+        why = f": {_one_line(failure[0])}" if failure and not isinstance(failure[0], SystemExit) else \
+            " (see the message above)"
+        raise PlayError(f"the web server {'stopped' if server.started else 'did not start'}{why}; "
+                        "the simulator stopped with it.")
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(f"{type(e).__name__}: {e}".split())

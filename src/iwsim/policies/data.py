@@ -39,6 +39,13 @@ def parse_mixture(spec: str) -> list[Source]:
         if count and int(count) < 1:
             raise ValueError(f"episode count of {path} must be >= 1, got {count}.")
         sources.append(Source(Path(path), int(count) if count else None))
+    seen: dict[str, str] = {}
+    for src in sources:  # the same store twice would repeat its episodes without a word
+        key = os.path.realpath(src.path)
+        if key in seen:
+            raise ValueError(f"--data names the store {seen[key]} twice ({spec!r}); give each store once, "
+                             "with the number of episodes to take from it.")
+        seen[key] = str(src.path)
     if not sources:
         raise ValueError(f"--data {spec!r} names no episode store; expected STORE[:N][,STORE:N...].")
     return sources

@@ -133,6 +133,22 @@ def save_model_dir(path: Path, tensors: dict[str, torch.Tensor], config: dict[st
     return path
 
 
+def resume_candidates(root: Path) -> list[Path]:
+    """Checkpoints a run may resume from, newest first: the one ``root/last`` names (even if
+    it is gone), then every older ``<step:08d>`` directory; empty without ``last``."""
+    link = root / "last"
+    if not link.is_symlink():
+        return [] if not link.exists() else [link.resolve()]
+    newest = root / os.readlink(link)
+    try:
+        newest_step = int(newest.name)
+    except ValueError:
+        return [newest]
+    older = sorted((p for p in root.iterdir() if p.name.isdigit() and len(p.name) == 8 and p.is_dir()
+                    and int(p.name) < newest_step), key=lambda p: int(p.name), reverse=True)
+    return [newest, *older]
+
+
 def last_checkpoint(root: Path) -> Path | None:
     """The directory ``root/last`` points at, or None when there is none yet."""
     link = root / "last"

@@ -35,9 +35,10 @@ from iwsim.training import distributed
 from iwsim.training.checkpoint import (
     CheckpointError,
     load_json,
-    load_tensors,
     last_checkpoint,
+    load_tensors,
     optimizer_from_tensors,
+    resume_candidates,
     optimizer_to_tensors,
     save_checkpoint,
     write_json_atomic,
@@ -174,18 +175,9 @@ def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, A
     opt = torch.optim.AdamW(module.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     ckpt_root = run_dir / "checkpoints"
     start, elapsed = 0, 0.0
-    last = last_checkpoint(ckpt_root)
-    if last is not None:
-        state = load_json(last / "training_state" / "state.json")
-        try:
-            module.load_state_dict(load_tensors(last / "training_state" / "model.safetensors"))
-            ema.load_state_dict(load_tensors(last / "training_state" / "ema.safetensors"))
-            optimizer_from_tensors(opt, load_tensors(last / "training_state" / "optimizer.safetensors"),
-                                   state["optimizer"])
-        except (RuntimeError, KeyError, ValueError) as e:
-            raise CheckpointError(f"checkpoint {last} does not fit this model ({' '.join(str(e).split())[:200]}); "
-                                  "train into a new --out.") from None
-        start, elapsed = int(state["step"]), float(state["elapsed_s"])
+    resumed = _resume(ckpt_root, module, ema, opt)
+    if resumed is not None:
+        last, start, elapsed = resumed
         log.info("resuming from %s (step %d)", last, start)
         if d.main:
             _truncate_metrics(run_dir / "metrics.jsonl", start)
@@ -264,13 +256,66 @@ def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, A
     return last_eval
 
 
+def _read_checkpoint(ckpt: Path) -> tuple[dict[str, Any], dict[str, dict[str, torch.Tensor]]]:
+    """Everything a resume reads from ``ckpt`` (state.json and the training tensors), having
+    checked that the whole checkpoint is readable; a CheckpointError names what is not."""
+    state = load_json(ckpt / "training_state" / "state.json")
+    if not isinstance(state.get("step"), int) or not isinstance(state.get("elapsed_s"), (int, float)) \
+            or not isinstance(state.get("optimizer"), dict):
+        raise CheckpointError(f"checkpoint file {ckpt / 'training_state' / 'state.json'} lacks step, elapsed_s "
+                              "or optimizer.")
+    load_json(ckpt / "config.json")
+    load_tensors(ckpt / "model.safetensors")  # what users load must be whole too
+    return state, {stem: load_tensors(ckpt / "training_state" / f"{stem}.safetensors")
+                   for stem in ("model", "ema", "optimizer")}
+
+
+def _resume(ckpt_root: Path, module: nn.Module, ema: nn.Module,
+            opt: torch.optim.Optimizer) -> tuple[Path, int, float] | None:
+    """Load the newest whole checkpoint into ``module``, ``ema`` and ``opt``: (its path,
+    step, elapsed seconds), or None when the run has none. A damaged one (truncated or
+    unreadable files, e.g. from a full disk or a kill outside our atomic writes) is skipped
+    with a warning naming it; a checkpoint of another model is an error, not skipped."""
+    candidates = resume_candidates(ckpt_root)
+    damaged: list[str] = []
+    for ckpt in candidates:
+        try:
+            state, tensors = _read_checkpoint(ckpt)
+        except CheckpointError as e:
+            log.warning("%s; resuming from the checkpoint before it instead", " ".join(str(e).split())[:300])
+            damaged.append(ckpt.name)
+            continue
+        try:
+            module.load_state_dict(tensors["model"])
+            ema.load_state_dict(tensors["ema"])
+            optimizer_from_tensors(opt, tensors["optimizer"], state["optimizer"])
+        except (RuntimeError, KeyError, ValueError) as e:
+            raise CheckpointError(f"checkpoint {ckpt} does not fit this model ({' '.join(str(e).split())[:200]}); "
+                                  "train into a new --out.") from None
+        return ckpt, state["step"], float(state["elapsed_s"])
+    if damaged:
+        raise CheckpointError(f"no checkpoint in {ckpt_root} is whole (damaged: {', '.join(damaged)}); remove them "
+                              "to train from scratch, or train into a new --out.")
+    return None
+
+
 def resolve_device(name: str) -> torch.device:
     """``auto`` -> cuda when available, else cpu (only the CLI resolves ``auto``)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
-        return torch.device(name)
+        device = torch.device(name)
     except RuntimeError:
         raise ValueError(f"unknown device {name!r}; expected auto, cpu, cuda or cuda:N.") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            build = "this PyTorch build has no CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"
+            raise ValueError(f"--device {name}: {build}; use --device cpu (or auto).")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"--device {name}: there are only {torch.cuda.device_count()} CUDA devices "
+                             f"(cuda:0..cuda:{torch.cuda.device_count() - 1}).")
+    elif device.type != "cpu":
+        raise ValueError(f"unknown device {name!r}; expected auto, cpu, cuda or cuda:N.")
+    return device
 
 

@@ -20,7 +20,7 @@ import logging
 import os
 from pathlib import Path
 
-from iwsim.data.formats.common import FormatError, output_dir, write_store
+from iwsim.data.formats.common import FormatError, check_resize_memory, output_dir, write_store
 from iwsim.data.store import EpisodeStore
 
 log = logging.getLogger(__name__)
@@ -65,6 +65,8 @@ def import_(fmt: str, src: str | os.PathLike, out: str | os.PathLike, *, camera:
         raise ValueError(f"unknown import format {fmt!r}; expected one of {', '.join(IMPORT_FORMATS)}.")
     if image_size is not None and image_size < 1:
         raise ValueError(f"--image-size must be a positive integer, got {image_size}.")
+    if image_size is not None:  # before reading anything: one frame must fit
+        check_resize_memory(1, image_size, f"--image-size {image_size} (for a single frame)")
     src = Path(src)
     if not src.exists():
         raise FileNotFoundError(f"{src} does not exist.")

@@ -11,14 +11,15 @@ import contextlib
 import math
 import os
 import shutil
-import uuid
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from iwsim.data.lock import LOCK_NAME, DirLock, remove_stale_temps, temp_sibling
 from iwsim.data.store import EpisodeStore
+from iwsim.resources import require_memory
 
 REQUIRED = ("img", "state", "action")
 
@@ -84,20 +85,34 @@ def check_episode(ep: Mapping[str, np.ndarray], at: str) -> dict[str, np.ndarray
 @contextlib.contextmanager
 def output_dir(out: str | os.PathLike, force: bool = False) -> Iterator[Path]:
     """A temporary directory next to ``out``, renamed to ``out`` when the block succeeds and
-    removed when it fails, so ``out`` never holds a half-written result."""
+    removed when it fails, so ``out`` never holds a half-written result.
+
+    The temporary directory is locked while it is written (see :mod:`iwsim.data.lock`), so
+    the next run for ``out`` can tell those of killed runs from live ones and removes them."""
     out = Path(out)
     if out.exists() and not force:
         raise FileExistsError(f"{out} already exists; choose another output path.")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
+    remove_stale_temps(out)
+    tmp = temp_sibling(out)
     tmp.mkdir()
     try:
-        yield tmp
-        if out.exists():
-            shutil.rmtree(out)
-        os.rename(tmp, out)
+        with DirLock(tmp) as lock:
+            yield tmp
+            lock.unlink()  # not part of the result
+            if out.exists():
+                shutil.rmtree(out)
+            os.rename(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+RESIZE_BYTES_PER_VALUE = 9  # the float32 interpolation, its rounded float32 copy, the uint8 result
+
+
+def check_resize_memory(frames: int, size: int, what: str) -> None:
+    """Refuse to resize ``frames`` frames to ``size`` x ``size`` when the buffers cannot fit."""
+    require_memory(frames * size * size * 3 * RESIZE_BYTES_PER_VALUE, what)
 
 
 def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
@@ -134,11 +149,17 @@ def write_store(out: str | os.PathLike, episodes: Iterable[tuple[dict[str, np.nd
         store = EpisodeStore.create(tmp / "store.zarr", dict(attrs))
         for ep, seed in tqdm(episodes, total=total, unit="ep", desc=f"import {Path(out).name}", disable=not progress):
             if image_size is not None:
+                check_resize_memory(len(ep["img"]), image_size,
+                                    f"resizing an episode of {len(ep['img'])} frames to {image_size}x{image_size}")
                 ep = {**ep, "img": resize_frames(ep["img"], image_size)}
             store.append(ep, seed=seed)
         if store.n_episodes == 0:
             raise FormatError(f"no episodes to write to {out}.")
+        store.close()
         for child in (tmp / "store.zarr").iterdir():
+            if child.name == LOCK_NAME:  # the store was only ever ours; tmp's own lock stays in place
+                child.unlink()
+                continue
             os.rename(child, tmp / child.name)
         (tmp / "store.zarr").rmdir()
     return EpisodeStore.open(out, "r")

@@ -29,13 +29,16 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import re
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from iwsim.data.formats.common import FormatError, check_episode, store_episodes, where
+from iwsim.data.formats.common import FormatError, check_episode, positive_int, store_episodes, where
 from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video
 from iwsim.data.store import EpisodeStore
 
@@ -53,6 +56,83 @@ INDEX_FEATURES = {"timestamp": "float32", "frame_index": "int64", "episode_index
                   "task_index": "int64"}
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 STATS_FRAMES = 100  # at most this many frames (evenly spaced) per image statistic, as LeRobot samples
+
+
+# -- path templates -------------------------------------------------------------------------
+
+# A template is literal path text and fields: {name} or, for integers, {name:Nd} / {name:0Nd}.
+# Parsed here, never given to str.format: Python's format mini-language would evaluate
+# attribute and index lookups ("{chunk_index.__class__.__mro__}") from an untrusted file.
+_FIELD = re.compile(r"\{([a-z_]+)(?::(0?)([1-9]\d?)d)?\}")
+_LITERAL = re.compile(r"[A-Za-z0-9_.\-/]*")  # path characters only: no braces, backslashes or NUL
+TEMPLATE_FIELDS = {"episode_chunk": int, "episode_index": int, "chunk_index": int, "file_index": int,
+                   "video_key": str}
+
+
+@dataclass(frozen=True)
+class PathTemplate:
+    """A LeRobot ``data_path`` / ``video_path`` template, parsed with a strict grammar; see
+    :meth:`parse`. :meth:`resolve` gives paths that stay inside the dataset root."""
+
+    text: str
+    parts: tuple[str | tuple[str, str, int], ...]  # literal text, or (field, zero pad "0"/"", width)
+    at: str  # where the template came from, for errors
+
+    @classmethod
+    def parse(cls, text: object, fields: tuple[str, ...], at: str) -> PathTemplate:
+        """``text`` as a relative path template using only ``fields`` (integers may carry a
+        width); else a FormatError naming it."""
+        expected = (f"expected a relative path using only {', '.join('{' + f + '}' for f in fields)} "
+                    "(integers may have a width, e.g. {episode_index:06d})")
+        if not isinstance(text, str):
+            raise FormatError(f"{at}: {text!r} is not a path template; {expected}.")
+        parts: list[str | tuple[str, str, int]] = []
+        pos = 0
+        for m in _FIELD.finditer(text):
+            parts.append(text[pos:m.start()])
+            name, zero, width = m.group(1), m.group(2), m.group(3)
+            if name not in fields or (width and TEMPLATE_FIELDS[name] is not int):
+                raise FormatError(f"{at}: template {text!r} has the field {m.group(0)}; {expected}.")
+            parts.append((name, zero or "", int(width or 0)))
+            pos = m.end()
+        parts.append(text[pos:])
+        literals = [p for p in parts if isinstance(p, str)]
+        segments = re.split(r"\{[^}]*\}", text)
+        if (not all(_LITERAL.fullmatch(p) for p in literals) or text.startswith("/")
+                or any(seg == ".." for piece in segments for seg in piece.split("/"))):
+            raise FormatError(f"{at}: template {text!r} is not allowed; {expected}.")
+        return cls(text, tuple(p for p in parts if p != ""), at)
+
+    def resolve(self, root: Path, **values: object) -> Path:
+        """The path for ``values`` under ``root``; a FormatError if it would leave ``root``
+        (e.g. through a ``video_key`` of ``..`` or a symlink)."""
+        out = []
+        for p in self.parts:
+            if isinstance(p, str):
+                out.append(p)
+                continue
+            name, zero, width = p
+            v = values[name]
+            if TEMPLATE_FIELDS[name] is int:
+                if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                    raise FormatError(f"{self.at}: {name} {v!r} is not a non-negative integer.")
+                out.append(str(int(v)).rjust(width, "0" if zero else " "))
+            else:
+                out.append(str(v))
+        path = root / "".join(out)
+        real_root = os.path.realpath(root)
+        if os.path.commonpath([real_root, os.path.realpath(path)]) != real_root:
+            raise FormatError(f"{self.at}: template {self.text!r} leads to {''.join(out)!r}, outside the dataset "
+                              f"{root}.")
+        return path
+
+
+def _templates(info: dict, src: Path, default_data: str, default_video: str, data_fields: tuple[str, ...],
+               video_fields: tuple[str, ...]) -> tuple[PathTemplate, PathTemplate]:
+    """info.json's ``data_path`` and ``video_path`` (or the defaults), parsed."""
+    at = src / "meta" / "info.json"
+    return (PathTemplate.parse(info.get("data_path", default_data), data_fields, where(at, "data_path")),
+            PathTemplate.parse(info.get("video_path") or default_video, video_fields, where(at, "video_path")))
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -381,7 +461,8 @@ def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple
     if tasks_path.exists():
         t = _read_parquet(tasks_path)
         tasks = [str(x) for x in (t.column("task").to_pylist() if "task" in t.column_names else [])]
-    data_path, video_path = info.get("data_path", V3_DATA), info.get("video_path", V3_VIDEO)
+    data_path, video_path = _templates(info, src, V3_DATA, V3_VIDEO, ("chunk_index", "file_index"),
+                                       ("video_key", "chunk_index", "file_index"))
 
     def episodes() -> Iterator[tuple[dict, int | None]]:
         tables: dict[Path, Any] = {}
@@ -389,8 +470,10 @@ def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple
         for m in meta:
             e = m.get("episode_index")
             try:
-                path = src / data_path.format(chunk_index=m["data/chunk_index"], file_index=m["data/file_index"])
+                path = data_path.resolve(src, chunk_index=m["data/chunk_index"], file_index=m["data/file_index"])
                 lo, hi = int(m["dataset_from_index"]), int(m["dataset_to_index"])
+            except FormatError:
+                raise
             except (KeyError, TypeError, ValueError):
                 raise FormatError(f"{where(meta_files[0], episode=e)}: episode row lacks its data file or "
                                   "index range.") from None
@@ -404,9 +487,11 @@ def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple
             frames = None
             if is_video:
                 try:
-                    vpath = src / video_path.format(video_key=cam, chunk_index=m[f"videos/{cam}/chunk_index"],
-                                                    file_index=m[f"videos/{cam}/file_index"])
+                    vpath = video_path.resolve(src, video_key=cam, chunk_index=m[f"videos/{cam}/chunk_index"],
+                                               file_index=m[f"videos/{cam}/file_index"])
                     first = round(float(m[f"videos/{cam}/from_timestamp"]) * info["fps"])
+                except FormatError:
+                    raise
                 except (KeyError, TypeError, ValueError):
                     raise FormatError(f"{where(meta_files[0], f'videos/{cam}', e)}: missing video location.") from None
                 if vpath not in videos:
@@ -440,19 +525,23 @@ def read_v21(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tupl
     meta = sorted(_jsonl(src / "meta" / "episodes.jsonl"), key=lambda m: m.get("episode_index", -1))
     tasks = [str(t.get("task")) for t in _jsonl(src / "meta" / "tasks.jsonl")] if (src / "meta/tasks.jsonl").exists() \
         else []
-    chunks = int(info.get("chunks_size", CHUNKS_SIZE))
-    data_path, video_path = info.get("data_path", V21_DATA), info.get("video_path", V21_VIDEO)
+    chunks = positive_int(info.get("chunks_size", CHUNKS_SIZE))
+    if chunks is None:
+        raise FormatError(f"{where(src / 'meta' / 'info.json', 'chunks_size')}: {info.get('chunks_size')!r}, "
+                          "expected a positive integer.")
+    data_path, video_path = _templates(info, src, V21_DATA, V21_VIDEO, ("episode_chunk", "episode_index"),
+                                       ("episode_chunk", "video_key", "episode_index"))
 
     def episodes() -> Iterator[tuple[dict, int | None]]:
         for m in meta:
             e = m.get("episode_index")
             if not isinstance(e, int):
                 raise FormatError(f"{src / 'meta/episodes.jsonl'}: an entry without an integer episode_index.")
-            path = src / data_path.format(episode_chunk=e // chunks, episode_index=e)
+            path = data_path.resolve(src, episode_chunk=e // chunks, episode_index=e)
             table = _read_parquet(path)
             frames = None
             if is_video:
-                vpath = src / video_path.format(episode_chunk=e // chunks, video_key=cam, episode_index=e)
+                vpath = video_path.resolve(src, episode_chunk=e // chunks, video_key=cam, episode_index=e)
                 frames = _slice(read_video(vpath), 0, table.num_rows, vpath, e)
             yield _episode_from_rows(table, path, e, cam, frames), None
 

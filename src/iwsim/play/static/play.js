@@ -24,7 +24,9 @@ const state = {
 window.iwsim = { state, stats: { fps: 0, latencyP95: null, latencyLast: null, frames: 0 } };
 
 function connect() {
-  const token = new URLSearchParams(location.search).get("token");
+  // The server embeds its token in the page it serves to this machine; remote users give it as ?token=.
+  const meta = document.querySelector('meta[name="iwsim-token"]');
+  const token = new URLSearchParams(location.search).get("token") || (meta && meta.content);
   const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws` +
     (token ? `?token=${encodeURIComponent(token)}` : "");
   const ws = new WebSocket(url);
