@@ -7,8 +7,11 @@
 Initial frames come from ``reset_source``: ``"mujoco"`` (a fresh MuJoCo reset with the
 given seed, so a policy starts from the same state in both environments), ``"store"``
 (a random frame of the episode store ``store``), or ``reset(options={"frame": f})``.
-``agent_pos`` is read from the frame (the pushers' colour centroids), and ``info["iou"]``
+``agent_pos`` is read from the frame (the pushers' colours), and ``info["iou"]``
 and the reward come from the pixel scorer, so nothing but the model's pixels is used.
+Actions are commanded targets, approached at the task's speed limit exactly as MuJoCo
+does (:func:`iwsim.envs.pusht.limit_targets`, starting from the pushers' positions at
+reset); the model is conditioned on that executed motion (``info["target"]``).
 
 :class:`WorldModelVectorEnv` steps many environments in one forward pass. Its episodes
 run in lockstep (all start together and are truncated together after
@@ -27,7 +30,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from iwsim.envs.pixels import pixel_iou, pusher_positions, read_frames
-from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, spaces
+from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, limit_targets, spaces
 from iwsim.world_model import WorldModel
 
 SOURCES = ("mujoco", "store")
@@ -116,6 +119,15 @@ def _hold_unseen(pos: np.ndarray, found: np.ndarray, previous: np.ndarray) -> np
     return np.clip(pos, -WORKSPACE, WORKSPACE).astype(np.float32)
 
 
+def check_actions(actions: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """Commanded targets as float64 of ``shape``, or a ValueError (before any state changes)."""
+    a = np.asarray(actions, dtype=np.float64)
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        raise ValueError(f"expected finite actions of shape {shape} [lx, ly, rx, ry] in metres, got "
+                         f"{a.shape if a.shape != shape else a.tolist()}.")
+    return a
+
+
 def _load(model: WorldModel | None, checkpoint: str | Path | None, device: str) -> WorldModel:
     if model is not None:
         return model
@@ -162,14 +174,16 @@ class WorldModelEnv(gym.Env):
             frame, pos = start.frame, start.agent_pos
         self.model.reset(frame[None], seed=draw)
         self._frame, self._agent_pos = frame, np.asarray(pos, dtype=np.float32)
+        self._setpoint = self._agent_pos.astype(np.float64)
         return self._obs(), self._info()
 
     def step(self, action):
         if self._frame is None:
             raise RuntimeError("call reset() before step().")
-        self._frame = self.model.step(np.asarray(action, dtype=np.float32)[None])[0]
+        self._setpoint = limit_targets(self._setpoint, check_actions(action, (4,)))
+        self._frame = self.model.step(self._setpoint.astype(np.float32)[None])[0]
         self._agent_pos = read_agent_pos(self._frame[None], self._agent_pos[None])[0]
-        info = self._info()
+        info = {**self._info(), "target": self._setpoint.astype(np.float32)}
         terminated = bool(self.terminate_on_success and info["is_success"])
         return self._obs(), float(info["iou"]), terminated, False, info
 
@@ -237,6 +251,7 @@ class WorldModelVectorEnv(VectorEnv):
             pos = np.stack([d.agent_pos for d in drawn])
         self.model.reset(frames, seed=seeds)
         self._frames, self._agent_pos = frames, pos.astype(np.float32)
+        self._setpoint = self._agent_pos.astype(np.float64)
         self._t, self._needs_reset = 0, False
         return self._obs(), self._info()
 
@@ -247,7 +262,8 @@ class WorldModelVectorEnv(VectorEnv):
             obs, info = self.reset()
             zeros = np.zeros(self.num_envs, dtype=bool)
             return obs, np.zeros(self.num_envs), zeros, zeros.copy(), info
-        self._frames = self.model.step(np.asarray(actions, dtype=np.float32))
+        self._setpoint = limit_targets(self._setpoint, check_actions(actions, (self.num_envs, 4)))
+        self._frames = self.model.step(self._setpoint.astype(np.float32))
         self._agent_pos = read_agent_pos(self._frames, self._agent_pos)
         self._t += 1
         info = self._info()

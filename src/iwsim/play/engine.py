@@ -6,12 +6,15 @@ and sends what they return. The server makes every call from one thread, so sess
 no locks; only saving an episode goes to a writer thread.
 
 Each session holds its own :class:`~iwsim.world_model.StreamState`. A tick joins the
-states of all sessions with the same context length (all of them, once each has run N - 1
-steps) into one batch, takes one forward pass and splits the states again.
+states of all sessions into one batch, takes one forward pass and splits the states again.
+
+Motion: a session's action is a commanded target; the pushers approach it at the task's
+speed limit (:func:`iwsim.envs.pusht.limit_targets`, the function MuJoCo runs too), and
+the world model is conditioned on that executed motion, as it was trained.
 
 Recording: step t stores the frame shown before action t, the pusher positions read from
-it, the action and the frame's pixel IoU (``img``, ``state``, ``action``, ``iou``: the
-layout of ``iwsim collect``). The take lives in memory until it is saved, and a save is
+it, the action, the setpoints it executed and the frame's pixel IoU (``img``, ``state``,
+``action``, ``target``, ``iou``: the layout of ``iwsim collect``). The take lives in memory until it is saved, and a save is
 one atomic append, so a client that vanishes mid-recording leaves nothing behind.
 """
 
@@ -19,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import defaultdict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,14 +31,14 @@ import numpy as np
 import torch
 
 from iwsim.envs.pixels import pixel_iou
-from iwsim.envs.pusht import TaskSpec
+from iwsim.envs.pusht import TaskSpec, limit_targets
 from iwsim.envs.world_model_env import Start, Starts, observe
 from iwsim.play import protocol as proto
 from iwsim.world_model import StreamState, WorldModel
 
 log = logging.getLogger(__name__)
 
-EPISODE_KEYS = ("img", "state", "action", "iou")
+EPISODE_KEYS = ("img", "state", "action", "target", "iou")
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,7 @@ class Session:
 
     id: int
     target: np.ndarray  # the action applied at every step until the client sends another
+    setpoint: np.ndarray = field(default_factory=lambda: np.zeros(4, np.float32))  # the executed motion
     ack: int = -1  # seq of the last action message
     state: StreamState | None = None
     frame: np.ndarray | None = None  # the world model's current frame (H, W, 3)
@@ -254,6 +257,7 @@ class Engine:
         s.state, s.start, s.source, s.seed, s.step = self.model.state, start, source, seed, 0
         s.frame, s.agent_pos = start.frame, start.agent_pos.astype(np.float32)
         s.target = np.clip(s.agent_pos, self.low, self.high)  # the pushers hold still
+        s.setpoint = s.agent_pos.copy()  # MuJoCo's position controllers start at the pushers
         s.iou = float(pixel_iou(s.frame))
         s.twin_frame = s.twin_iou = None
         if s.twin is not None and start.state is not None:
@@ -261,33 +265,29 @@ class Engine:
             s.twin_frame, s.twin_iou = obs["pixels"], float(info["iou"])
 
     def tick(self) -> list[Session]:
-        """One control step of every session: record, then step all world models in as few
-        batched passes as context lengths differ, and the MuJoCo twins. Returns the sessions
-        stepped."""
+        """One control step of every session: record, then step all world models in one
+        batched pass, and the MuJoCo twins. Returns the sessions stepped."""
         sessions = [s for s in self.sessions.values() if s.state is not None]
         if not sessions:
             return []
         t0 = time.perf_counter()
         for s in sessions:
+            s.setpoint = limit_targets(s.setpoint, s.target).astype(np.float32)
             if s.take is not None and len(s.take["img"]) < self.cfg.max_record_steps:
-                for key, value in zip(EPISODE_KEYS, (s.frame, s.agent_pos, s.target, s.iou)):
+                for key, value in zip(EPISODE_KEYS, (s.frame, s.agent_pos, s.target, s.setpoint, s.iou)):
                     s.take[key].append(np.asarray(value, np.uint8 if key == "img" else np.float32))
-        groups: dict[int, list[Session]] = defaultdict(list)
-        for s in sessions:
-            groups[s.state.context_frames].append(s)
-        for group in groups.values():
-            self.model.state = group[0].state if len(group) == 1 else StreamState.cat([s.state for s in group])
-            # One session's step is too small to gain from a second thread, and with the browser
-            # on the same two cores a second thread made it slower (p95 key-to-frame 107 vs
-            # 95 ms at 25 Hz, bench/bench_play.py); batches do gain (4 sessions: 84 vs 113 ms).
-            torch.set_num_threads(1 if len(group) == 1 else self._threads)
-            try:
-                frames = self.model.step(np.stack([s.target for s in group]))
-            finally:
-                torch.set_num_threads(self._threads)
-            states = [self.model.state] if len(group) == 1 else self.model.state.split()
-            for s, state, frame in zip(group, states, frames):
-                s.state, s.frame = state, frame
+        self.model.state = sessions[0].state if len(sessions) == 1 else StreamState.cat([s.state for s in sessions])
+        # One session's step is too small to gain from a second thread, and with the browser
+        # on the same two cores a second thread made it slower (p95 key-to-frame 107 vs
+        # 95 ms at 25 Hz, bench/bench_play.py); batches do gain (4 sessions: 84 vs 113 ms).
+        torch.set_num_threads(1 if len(sessions) == 1 else self._threads)
+        try:
+            frames = self.model.step(np.stack([s.setpoint for s in sessions]))
+        finally:
+            torch.set_num_threads(self._threads)
+        states = [self.model.state] if len(sessions) == 1 else self.model.state.split()
+        for s, state, frame in zip(sessions, states, frames):
+            s.state, s.frame = state, frame
         ious, pos = observe(np.stack([s.frame for s in sessions]), np.stack([s.agent_pos for s in sessions]))
         for s, iou, p in zip(sessions, ious, pos):
             s.iou, s.agent_pos, s.step = float(iou), p, s.step + 1

@@ -108,6 +108,12 @@ class DynamicsTrainModule(nn.Module):
         self.feeds_estimate = cfg.objective == "regression" or (cfg.objective == "consistency" and one_jump)
 
     def forward(self, batch: DynBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        per = self.unroll(batch)  # (B, n)
+        return per.mean(), {"loss_first": per[:, 0].mean().item(), "loss_last": per[:, -1].mean().item(),
+                            "unroll": float(per.shape[1])}
+
+    def unroll(self, batch: DynBatch) -> torch.Tensor:
+        """The loss (B, n) of each of the n predictions of each sequence."""
         cfg = self.cfg
         k = cfg.dynamics.context
         n = batch.z.shape[1] - k
@@ -136,9 +142,7 @@ class DynamicsTrainModule(nn.Module):
                     estimate = self.objective.sample(net, self.schedule, torch.randn_like(target), steps)
             pred = base + estimate
             ctx = torch.cat([ctx[:, 1:], (pred if cfg.unroll_grad else pred.detach())[:, None]], 1)
-        per = torch.stack(losses, 1)  # (B, n)
-        return per.mean(), {"loss_first": per[:, 0].mean().item(), "loss_last": per[:, -1].mean().item(),
-                            "unroll": float(n)}
+        return torch.stack(losses, 1)
 
 
 class DynamicsTask:
