@@ -32,11 +32,11 @@ import torch  # noqa: E402
 from iwsim import WorldModel  # noqa: E402
 from iwsim.config import DYNAMICS_PRESETS, variant  # noqa: E402
 from iwsim.data.frames import to_model  # noqa: E402
-from iwsim.data.store import EpisodeStore  # noqa: E402
+from iwsim.data.store import EpisodeStore, conditioning_key  # noqa: E402
 from iwsim.envs import pixels  # noqa: E402
 from iwsim.envs.pusht import VIEW_HALF  # noqa: E402
 from iwsim.eval.metrics import psnr  # noqa: E402
-from iwsim.training.dynamics import conditioning_key, resolve_checkpoint, train_dynamics  # noqa: E402
+from iwsim.training.dynamics import resolve_checkpoint, train_dynamics  # noqa: E402
 
 STEPS = (1, 5, 10, 20, 32)
 POSE_STEPS = (10, 20, 32)

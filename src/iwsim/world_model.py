@@ -121,7 +121,19 @@ class WorldModel(nn.Module):
         # of the "edm" objective) per new frame and the context-noise std the context is
         # labelled with (standardised latent units).
         self.jumps, self.euler_steps, self.context_label = cfg.jumps, cfg.euler_steps, cfg.context_label
+        self.reencode = False
         self._state: StreamState | None = None
+
+    @property
+    def context_label(self) -> float:
+        """The context-noise std (standardised latent units) the context is labelled with."""
+        return self._context_label
+
+    @context_label.setter
+    def context_label(self, value: float) -> None:
+        if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
+            raise ValueError(f"context_label must be a finite std >= 0, got {value!r}.")
+        self._context_label = float(value)
 
     # -- properties -------------------------------------------------------------------------
     @property
@@ -184,10 +196,15 @@ class WorldModel(nn.Module):
         return self.ae.encode_tensor(to_model(x).to(self.device))
 
     @torch.inference_mode()
-    def decode(self, latents: torch.Tensor, seed: int = 0) -> np.ndarray:
-        """Latents (B, C, h, w) -> uint8 frames (B, 4h, 4w, 3) by one consistency jump."""
+    def decode(self, latents: np.ndarray | torch.Tensor, seed: int = 0) -> np.ndarray:
+        """Latents (B, C, h, w) (as ``encode`` returns them, numpy or tensor) -> uint8 frames
+        (B, 4h, 4w, 3) by one consistency jump."""
+        z = torch.as_tensor(latents, dtype=torch.float32, device=self.device)
+        c, h = self.cfg.dynamics.latent_channels, self.image_size // 4
+        if z.ndim != 4 or tuple(z.shape[1:]) != (c, h, h):
+            raise ValueError(f"expected latents (B, {c}, {h}, {h}), got shape {tuple(z.shape)}.")
         g = torch.Generator(self.device).manual_seed(seed)
-        return to_uint8(self.ae.decode_tensor(latents.to(self.device), 1, g))
+        return to_uint8(self.ae.decode_tensor(z, 1, g))
 
     # -- streaming rollout on latents ---------------------------------------------------------
     def standardize(self, z: torch.Tensor) -> torch.Tensor:
@@ -268,8 +285,18 @@ class WorldModel(nn.Module):
     @torch.inference_mode()
     def step(self, actions: np.ndarray | torch.Tensor) -> np.ndarray:
         """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)."""
-        z = self.step_latent(self.normalize_actions(actions, self.state.batch_size))
-        return to_uint8(self.decode_latents(z))
+        return to_uint8(self.step_frames(self.normalize_actions(actions, self.state.batch_size)))
+
+    @torch.inference_mode()
+    def step_frames(self, actions: torch.Tensor) -> torch.Tensor:
+        """Normalised actions (B, A) -> the next images (B, 3, H, W) in [-1, 1]. With
+        ``reencode``, the newest context latent becomes the encoding of the decoded frame
+        (the decoder renders a clean frame and the encoder projects it back onto the data),
+        instead of the predicted latent."""
+        images = self.decode_latents(self.step_latent(actions))
+        if self.reencode:
+            self.state.context[:, -1] = self.standardize(self.ae.encode_tensor(images.clamp(-1, 1)))
+        return images
 
     @torch.inference_mode()
     def decode_latents(self, z: torch.Tensor) -> torch.Tensor:
@@ -300,7 +327,7 @@ class WorldModel(nn.Module):
         out = []
         with torch.inference_mode():
             for i in tqdm(range(a.shape[1]), desc="rollout", disable=not progress):
-                out.append(to_uint8(self.decode_latents(self.step_latent(a[:, i]))))
+                out.append(to_uint8(self.step_frames(a[:, i])))
         return np.stack(out, 1) if out else np.zeros((self.batch_size, 0, self.image_size, self.image_size, 3),
                                                      np.uint8)
 

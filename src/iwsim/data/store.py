@@ -57,6 +57,12 @@ class StoreLockedError(StoreError):
     """Another process is writing the store."""
 
 
+def conditioning_key(keys: list[str]) -> str:
+    """The array a world model is conditioned on: ``target``, the motion the robot executed
+    (e.g. rate-limited pusher setpoints), when the store records it, else ``action``."""
+    return "target" if "target" in keys else "action"
+
+
 def chunk_frames(frame_shape: tuple[int, ...], dtype: np.dtype) -> int:
     """Frames per chunk: the largest power of two whose chunk stays within ``CHUNK_BYTES``."""
     frame_bytes = max(1, int(np.prod(frame_shape, dtype=np.int64)) * np.dtype(dtype).itemsize)

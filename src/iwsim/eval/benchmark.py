@@ -205,11 +205,10 @@ def stability(models: dict[str, WorldModel], steps: int, seed: int = 100000, eve
     memory: list[float] = []
     try:
         for t in tqdm(range(1, steps + 1), desc="stability", disable=not progress):
-            action = np.asarray(pol(obs, info), dtype=np.float32)
-            obs, _, _, _, info = env.step(action)
+            obs, _, _, _, info = env.step(np.asarray(pol(obs, info), dtype=np.float32))
             frames = {}
-            for name, wm in models.items():
-                z = wm.step_latent(wm.normalize_actions(action[None]))
+            for name, wm in models.items():  # conditioned on the motion MuJoCo executed
+                z = wm.step_latent(wm.normalize_actions(info["target"][None]))
                 if t % every == 0 or t == steps:
                     frames[name] = to_uint8(wm.decode_latents(z))[0]
             if not frames:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from iwsim.data.frames import to_model
-from iwsim.data.store import EpisodeStore
+from iwsim.data.store import EpisodeStore, conditioning_key
 from iwsim.eval.metrics import psnr, ssim
 from iwsim.eval.video import score_bar, upscale, write_video
 from iwsim.world_model import WorldModel
@@ -63,8 +63,9 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
             raise ValueError(f"episode {e} of {store.path} has {len(ep['img'])} frames; {context} context frames "
                              f"and {steps} steps need {context + steps} (use --steps {len(ep['img']) - context}).")
     frames = np.stack([ep["img"][:context] for ep in eps])
-    actions = np.stack([ep["action"][context - 1:context - 1 + steps] for ep in eps])
-    ctx_actions = np.stack([ep["action"][:context - 1] for ep in eps]) if context > 1 else None
+    key = conditioning_key(store.keys)  # the executed motion when the store has it
+    actions = np.stack([ep[key][context - 1:context - 1 + steps] for ep in eps])
+    ctx_actions = np.stack([ep[key][:context - 1] for ep in eps]) if context > 1 else None
     truth = np.stack([ep["img"][context:context + steps] for ep in eps])
     pred = wm.rollout(frames, actions, ctx_actions, seed=seed, progress=progress)
     p, s = frame_scores(truth, pred)
@@ -74,7 +75,8 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
 def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert", noise_seed: int = 0,
                    progress: bool = False) -> OpenLoop:
     """Roll ``wm`` out from the MuJoCo task's initial frame for ``seed`` under a scripted
-    policy's actions (the policy sees MuJoCo), against MuJoCo's frames of the same actions."""
+    policy's actions (the policy sees MuJoCo), against MuJoCo's frames of the same actions;
+    the model is conditioned on the motion MuJoCo executed (``info["target"]``)."""
     from iwsim.envs import make_env
     from iwsim.envs.pixels import pixel_iou
     from iwsim.envs.policies import make_policy
@@ -88,8 +90,8 @@ def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert"
         pol.reset(obs, info)
         first, truth, actions = obs["pixels"], [], []
         for _ in range(steps):
-            actions.append(np.asarray(pol(obs, info), dtype=np.float32))
-            obs, _, _, _, info = env.step(actions[-1])
+            obs, _, _, _, info = env.step(np.asarray(pol(obs, info), dtype=np.float32))
+            actions.append(info["target"])
             truth.append(obs["pixels"])
     finally:
         env.close()

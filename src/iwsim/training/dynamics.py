@@ -39,7 +39,7 @@ from tqdm import tqdm
 from iwsim.autoencoder import Autoencoder
 from iwsim.config import OBJECTIVES, DynamicsStageConfig
 from iwsim.data.frames import split_episodes, to_model, to_uint8
-from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.data.store import EpisodeStore, StoreError, conditioning_key
 from iwsim.diffusion import edm
 from iwsim.diffusion.consistency import sample_levels
 from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
@@ -64,11 +64,6 @@ def resolve_checkpoint(path: str | Path) -> Path:
         raise CheckpointError(f"{path} is neither a checkpoint directory (model.safetensors + config.json) "
                               "nor a run directory with checkpoints.")
     return last
-
-
-def conditioning_key(keys: list[str]) -> str:
-    """The store array the dynamics is conditioned on: the executed motion when recorded."""
-    return "target" if "target" in keys else "action"
 
 
 @dataclass
