@@ -21,10 +21,11 @@ import numpy as np
 import torch
 
 from iwsim.autoencoder import Autoencoder
+from iwsim.checkpoint import resolve_checkpoint
 from iwsim.data.frames import FrameSource, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
 from iwsim.eval.benchmark import latency_ms
-from iwsim.eval.metrics import psnr, ssim
+from iwsim.metrics import psnr, ssim
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -71,7 +72,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
 
     config = json.loads((args.run / "config.json").read_text())
-    ckpt = (args.run / "checkpoints" / "last").resolve()
+    ckpt = resolve_checkpoint(args.run)
     ae = Autoencoder.load(ckpt)
     store = EpisodeStore.open(config["data"])
     held = FrameSource(store, config["split"]["heldout_episodes"])

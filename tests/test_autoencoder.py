@@ -7,7 +7,7 @@ import torch
 from iwsim.autoencoder import Autoencoder
 from iwsim.config import AE_PRESETS, AEConfig, from_dict, to_dict
 from iwsim.data.frames import to_model, to_uint8
-from iwsim.eval.metrics import psnr, ssim
+from iwsim.metrics import psnr, ssim
 from iwsim.models.autoencoder import DecoderUNet, Encoder
 
 

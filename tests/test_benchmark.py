@@ -12,7 +12,7 @@ from safetensors.torch import save_file
 from iwsim.cli import main
 from iwsim.eval import benchmark as bm
 from iwsim.eval import features as ft
-from iwsim.eval.metrics import mse, psnr, ssim, uiqi
+from iwsim.metrics import mse, psnr, ssim, uiqi
 from tests.test_dynamics import tiny_world_model
 from tests.test_features import _random_state
 

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from iwsim.autoencoder import Autoencoder
+from iwsim.checkpoint import CheckpointError, load_tensors, save_model_dir
 from iwsim.config import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant
 from iwsim.diffusion.edm import training_sigmas
 from iwsim.diffusion.schedule import Schedule
 from iwsim.models.dynamics import Dynamics, DynamicsConfig, blobs
-from iwsim.training.checkpoint import CheckpointError, load_tensors, save_model_dir
 from iwsim.training.dynamics import DynamicsTrainModule, DynBatch
 from iwsim.world_model import StreamState, WorldModel
 

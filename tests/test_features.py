@@ -11,9 +11,9 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
+from iwsim.checkpoint import CheckpointError
 from iwsim.errors import IwsimError
 from iwsim.eval import features as ft
-from iwsim.training.checkpoint import CheckpointError
 
 
 def _random_state(cls: type[torch.nn.Module], seed: int) -> dict[str, torch.Tensor]:

@@ -9,6 +9,7 @@ import pytest
 import torch
 from scipy import stats
 
+from iwsim.checkpoint import CheckpointError
 from iwsim.cli import main
 from iwsim.data.collect import collect
 from iwsim.data.store import EpisodeStore
@@ -17,7 +18,6 @@ from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.policies import PRESETS, load_policy, make_policy
 from iwsim.policies.common import Normalizer, random_shift
 from iwsim.policies.data import PolicyData, Source, parse_mixture
-from iwsim.training.checkpoint import CheckpointError
 from tests.test_dynamics import tiny_world_model
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -9,13 +9,13 @@ import torch
 from safetensors.torch import load_file
 
 from iwsim.autoencoder import Autoencoder
+from iwsim.checkpoint import CheckpointError, last_checkpoint
 from iwsim.cli import main
 from iwsim.config import AE_PRESETS, TrainConfig, to_dict
 from iwsim.data.collect import collect
 from iwsim.data.store import StoreError
 from iwsim.training import trainer
 from iwsim.training.autoencoder import AETask, train_autoencoder
-from iwsim.training.checkpoint import CheckpointError, last_checkpoint
 
 TINY = AE_PRESETS["tiny"]
 

@@ -18,7 +18,9 @@ from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.consistency import sample
 from iwsim.diffusion.schedule import Schedule
 from iwsim.models.autoencoder import DecoderUNet, Encoder
-from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors
+
+KIND = "autoencoder"  # config.json's kind
+from iwsim.checkpoint import CheckpointError, load_model_dir
 
 
 class Autoencoder(nn.Module):
@@ -93,15 +95,14 @@ class Autoencoder(nn.Module):
     def load(cls, path: str | Path, device: str | torch.device = "cpu") -> Autoencoder:
         """From a checkpoint directory holding ``model.safetensors`` and ``config.json``."""
         path = Path(path)
-        if not path.is_dir():
-            raise CheckpointError(f"{path} is not a checkpoint directory (model.safetensors + config.json).")
+        config, tensors = load_model_dir(path, KIND)
         try:
-            cfg = from_dict(AEConfig, load_json(path / "config.json")["model"])
+            cfg = from_dict(AEConfig, config["model"])
         except (TypeError, ValueError, KeyError) as e:
             raise CheckpointError(f"{path / 'config.json'} is not an autoencoder config: {e}") from None
         model = cls(cfg)
         try:
-            model.load_state_dict(load_tensors(path / "model.safetensors"))
+            model.load_state_dict(tensors)
         except RuntimeError as e:
             raise CheckpointError(f"{path / 'model.safetensors'} does not match its config: {e}") from None
         return model.to(device).eval()

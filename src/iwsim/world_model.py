@@ -34,12 +34,12 @@ import torch
 from torch import nn
 
 from iwsim.autoencoder import Autoencoder
+from iwsim.checkpoint import CheckpointError, load_json, load_model_dir, resolve_checkpoint, save_model_dir
 from iwsim.config import OBJECTIVES, AEConfig, DynamicsStageConfig, from_dict
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
 from iwsim.diffusion.schedule import Schedule, gaussian
 from iwsim.models.dynamics import Dynamics
-from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors, save_model_dir
 
 KIND = "world_model"
 
@@ -356,12 +356,7 @@ class WorldModel(nn.Module):
         """From a checkpoint directory (``model.safetensors`` + ``config.json``), e.g. one
         written by ``iwsim train dynamics`` or ``iwsim export-model``."""
         path = Path(path)
-        if not path.is_dir():
-            raise CheckpointError(f"{path} is not a checkpoint directory (model.safetensors + config.json).")
-        config = load_json(path / "config.json")
-        if config.get("kind") != KIND:
-            raise CheckpointError(f"{path} is not a world-model checkpoint (config kind {config.get('kind')!r}, "
-                                  f"expected {KIND!r}).")
+        config, tensors = load_model_dir(path, KIND)
         for part in ("ae", "stage2", "action_norm", "latent_norm"):
             if part not in config:
                 raise CheckpointError(f"{path / 'config.json'} is missing the {part!r} part of the world model.")
@@ -370,7 +365,6 @@ class WorldModel(nn.Module):
             cfg = from_dict(DynamicsStageConfig, config["stage2"])
         except (TypeError, ValueError, KeyError) as e:
             raise CheckpointError(f"{path / 'config.json'} does not describe a world model: {e}") from None
-        tensors = load_tensors(path / "model.safetensors")
         parts = {}
         for part in ("ae", "dynamics"):
             parts[part] = {k[len(part) + 1:]: v for k, v in tensors.items() if k.startswith(part + ".")}
@@ -394,8 +388,6 @@ def export_model(run: str | Path, out: str | Path, force: bool = False) -> Path:
     """A standalone world-model checkpoint (``model.safetensors`` + ``config.json``) from a
     run of ``train dynamics`` or ``train decoder-finetune`` (its last checkpoint) or from
     one of its checkpoints (``iwsim export-model``)."""
-    from iwsim.training.dynamics import resolve_checkpoint
-
     src = resolve_checkpoint(run)
     config = load_json(src / "config.json")
     provenance = {k: config[k] for k in ("data", "ae_checkpoint", "finetuned_from") if k in config}

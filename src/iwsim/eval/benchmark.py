@@ -30,11 +30,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from iwsim.checkpoint import resolve_checkpoint, write_json_atomic
 from iwsim.data.frames import split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
 from iwsim.eval import features as feats
-from iwsim.eval.metrics import mse, psnr, ssim, uiqi
-from iwsim.training.checkpoint import write_json_atomic
+from iwsim.metrics import mse, psnr, ssim, uiqi
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
@@ -343,7 +343,6 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
     ``out``: results.json, results.md, curves.png, frames.png, stability.png."""
     from iwsim.envs.pixels import pixel_iou
     from iwsim.eval.rollout import open_loop
-    from iwsim.training.dynamics import resolve_checkpoint
 
     if not models:
         raise ValueError("no model to benchmark.")

@@ -36,13 +36,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import nn
 from torch.nn import functional as F
 
+from iwsim.checkpoint import CheckpointError, load_tensors
 from iwsim.errors import IwsimError
-from iwsim.training.checkpoint import CheckpointError
 
 WEIGHTS_ENV = "IWSIM_WEIGHTS"
 LPIPS_FILE = "lpips_alex.safetensors"
@@ -448,10 +447,7 @@ def _load(kind: str, directory: Path | None, device: str | torch.device) -> nn.M
     path = directory / filename
     if not path.is_file():
         raise WeightsMissing(filename, directory)
-    try:
-        tensors = load_file(path)
-    except (SafetensorError, OSError, ValueError) as e:
-        raise CheckpointError(f"{path} is not a readable safetensors file: {e}.") from None
+    tensors = load_tensors(path)
     model = cls()
     _load_state(model, tensors, path)
     return model.to(device).eval().requires_grad_(False)

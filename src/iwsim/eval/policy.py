@@ -153,8 +153,8 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
     result = {"env": env, "steps": steps, **(meta or {}), **summarize(run["iou"].max(1), seeds),
               "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
     if out is not None:
+        from iwsim.checkpoint import write_json_atomic
         from iwsim.eval.video import upscale, write_video
-        from iwsim.training.checkpoint import write_json_atomic
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

@@ -12,8 +12,8 @@ import numpy as np
 
 from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
-from iwsim.eval.metrics import psnr, ssim
 from iwsim.eval.video import score_bar, upscale, write_video
+from iwsim.metrics import psnr, ssim
 from iwsim.world_model import WorldModel
 
 

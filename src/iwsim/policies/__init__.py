@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from iwsim.checkpoint import CheckpointError, load_model_dir
 from iwsim.config import TrainConfig, from_dict, to_dict
 from iwsim.policies.common import Normalizer
 
@@ -85,22 +86,18 @@ def describe(policy: nn.Module) -> dict[str, Any]:
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
     """A trained policy from a checkpoint directory, or from a run (its last checkpoint)."""
-    from iwsim.training.checkpoint import CheckpointError, load_json, load_tensors
-
     path = Path(path)
     if (path / "checkpoints" / "last").exists():
         path = (path / "checkpoints" / "last").resolve()
     if not (path / "config.json").is_file() or not (path / "model.safetensors").is_file():
         raise CheckpointError(f"{path} is not a policy checkpoint (model.safetensors + config.json) or a run of "
                               "iwsim train policy.")
-    config = load_json(path / "config.json")
-    if config.get("kind") != KIND:
-        raise CheckpointError(f"{path} is a {config.get('kind')!r} checkpoint, not a policy.")
+    config, tensors = load_model_dir(path, KIND)
     try:
         a, s = int(config["action_dim"]), int(config["state_dim"])
         policy = make_policy(config["policy"], config["model"], Normalizer(torch.zeros(a), torch.ones(a)),
                              Normalizer(torch.zeros(s), torch.ones(s)))
-        policy.load_state_dict(load_tensors(path / "model.safetensors"))
+        policy.load_state_dict(tensors)
         policy.image_size = int(config.get("image_size", 64))  # the frames it was trained on
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path} does not hold a loadable policy ({' '.join(str(e).split())[:200]}).") from None

@@ -12,13 +12,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.autoencoder import Autoencoder
+from iwsim.autoencoder import KIND, Autoencoder
+from iwsim.checkpoint import resolve_checkpoint
 from iwsim.config import AEConfig, to_dict
 from iwsim.data.frames import FrameSource, split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.diffusion.consistency import sample_levels, two_jump_loss
 from iwsim.diffusion.schedule import gaussian
-from iwsim.eval.metrics import psnr, ssim
+from iwsim.metrics import psnr, ssim
 from iwsim.training import trainer
 from iwsim.world_model import WorldModel
 
@@ -131,7 +132,7 @@ def train_autoencoder(cfg: AEConfig, data: str | Path, out: str | Path, *, devic
                       force: bool = False, progress: bool = True) -> dict[str, float]:
     """Train (or resume) stage 1 into the run directory ``out``."""
     task = AETask(cfg, data)
-    config = {"kind": "autoencoder", "model": to_dict(cfg), "data": str(data), "split": task.split()}
+    config = {"kind": KIND, "model": to_dict(cfg), "data": str(data), "split": task.split()}
     return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress)
 
 
@@ -159,8 +160,6 @@ def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path,
     decoder-finetune``), at a lower learning rate, with the encoder frozen. The noise has
     the scale of the stage-2 context noise in the dynamics' standardised units, so the
     decoder learns to render latents as imperfect as predicted ones."""
-    from iwsim.training.dynamics import resolve_checkpoint
-
     src = resolve_checkpoint(world_model)
     wm = WorldModel.load(src, device)
     base = wm.ae.cfg

@@ -37,6 +37,7 @@ from torch import nn
 from tqdm import tqdm
 
 from iwsim.autoencoder import Autoencoder
+from iwsim.checkpoint import resolve_checkpoint
 from iwsim.config import OBJECTIVES, DynamicsStageConfig
 from iwsim.data.frames import split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore, StoreError, conditioning_key
@@ -45,25 +46,12 @@ from iwsim.diffusion.consistency import sample_levels
 from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
 from iwsim.diffusion.objectives import Levels
 from iwsim.diffusion.schedule import Schedule, gaussian
-from iwsim.eval.metrics import psnr
+from iwsim.metrics import psnr
 from iwsim.models.dynamics import Dynamics
 from iwsim.training import trainer
-from iwsim.training.checkpoint import CheckpointError, last_checkpoint
 from iwsim.world_model import KIND, WorldModel, label, scale_actions
 
 log = logging.getLogger(__name__)
-
-
-def resolve_checkpoint(path: str | Path) -> Path:
-    """A checkpoint directory, or a run directory (its ``checkpoints/last``)."""
-    path = Path(path)
-    if (path / "model.safetensors").is_file():
-        return path
-    last = last_checkpoint(path / "checkpoints")
-    if last is None:
-        raise CheckpointError(f"{path} is neither a checkpoint directory (model.safetensors + config.json) "
-                              "nor a run directory with checkpoints.")
-    return last
 
 
 @dataclass

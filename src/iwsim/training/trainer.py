@@ -29,20 +29,20 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from iwsim.config import TrainConfig
-from iwsim.errors import IwsimError
-from iwsim.training import distributed
-from iwsim.training.checkpoint import (
+from iwsim.checkpoint import (
     CheckpointError,
-    load_json,
     last_checkpoint,
+    load_json,
     load_tensors,
     optimizer_from_tensors,
-    resume_candidates,
     optimizer_to_tensors,
+    resume_candidates,
     save_checkpoint,
     write_json_atomic,
 )
+from iwsim.config import TrainConfig
+from iwsim.errors import IwsimError
+from iwsim.training import distributed
 
 log = logging.getLogger(__name__)
 

@@ -9,6 +9,10 @@ Layout of a run directory's checkpoints::
 
 A checkpoint is written under a temporary name and renamed into place, and ``last`` is
 replaced atomically afterwards, so a crash never leaves ``last`` pointing at a partial one.
+
+A model directory (a checkpoint, or a standalone export) holds ``model.safetensors`` and a
+``config.json`` whose ``kind`` says what it holds; :func:`load_model_dir` reads one of a
+given kind, and every model class loads through it.
 """
 
 from __future__ import annotations
@@ -23,9 +27,14 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from iwsim.errors import IwsimError
 
-class CheckpointError(ValueError):
-    """A checkpoint that is missing, incomplete or corrupt."""
+# What each ``config.json`` kind holds, for messages.
+KINDS = {"autoencoder": "an autoencoder", "world_model": "a world model", "policy": "a policy"}
+
+
+class CheckpointError(IwsimError, ValueError):
+    """A checkpoint that is missing, incomplete or corrupt (a ValueError too, as it always was)."""
 
 
 def write_json_atomic(path: Path, obj: Any, sort_keys: bool = True) -> None:
@@ -51,6 +60,31 @@ def load_json(path: Path) -> dict[str, Any]:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise CheckpointError(f"checkpoint file {path} is not valid JSON: {e}.") from None
+
+
+def load_model_dir(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """The ``config.json`` and the tensors of the model directory ``path``, whose config
+    must say ``kind`` (one of :data:`KINDS`); a CheckpointError naming the file otherwise."""
+    path = Path(path)
+    if not path.is_dir():
+        raise CheckpointError(f"{path} is not a checkpoint directory (model.safetensors + config.json).")
+    config = load_json(path / "config.json")
+    found = config.get("kind") if isinstance(config, dict) else None
+    if found != kind:
+        raise CheckpointError(f"{path} is a {found!r} checkpoint, not {KINDS.get(kind, repr(kind))}.")
+    return config, load_tensors(path / "model.safetensors")
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A checkpoint directory, or a run directory (its ``checkpoints/last``)."""
+    path = Path(path)
+    if (path / "model.safetensors").is_file():
+        return path
+    last = last_checkpoint(path / "checkpoints")
+    if last is None:
+        raise CheckpointError(f"{path} is neither a checkpoint directory (model.safetensors + config.json) "
+                              "nor a run directory with checkpoints.")
+    return last
 
 
 def optimizer_to_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
