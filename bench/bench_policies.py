@@ -37,7 +37,7 @@ from iwsim.policies import load_policy  # noqa: E402
 
 
 def _expert_episode(seed_steps: tuple[int, int]) -> float:
-    from iwsim.envs import record_episode
+    from iwsim.envs.scripted import record_episode
 
     seed, steps = seed_steps
     return float(np.max(record_episode("pusht", "expert", seed, steps)["iou"]))

@@ -71,20 +71,10 @@ def scorer_errors(n_states: int) -> dict:
 
 
 def _expert_episode(job: tuple[int, str, int]) -> list[float]:
-    from iwsim.envs.policies import ExpertPolicy
-    from iwsim.envs.pusht import BimanualPushTEnv
+    from iwsim.envs.scripted import ExpertPolicy, run_scripted
 
     seed, source, steps = job
-    env = BimanualPushTEnv(64)
-    pol = ExpertPolicy(pose_source=source)
-    obs, info = env.reset(seed=seed)
-    pol.reset(obs, info)
-    ious = []
-    for _ in range(steps):
-        obs, _, _, _, info = env.step(pol(obs, info))
-        ious.append(info["iou"])
-    env.close()
-    return ious
+    return [tr.next_info["iou"] for tr in run_scripted(ExpertPolicy(pose_source=source), seed, steps)]
 
 
 def expert_scores(seeds: range, steps: int, workers: int) -> dict:

@@ -22,8 +22,9 @@ from tqdm import tqdm
 
 import iwsim
 from iwsim.data.store import EpisodeStore
-from iwsim.envs import POLICIES, check_task, record_episode
+from iwsim.envs import POLICIES, check_task
 from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU, TaskSpec
+from iwsim.envs.scripted import record_episode
 from iwsim.resources import require_memory
 
 log = logging.getLogger(__name__)

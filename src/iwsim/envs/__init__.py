@@ -1,9 +1,10 @@
-"""Tasks (MuJoCo ground truth), their scripted policies and pixel scorers."""
+"""Tasks (MuJoCo ground truth), their scripted policies (:mod:`iwsim.envs.scripted`) and
+pixel scorers (:mod:`iwsim.envs.pixels`): the ground truth only. The Gymnasium envs over a
+learned world model live above the models, in :mod:`iwsim.world_model_env`."""
 
 from __future__ import annotations
 
 import gymnasium as gym
-import numpy as np
 from gymnasium.envs.registration import register, registry
 
 if "iwsim/BimanualPushT-v0" not in registry:
@@ -34,38 +35,3 @@ def check_task(task: str) -> str:
 def make_env(task: str, image_size: int = 64, **kwargs) -> gym.Env:
     """The task's environment without a time limit (episode length is the caller's)."""
     return gym.make(check_task(task), image_size=image_size, max_episode_steps=None, **kwargs)
-
-
-def record_episode(task: str, policy: str, seed: int, steps: int, image_size: int = 64) -> dict[str, np.ndarray]:
-    """Run one seeded episode and return its arrays, in the episode store's layout.
-
-    Step t holds the observation before action t and the action itself:
-    ``img`` (T, H, W, 3) uint8, ``state`` (T, 4) float32 (agent_pos), ``action`` (T, 4)
-    float32 (as commanded), ``target`` (T, 4) float32 (the rate-limited setpoints action t
-    executed, what the world model is conditioned on), ``block_pose`` (T, 3) float32,
-    ``iou`` (T,) float32 and ``n_contacts`` (T,) int32, with T = ``steps``. The same
-    arguments give the same arrays.
-    """
-    from iwsim.envs.policies import make_policy
-
-    env = make_env(task, image_size)
-    try:
-        pol = make_policy(policy, seed)
-        obs, info = env.reset(seed=seed)
-        pol.reset(obs, info)
-        rows: dict[str, list] = {k: [] for k in ("img", "state", "action", "target", "block_pose", "iou",
-                                                 "n_contacts")}
-        for _ in range(steps):
-            action = np.asarray(pol(obs, info), dtype=np.float32)
-            rows["img"].append(obs["pixels"])
-            rows["state"].append(obs["agent_pos"])
-            rows["action"].append(action)
-            rows["block_pose"].append(info["block_pose"])
-            rows["iou"].append(info["iou"])
-            rows["n_contacts"].append(info["n_contacts"])
-            obs, _, _, _, info = env.step(action)
-            rows["target"].append(info["target"])
-    finally:
-        env.close()
-    dtypes = {"img": np.uint8, "n_contacts": np.int32}
-    return {k: np.asarray(v, dtype=dtypes.get(k, np.float32)) for k, v in rows.items()}

@@ -33,6 +33,8 @@ from tqdm import tqdm
 from iwsim.checkpoint import resolve_checkpoint, write_json_atomic
 from iwsim.data.frames import split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
+from iwsim.envs.pixels import block_fraction, estimate_block_pose, pixel_iou
+from iwsim.envs.scripted import run_scripted
 from iwsim.eval import features as feats
 from iwsim.metrics import mse, psnr, ssim, uiqi
 from iwsim.world_model import WorldModel
@@ -187,25 +189,19 @@ def stability(models: dict[str, WorldModel], steps: int, seed: int = 100000, eve
     """All models and MuJoCo under the same play-policy actions for ``steps`` steps; every
     ``every`` steps, per model and for MuJoCo ("mujoco"): frame mean and std, block pixels,
     whether the block is detected (a T fits with IoU >= 0.8) and resident memory."""
-    from iwsim.envs import make_env
-    from iwsim.envs.pixels import block_fraction, estimate_block_pose
-    from iwsim.envs.policies import make_policy
-
     if steps < 1 or every < 1:
         raise ValueError(f"stability steps and interval must be >= 1, got {steps} and {every}.")
     size = next(iter(models.values())).image_size
-    env = make_env("pusht", size)
-    pol = make_policy("play", seed)
-    obs, info = env.reset(seed=seed)
-    pol.reset(obs, info)
-    for wm in models.values():
-        wm.reset(obs["pixels"][None], seed=seed)
     rows: dict[str, dict[str, list]] = {k: {"step": [], "mean": [], "std": [], "block": [], "detected": []}
                                         for k in (*models, "mujoco")}
     memory: list[float] = []
+    run = run_scripted("play", seed, steps, "pusht", size)
     try:
-        for t in tqdm(range(1, steps + 1), desc="stability", disable=not progress):
-            obs, _, _, _, info = env.step(np.asarray(pol(obs, info), dtype=np.float32))
+        for t, tr in enumerate(tqdm(run, total=steps, desc="stability", disable=not progress), 1):
+            if t == 1:
+                for wm in models.values():
+                    wm.reset(tr.obs["pixels"][None], seed=seed)
+            obs, info = tr.next_obs, tr.next_info
             frames = {}
             for name, wm in models.items():  # conditioned on the motion MuJoCo executed
                 z = wm.step_latent(wm.normalize_actions(info["target"][None]))
@@ -225,7 +221,7 @@ def stability(models: dict[str, WorldModel], steps: int, seed: int = 100000, eve
                 r["detected"].append(bool(est.found and est.fit_iou >= 0.8))
             memory.append(rss_mib())
     finally:
-        env.close()
+        run.close()
     out = {k: {kk: np.asarray(vv) for kk, vv in v.items()} for k, v in rows.items()}
     out["mujoco"]["memory_mib"] = np.asarray(memory)
     return out
@@ -341,7 +337,6 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
                   device: torch.device | str = "cpu", progress: bool = True) -> dict:
     """Benchmark ``models`` (name -> world-model checkpoint; the first is "ours") into
     ``out``: results.json, results.md, curves.png, frames.png, stability.png."""
-    from iwsim.envs.pixels import pixel_iou
     from iwsim.eval.rollout import open_loop
 
     if not models:

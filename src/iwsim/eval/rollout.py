@@ -12,6 +12,8 @@ import numpy as np
 
 from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
+from iwsim.envs.pixels import pixel_iou
+from iwsim.envs.scripted import run_scripted
 from iwsim.eval.video import score_bar, upscale, write_video
 from iwsim.metrics import psnr, ssim
 from iwsim.world_model import WorldModel
@@ -53,8 +55,6 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
               seed: int = 0, progress: bool = False) -> OpenLoop:
     """Roll ``wm`` out on ``episodes`` of ``store`` (batched): the first ``context`` frames
     (and the actions between them) are the context; then ``steps`` recorded actions."""
-    from iwsim.envs.pixels import pixel_iou
-
     if context < 1 or steps < 1:
         raise ValueError(f"context and steps must be >= 1, got {context} and {steps}.")
     eps = [store.episode(e) for e in episodes]  # raises on a bad index
@@ -77,26 +77,13 @@ def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert"
     """Roll ``wm`` out from the MuJoCo task's initial frame for ``seed`` under a scripted
     policy's actions (the policy sees MuJoCo), against MuJoCo's frames of the same actions;
     the model is conditioned on the motion MuJoCo executed (``info["target"]``)."""
-    from iwsim.envs import make_env
-    from iwsim.envs.pixels import pixel_iou
-    from iwsim.envs.policies import make_policy
-
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}.")
-    env = make_env("pusht", wm.image_size)
-    try:
-        pol = make_policy(policy, seed)
-        obs, info = env.reset(seed=seed)
-        pol.reset(obs, info)
-        first, truth, actions = obs["pixels"], [], []
-        for _ in range(steps):
-            obs, _, _, _, info = env.step(np.asarray(pol(obs, info), dtype=np.float32))
-            actions.append(info["target"])
-            truth.append(obs["pixels"])
-    finally:
-        env.close()
-    truth_v = np.stack(truth)[None]
-    pred = wm.rollout(first[None], np.stack(actions)[None], seed=noise_seed, progress=progress)
+    run = list(run_scripted(policy, seed, steps, "pusht", wm.image_size))
+    first = run[0].obs["pixels"]
+    truth_v = np.stack([tr.next_obs["pixels"] for tr in run])[None]
+    actions = np.stack([tr.next_info["target"] for tr in run])[None]
+    pred = wm.rollout(first[None], actions, seed=noise_seed, progress=progress)
     p, s = frame_scores(truth_v, pred)
     return OpenLoop([seed], truth_v, pred, p, s, np.asarray(pixel_iou(truth_v)), np.asarray(pixel_iou(pred)))
 

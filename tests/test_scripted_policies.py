@@ -1,9 +1,8 @@
 import numpy as np
 import pytest
 
-from iwsim.envs import record_episode
-from iwsim.envs.policies import ExpertPolicy, make_policy
 from iwsim.envs.pusht import BimanualPushTEnv
+from iwsim.envs.scripted import ExpertPolicy, make_policy, record_episode
 
 
 @pytest.mark.parametrize("source", ["state", "pixels"])

@@ -1,7 +1,11 @@
 """Scripted policies for the T-pushing task: ``play`` (world-model data) and ``expert``.
 
 A policy is called as ``policy(obs, info) -> action`` after ``policy.reset(obs, info)``;
-actions are absolute pusher targets ``[lx, ly, rx, ry]``.
+actions are absolute pusher targets ``[lx, ly, rx, ry]``. :func:`run_scripted` is the one
+loop in which a scripted policy drives MuJoCo; :func:`record_episode` records one.
+
+(Not to be confused with :mod:`iwsim.policies`, the learned policies, which are called as
+``policy.predict_action(obs)``.)
 
 Both are built on one manoeuvre, the *pinch*: the pushers slide into the notches under
 the T's bar, one on each side of the stem, squeeze the stem and then carry the block as a
@@ -12,13 +16,17 @@ T grown by the pusher radius, computed in the block's frame.
 from __future__ import annotations
 
 import heapq
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, Protocol
 
+import gymnasium as gym
 import numpy as np
 
-from iwsim.envs import POLICIES
+from iwsim.envs import POLICIES, make_env
 from iwsim.envs import geometry as geo
-from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.geometry import to_block, to_world
+from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import GOAL_POSE, MAX_STEP, PUSHER_RADIUS, WORKSPACE
 
 # The pinch, in the block frame: grip level just under the bar, on both sides of the stem.
@@ -324,3 +332,67 @@ def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
     if name not in POLICIES:
         raise ValueError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
     return ExpertPolicy() if name == "expert" else PlayPolicy(seed)
+
+
+class ScriptedPolicy(Protocol):
+    def reset(self, obs: dict, info: dict) -> None: ...
+
+    def __call__(self, obs: dict, info: dict) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One step of a scripted episode: the observation and info before the action, the
+    action (float32), and the observation and info after it (``next_info["target"]`` is
+    the motion MuJoCo executed, what a world model is conditioned on)."""
+
+    obs: dict[str, np.ndarray]
+    info: dict[str, Any]
+    action: np.ndarray
+    next_obs: dict[str, np.ndarray]
+    next_info: dict[str, Any]
+
+
+def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, task: str = "pusht",
+                 image_size: int = 64, env: gym.Env | None = None) -> Iterator[Transition]:
+    """Drive ``task`` (or ``env``) with a scripted policy (a name of :data:`POLICIES`,
+    seeded by ``seed``, or a policy object) for ``steps`` steps from the reset with
+    ``seed``, yielding each :class:`Transition`. An environment made here is closed when
+    the loop ends or is abandoned."""
+    own = env is None
+    env = make_env(task, image_size) if env is None else env
+    try:
+        pol = make_policy(policy, seed) if isinstance(policy, str) else policy
+        obs, info = env.reset(seed=seed)
+        pol.reset(obs, info)
+        for _ in range(steps):
+            action = np.asarray(pol(obs, info), dtype=np.float32)
+            next_obs, _, _, _, next_info = env.step(action)
+            yield Transition(obs, info, action, next_obs, next_info)
+            obs, info = next_obs, next_info
+    finally:
+        if own:
+            env.close()
+
+
+def record_episode(task: str, policy: str, seed: int, steps: int, image_size: int = 64) -> dict[str, np.ndarray]:
+    """Run one seeded episode and return its arrays, in the episode store's layout.
+
+    Step t holds the observation before action t and the action itself:
+    ``img`` (T, H, W, 3) uint8, ``state`` (T, 4) float32 (agent_pos), ``action`` (T, 4)
+    float32 (as commanded), ``target`` (T, 4) float32 (the rate-limited setpoints action t
+    executed, what the world model is conditioned on), ``block_pose`` (T, 3) float32,
+    ``iou`` (T,) float32 and ``n_contacts`` (T,) int32, with T = ``steps``. The same
+    arguments give the same arrays.
+    """
+    rows: dict[str, list] = {k: [] for k in ("img", "state", "action", "target", "block_pose", "iou", "n_contacts")}
+    for tr in run_scripted(policy, seed, steps, task, image_size):
+        rows["img"].append(tr.obs["pixels"])
+        rows["state"].append(tr.obs["agent_pos"])
+        rows["action"].append(tr.action)
+        rows["block_pose"].append(tr.info["block_pose"])
+        rows["iou"].append(tr.info["iou"])
+        rows["n_contacts"].append(tr.info["n_contacts"])
+        rows["target"].append(tr.next_info["target"])
+    dtypes = {"img": np.uint8, "n_contacts": np.int32}
+    return {k: np.asarray(v, dtype=dtypes.get(k, np.float32)) for k, v in rows.items()}
