@@ -9,7 +9,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 from iwsim.cli import main
-from iwsim.envs.world_model_env import WorldModelEnv, WorldModelVectorEnv
+from iwsim.world_model_env import WorldModelEnv, WorldModelVectorEnv
 from iwsim.world_model import WorldModel
 from tests.test_dynamics import tiny_world_model
 

@@ -17,7 +17,7 @@ if "iwsim/BimanualPushT-v0" not in registry:
 if "iwsim/WorldModel-v0" not in registry:
     register(
         id="iwsim/WorldModel-v0",
-        entry_point="iwsim.envs.world_model_env:WorldModelEnv",
+        entry_point="iwsim.world_model_env:WorldModelEnv",
         max_episode_steps=600,
     )
 

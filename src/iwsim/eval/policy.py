@@ -4,7 +4,7 @@
 Episode i starts from MuJoCo seed ``seed + i`` in both environments: the world model
 starts from MuJoCo's rendering of that seed's initial state. All episodes step together:
 inside the world model that is one batched forward pass per step; in MuJoCo the
-environments step one after another. The score of an episode is the maximum IoU it
+environments step one after another (Gymnasium's ``SyncVectorEnv``). The score of an episode is the maximum IoU it
 reaches (the paper's T-pushing score), success is IoU >= 0.9; the success rate comes with
 a Beta posterior (uniform prior) and a Clopper-Pearson interval.
 """
@@ -18,76 +18,44 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from gymnasium.vector import SyncVectorEnv, VectorEnv
 from torch import nn
 from tqdm import tqdm
 
+from iwsim.checkpoint import write_json_atomic
+from iwsim.envs import make_env
 from iwsim.envs.pusht import SUCCESS_IOU
 from iwsim.eval.stats import beta_posterior, clopper_pearson
+from iwsim.eval.video import upscale, write_video
+from iwsim.world_model_env import WorldModelVectorEnv
 
 ENVS = ("pusht", "world-model")
 
 
-class _MujocoBatch:
-    """E MuJoCo environments in lockstep, with the vector env's reset/step shapes."""
-
-    def __init__(self, n: int, image_size: int) -> None:
-        from iwsim.envs import make_env
-
-        self.envs = [make_env("pusht", image_size) for _ in range(n)]
-
-    def reset(self, seeds: list[int]) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        out = [env.reset(seed=s) for env, s in zip(self.envs, seeds)]
-        return _stack([o for o, _ in out]), np.array([i["iou"] for _, i in out])
-
-    def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        out = [env.step(a) for env, a in zip(self.envs, actions)]
-        return _stack([o[0] for o in out]), np.array([o[4]["iou"] for o in out])
-
-    def close(self) -> None:
-        for env in self.envs:
-            env.close()
-
-
-class _WorldModelBatch:
-    def __init__(self, n: int, world_model: Any, steps: int) -> None:
-        from iwsim.envs.world_model_env import WorldModelVectorEnv
-
-        self.env = WorldModelVectorEnv(n, model=world_model, reset_source="mujoco", max_episode_steps=steps + 1)
-
-    def reset(self, seeds: list[int]) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        obs, info = self.env.reset(seed=seeds)
-        return obs, info["iou"]
-
-    def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        obs, _, _, _, info = self.env.step(actions)
-        return obs, info["iou"]
-
-    def close(self) -> None:
-        self.env.close()
-
-
-def _stack(obs: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    return {k: np.stack([o[k] for o in obs]) for k in obs[0]}
+def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int = 64) -> VectorEnv:
+    """``n`` environments in lockstep as a Gymnasium vector env: MuJoCo's in a
+    :class:`~gymnasium.vector.SyncVectorEnv`, or the world model's batched
+    :class:`~iwsim.world_model_env.WorldModelVectorEnv` (one forward pass per step)."""
+    if env not in ENVS:
+        raise ValueError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
+    if env == "pusht":
+        return SyncVectorEnv([lambda: make_env("pusht", image_size)] * n)
+    if world_model is None:
+        raise ValueError("evaluating inside the world model needs --world-model CHECKPOINT.")
+    if world_model.image_size != image_size:
+        raise ValueError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
+                         f"renders {world_model.image_size}x{world_model.image_size}.")
+    return WorldModelVectorEnv(n, model=world_model, reset_source="mujoco", max_episode_steps=steps + 1)
 
 
 def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
             image_size: int = 64, record: int = 0, progress: bool = True) -> dict[str, Any]:
     """Run ``policy`` for ``steps`` steps from each seed, all episodes together. Returns
     per-step IoU (E, steps + 1) and the frames of the first ``record`` episodes."""
-    if env not in ENVS:
-        raise ValueError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
-    n = len(seeds)
-    if env == "world-model":
-        if world_model is None:
-            raise ValueError("evaluating inside the world model needs --world-model CHECKPOINT.")
-        if world_model.image_size != image_size:
-            raise ValueError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
-                             f"renders {world_model.image_size}x{world_model.image_size}.")
-        batch = _WorldModelBatch(n, world_model, steps)
-    else:
-        batch = _MujocoBatch(n, image_size)
+    venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size)
     try:
-        obs, iou = batch.reset(seeds)
+        obs, info = venv.reset(seed=list(seeds))
+        iou = info["iou"]
         history: deque[dict[str, np.ndarray]] = deque([obs] * policy.obs_horizon, maxlen=policy.obs_horizon)
         ious, frames = [iou], [obs["pixels"][:record]]
         policy.reset()
@@ -100,15 +68,15 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
                            "agent_pos": np.stack([h["agent_pos"] for h in history], 1)}
                 chunk = policy.predict_action(stacked)  # (E, Ta, A)
                 queue = list(chunk.transpose(1, 0, 2))
-            obs, iou = batch.step(queue.pop(0).astype(np.float32))
+            obs, _, _, _, info = venv.step(queue.pop(0).astype(np.float32))
             history.append(obs)
-            ious.append(iou)
+            ious.append(info["iou"])
             frames.append(obs["pixels"][:record])
             bar.update()
         bar.close()
         seconds = time.perf_counter() - t0
     finally:
-        batch.close()
+        venv.close()
     return {"iou": np.stack(ious, 1), "frames": np.stack(frames, 1) if record else None, "seconds": seconds}
 
 
@@ -153,9 +121,6 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
     result = {"env": env, "steps": steps, **(meta or {}), **summarize(run["iou"].max(1), seeds),
               "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
     if out is not None:
-        from iwsim.checkpoint import write_json_atomic
-        from iwsim.eval.video import upscale, write_video
-
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         write_json_atomic(out / "results.json", result, sort_keys=False)

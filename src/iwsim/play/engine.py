@@ -32,7 +32,7 @@ import torch
 
 from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.pusht import TaskSpec, limit_targets
-from iwsim.envs.world_model_env import Start, Starts, observe
+from iwsim.world_model_env import Start, Starts, observe
 from iwsim.play import protocol as proto
 from iwsim.world_model import StreamState, WorldModel
 

@@ -29,6 +29,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from iwsim.data.store import EpisodeStore
+from iwsim.envs import make_env
 from iwsim.envs.pixels import pixel_iou, pusher_positions, read_frames
 from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, limit_targets, spaces
 from iwsim.world_model import WorldModel
@@ -58,8 +60,6 @@ class Starts:
         self._env: gym.Env | None = None
         self._store = None
         if store is not None:
-            from iwsim.data.store import EpisodeStore
-
             self._store = EpisodeStore.open(store, "r")
             size = self._store.array("img").shape[1]
             if size != image_size:
@@ -74,8 +74,6 @@ class Starts:
         source = source or self.source
         if source == "mujoco":
             if self._env is None:
-                from iwsim.envs import make_env
-
                 self._env = make_env(self.task, self.image_size)
             obs, _ = self._env.reset(seed=int(seed), options=None if state is None else {"reset_to_state": state})
             return Start(obs["pixels"], obs["agent_pos"], self._env.unwrapped.get_state())
