@@ -1,0 +1,81 @@
+"""The layers run one way: every module of ``src/iwsim`` imports (at module or function
+level) only from its own layer or those below (``iwsim.layers.LAYERS``), and no imports
+form a cycle."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from iwsim.layers import LAYERS, layer_of
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+ROOT = "iwsim"  # the package's __init__, outside the layers
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(SRC).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {module_name(p): p for p in sorted((SRC / ROOT).rglob("*.py"))}
+
+
+def imports(name: str) -> set[str]:
+    """The iwsim modules ``name`` imports anywhere in its file (``from a import b`` counts
+    as ``a.b`` when that is a module, else as ``a``)."""
+    path = MODULES[name]
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(up + ([base] if base else []))
+            found.update(f"{base}.{a.name}" if f"{base}.{a.name}" in MODULES else base for a in node.names)
+    return {m for m in found if m in MODULES and m != ROOT and m != name}
+
+
+GRAPH = {name: imports(name) for name in MODULES if name != ROOT}
+
+
+def test_every_module_has_a_layer():
+    assert [name for name in GRAPH if layer_of(name) is None] == []
+
+
+def test_no_module_imports_from_a_higher_layer():
+    upward = [f"{name} (layer {layer_of(name) + 1}) imports {dep} (layer {layer_of(dep) + 1})"
+              for name, deps in sorted(GRAPH.items()) for dep in sorted(deps)
+              if layer_of(name) is not None and layer_of(dep) is not None and layer_of(dep) > layer_of(name)]
+    assert upward == []
+
+
+def test_imports_have_no_cycle():
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    cycles = []
+
+    def visit(name: str, path: list[str]) -> None:
+        state[name] = 1
+        for dep in sorted(GRAPH[name]):
+            if state.get(dep) == 1:
+                cycles.append(" -> ".join([*path[path.index(dep):], dep]))
+            elif dep not in state:
+                visit(dep, [*path, dep])
+        state[name] = 2
+
+    for name in sorted(GRAPH):
+        if name not in state:
+            visit(name, [name])
+    assert cycles == []
+
+
+@pytest.mark.parametrize("module, layer", [("iwsim.checkpoint", 0), ("iwsim.envs.scripted", 1),
+                                           ("iwsim.world_model", 3), ("iwsim.world_model_env", 4),
+                                           ("iwsim.cli", len(LAYERS) - 1)])
+def test_layer_of(module, layer):
+    assert layer_of(module) == layer
