@@ -242,7 +242,8 @@ def plot(rows: list[dict], path: Path) -> None:
     for r in rows:
         x = np.sort(r["latencies"])
         if len(x):
-            ax.plot(x, np.arange(1, len(x) + 1) / len(x), label=f"{r['kind']}, {r['clients']} client(s), {r['hz']:g} Hz")
+            label = f"{r['kind']}, {r['clients']} client(s), {r['hz']:g} Hz"
+            ax.plot(x, np.arange(1, len(x) + 1) / len(x), label=label)
     ax.axvline(100, color="grey", ls="--", lw=1)
     ax.set_xlabel("key-to-frame latency (ms)")
     ax.set_ylabel("fraction of presses")

@@ -2,8 +2,10 @@
 
     MUJOCO_GL=egl .venv/bin/iwsim collect --policy expert --episodes 100 --steps 300 --workers 2 \\
         --out data/pusht_expert.zarr
-    OMP_NUM_THREADS=1 .venv/bin/iwsim train policy --policy dp --data data/pusht_expert.zarr --out runs/pol2/dp --steps 6500 &
-    OMP_NUM_THREADS=1 .venv/bin/iwsim train policy --policy act --data data/pusht_expert.zarr --out runs/pol2/act --steps 7500
+    OMP_NUM_THREADS=1 .venv/bin/iwsim train policy --policy dp --data data/pusht_expert.zarr \\
+        --out runs/pol2/dp --steps 6500 &
+    OMP_NUM_THREADS=1 .venv/bin/iwsim train policy --policy act --data data/pusht_expert.zarr \\
+        --out runs/pol2/act --steps 7500
     MUJOCO_GL=egl .venv/bin/python bench/bench_policies.py --runs dp=runs/pol2/dp,act=runs/pol2/act
 
 Checkpoint selection first: every kept checkpoint of a run saved within ``--budget-min``

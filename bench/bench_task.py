@@ -157,7 +157,8 @@ def main() -> None:
         "",
         "## Pixel scorer vs geometry (64 px)",
         "",
-        "| states | n | geometric IoU range | mean abs IoU err | max abs IoU err | pos err mean / max (mm) | yaw err mean / max (deg) |",
+        "| states | n | geometric IoU range | mean abs IoU err | max abs IoU err | pos err mean / max (mm) "
+        "| yaw err mean / max (deg) |",
         "|---|---|---|---|---|---|---|",
     ]
     for name in ("all", "episode_starts", "near_goal"):

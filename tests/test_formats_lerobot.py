@@ -394,7 +394,8 @@ def test_resolved_paths_stay_inside_the_dataset(exports, tmp_path):
     _, problems = validate(root)
     assert len(problems) == 1 and "outside the dataset" in problems[0]
     t = PathTemplate.parse("videos/{video_key}/file-{file_index:03d}.mp4", ("video_key", "file_index"), "t")
-    assert t.resolve(root, video_key="observation.image", file_index=7) == root / "videos/observation.image/file-007.mp4"
+    want = root / "videos/observation.image/file-007.mp4"
+    assert t.resolve(root, video_key="observation.image", file_index=7) == want
     with pytest.raises(FormatError, match="outside the dataset"):
         t.resolve(root, video_key="../..", file_index=0)
 

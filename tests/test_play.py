@@ -18,8 +18,8 @@ from iwsim.cli import main
 from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.envs import make_env
 from iwsim.play import protocol as proto
-from iwsim.play.engine import EPISODE_KEYS, Engine, PlayConfig
 from iwsim.play.access import TOKEN_ENV, Access, PlayError, bind, resolve_token
+from iwsim.play.engine import EPISODE_KEYS, Engine, PlayConfig
 from iwsim.play.server import WS_MAX_BYTES, check_bind, running, serve
 from tests.test_dynamics import tiny_world_model
 
@@ -350,7 +350,8 @@ def test_page_on_all_interfaces_carries_no_token_for_other_names():
 def test_token_comes_from_a_file_or_the_environment(tmp_path):
     file = tmp_path / "token"
     file.write_text("from-the-file\n")
-    assert resolve_token("from-the-flag", file, {TOKEN_ENV: "from-the-env"}) == ("from-the-file", f"--token-file {file}")
+    env = {TOKEN_ENV: "from-the-env"}
+    assert resolve_token("from-the-flag", file, env) == ("from-the-file", f"--token-file {file}")
     assert resolve_token("from-the-flag", None, {TOKEN_ENV: "from-the-env"}) == ("from-the-env", f"${TOKEN_ENV}")
     assert resolve_token("from-the-flag", None, {}) == ("from-the-flag", "--token")
     assert resolve_token(None, None, {}) == (None, "random")

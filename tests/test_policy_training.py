@@ -26,7 +26,8 @@ TINY_DP = PRESETS["tiny-dp"].model
 
 
 def norms(a: int = 4, s: int = 4) -> tuple[Normalizer, Normalizer]:
-    return Normalizer(-0.22 * torch.ones(a), 0.22 * torch.ones(a)), Normalizer(-0.22 * torch.ones(s), 0.22 * torch.ones(s))
+    return (Normalizer(-0.22 * torch.ones(a), 0.22 * torch.ones(a)),
+            Normalizer(-0.22 * torch.ones(s), 0.22 * torch.ones(s)))
 
 
 def test_mixture_takes_exactly_the_requested_episodes(play_store, tmp_path):

@@ -146,7 +146,8 @@ def _error(capsys, argv) -> str:
 
 def test_bad_inputs(play_store, tmp_path, capsys):
     base = ["train", "ae", "--preset", "tiny", "--no-progress"]
-    assert "does not exist" in _error(capsys, base + ["--data", str(tmp_path / "none.zarr"), "--out", str(tmp_path / "r")])
+    missing = ["--data", str(tmp_path / "none.zarr"), "--out", str(tmp_path / "r")]
+    assert "does not exist" in _error(capsys, base + missing)
     junk = tmp_path / "junk.zarr"
     junk.mkdir()
     (junk / "x").write_text("not zarr")

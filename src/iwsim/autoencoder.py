@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from iwsim.checkpoint import CheckpointError, load_model_dir
 from iwsim.config import AEConfig, from_dict
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.consistency import sample
@@ -20,7 +21,6 @@ from iwsim.diffusion.schedule import Schedule
 from iwsim.models.autoencoder import DecoderUNet, Encoder
 
 KIND = "autoencoder"  # config.json's kind
-from iwsim.checkpoint import CheckpointError, load_model_dir
 
 
 class Autoencoder(nn.Module):
@@ -65,7 +65,8 @@ class Autoencoder(nn.Module):
         """uint8 frames (B, H, W, 3) -> latents (B, C, H/4, W/4)."""
         x = to_model(frames).to(self._device())
         if x.ndim != 4 or x.shape[-1] != self.image_size or x.shape[-2] != self.image_size:
-            raise ValueError(f"expected frames (B, {self.image_size}, {self.image_size}, 3), got {tuple(frames.shape)}.")
+            s = self.image_size
+            raise ValueError(f"expected frames (B, {s}, {s}, 3), got {tuple(frames.shape)}.")
         return self.encode_tensor(x)
 
     @torch.inference_mode()

@@ -63,7 +63,8 @@ class Starts:
             self._store = EpisodeStore.open(store, "r")
             size = self._store.array("img").shape[1]
             if size != image_size:
-                raise ValueError(f"{store} holds {size}x{size} frames; the world model needs {image_size}x{image_size}.")
+                raise ValueError(f"{store} holds {size}x{size} frames; the world model needs "
+                                 f"{image_size}x{image_size}.")
 
     @property
     def has_store(self) -> bool:

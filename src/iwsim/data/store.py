@@ -161,7 +161,8 @@ class EpisodeStore:
             path.parent.mkdir(parents=True, exist_ok=True)
             remove_stale_temps(path)
             tmp.mkdir()
-            lock = DirLock(tmp, what="appending")  # renamed with the directory, so the new store is locked from the start
+            # renamed with the directory, so the new store is locked from the start
+            lock = DirLock(tmp, what="appending")
             root = zarr.open_group(tmp, mode="a", zarr_format=2)  # "w" would clear the lock file
             root.require_group("data")
             meta = root.require_group("meta")

@@ -65,7 +65,8 @@ def karras_sigmas(steps: int) -> list[float]:
     return [float(s) for s in (hi + ramp * (lo - hi)) ** RHO] + [0.0]
 
 
-def sample(net: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor], noise: torch.Tensor, steps: int) -> torch.Tensor:
+def sample(net: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor], noise: torch.Tensor,
+           steps: int) -> torch.Tensor:
     """Euler steps of the denoiser D(x; sigma) = c_skip x + c_out net(c_in x, c, c) along
     the Karras sigmas (EDM, Algorithm 1 without the second-order correction), from unit
     ``noise`` (B, ...) scaled to SIGMA_MAX."""

@@ -54,6 +54,9 @@ def _rgba(name: str) -> str:
     return " ".join(f"{c:g}" for c in PALETTE[name]) + " 1"
 
 
+BLOCK_GEOM = 'material="block" density="600" contype="3" conaffinity="3" friction="0.5 0.005 0.0001"'
+
+
 def _t_geoms(prefix: str, z: float, half_height: float, extra: str) -> str:
     """Two box geoms (bar, stem) making a T in its body frame."""
     return "\n".join(
@@ -118,7 +121,7 @@ def scene_xml(goal_pose: np.ndarray = GOAL_POSE) -> str:
       <joint name="block_y" type="slide" axis="0 1 0" damping="0.1"/>
       <joint name="block_z" type="slide" axis="0 0 1"/>
       <joint name="block_yaw" type="hinge" axis="0 0 1" damping="0.001"/>
-      {_t_geoms("block", 0.0, h, 'material="block" density="600" contype="3" conaffinity="3" friction="0.5 0.005 0.0001"')}
+      {_t_geoms("block", 0.0, h, BLOCK_GEOM)}
     </body>
     {pushers}
   </worldbody>

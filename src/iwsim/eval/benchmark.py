@@ -299,7 +299,7 @@ def stability_figure(rows: dict[str, dict[str, np.ndarray]], path: Path, window:
     for name, r in rows.items():
         k = max(1, min(window, len(r["step"])))
 
-        def smooth(y: np.ndarray) -> np.ndarray:
+        def smooth(y: np.ndarray, k: int = k) -> np.ndarray:
             return np.convolve(y.astype(np.float64), np.ones(k) / k, mode="valid")
 
         x = r["step"][k - 1:]
@@ -481,8 +481,8 @@ def markdown(r: dict) -> str:
     for n, acc in rows:
         lines.append(f"| {n} | " + " | ".join(_cell(acc, m, un, "last") for m in ("psnr", "ssim", "iou_err")) + " |")
     lines += ["", "![curves](curves.png)", "", "![frames](frames.png)", "", "## Training and speed", "",
-              "| model | objective | training | step at batch 1 (ms) | steps/s | dynamics step (ms) | frames/s at batch "
-              f"{_batch(r)} |", "|---|---|---|---|---|---|---|"]
+              "| model | objective | training | step at batch 1 (ms) | steps/s | dynamics step (ms) | "
+              f"frames/s at batch {_batch(r)} |", "|---|---|---|---|---|---|---|"]
     for n in names:
         e = r["models"][n]
         tr = f"{e['train_steps']} steps, {e['train_minutes']:.1f} min" if "train_steps" in e else "-"
@@ -494,8 +494,8 @@ def markdown(r: dict) -> str:
     if "stability" in r:
         st = r["stability"]
         lines += ["", "## Stability", "",
-                  f"{st['steps']} steps under the play policy's actions (MuJoCo renders the same actions), scored every "
-                  f"{st['every']} step(s); {st['minutes']:.1f} min for all models. Resident memory "
+                  f"{st['steps']} steps under the play policy's actions (MuJoCo renders the same actions), "
+                  f"scored every {st['every']} step(s); {st['minutes']:.1f} min for all models. Resident memory "
                   f"{st['memory_mib_first']:.0f} MiB at the start, {st['memory_mib_last']:.0f} MiB at the end.", "",
                   "| | frame mean | frame std | block pixels | block detected | detected, last 10% |",
                   "|---|---|---|---|---|---|"]

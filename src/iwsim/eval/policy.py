@@ -85,7 +85,8 @@ def summarize(max_iou: np.ndarray, seeds: list[int]) -> dict[str, Any]:
     success = max_iou >= SUCCESS_IOU
     k, n = int(success.sum()), len(success)
     return {
-        "episodes": [{"seed": s, "max_iou": float(m), "success": bool(ok)} for s, m, ok in zip(seeds, max_iou, success)],
+        "episodes": [{"seed": s, "max_iou": float(m), "success": bool(ok)}
+                     for s, m, ok in zip(seeds, max_iou, success)],
         "mean_max_iou": float(max_iou.mean()),
         "std_max_iou": float(max_iou.std()),
         "success_rate": k / n,

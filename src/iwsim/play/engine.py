@@ -14,8 +14,9 @@ the world model is conditioned on that executed motion, as it was trained.
 
 Recording: step t stores the frame shown before action t, the pusher positions read from
 it, the action, the setpoints it executed and the frame's pixel IoU (``img``, ``state``,
-``action``, ``target``, ``iou``: the layout of ``iwsim collect``). The take lives in memory until it is saved, and a save is
-one atomic append, so a client that vanishes mid-recording leaves nothing behind.
+``action``, ``target``, ``iou``: the layout of ``iwsim collect``). The take lives in memory
+until it is saved, and a save is one atomic append, so a client that vanishes
+mid-recording leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ import torch
 
 from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.pusht import TaskSpec, limit_targets
-from iwsim.world_model_env import Start, Starts, observe
 from iwsim.play import protocol as proto
 from iwsim.world_model import StreamState, WorldModel
+from iwsim.world_model_env import Start, Starts, observe
 
 log = logging.getLogger(__name__)
 

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import logging
 import html
+import logging
 import queue
 import signal
 import socket

@@ -105,7 +105,7 @@ class ConditionalUnet1D(nn.Module):
         mid = dims[-1]
         self.mid = nn.ModuleList([FiLMResBlock(mid, mid, c, k), FiLMResBlock(mid, mid, c, k)])
         self.up = nn.ModuleList()
-        for i, (a, b) in enumerate(zip(reversed(dims[2:]), reversed(dims[1:-1]))):
+        for a, b in zip(reversed(dims[2:]), reversed(dims[1:-1])):
             self.up.append(nn.ModuleList([FiLMResBlock(2 * a, b, c, k), FiLMResBlock(b, b, c, k),
                                           nn.ConvTranspose1d(b, b, 4, 2, 1)]))
         self.out = nn.Sequential(Conv1dBlock(dims[1], dims[1], k), nn.Conv1d(dims[1], action_dim, 1))

@@ -185,7 +185,9 @@ def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, A
         log.info("%s is already trained to step %d (>= %d)", run_dir, start, cfg.steps)
         return {}
 
-    net = DistributedDataParallel(module, device_ids=[device] if device.type == "cuda" else None) if d.world > 1 else module
+    net = module
+    if d.world > 1:
+        net = DistributedDataParallel(module, device_ids=[device] if device.type == "cuda" else None)
     per_rank = cfg.batch_size // d.world
     part = slice(d.rank * per_rank, (d.rank + 1) * per_rank)
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(

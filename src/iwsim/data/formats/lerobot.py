@@ -357,7 +357,8 @@ def _load_info(src: Path, versions: tuple[str, ...]) -> dict:
             raise FormatError(f"{where(path, key)}: missing or of the wrong type.")
     for key in (STATE, ACTION):
         if key not in info["features"]:
-            raise FormatError(f"{where(path, 'features')}: no '{key}' feature; features are {sorted(info['features'])}.")
+            raise FormatError(f"{where(path, 'features')}: no '{key}' feature; features are "
+                              f"{sorted(info['features'])}.")
     return info
 
 
@@ -440,7 +441,8 @@ def _attrs(info: dict, tasks: list[str], cam: str) -> dict[str, Any]:
 
 def _slice(frames: np.ndarray, first: int, n: int, path: Path, e: int) -> np.ndarray:
     if first < 0 or first + n > len(frames):
-        raise FormatError(f"{where(path, episode=e)}: frames {first}..{first + n - 1} asked, the video has {len(frames)}.")
+        raise FormatError(f"{where(path, episode=e)}: frames {first}..{first + n - 1} asked, the video has "
+                          f"{len(frames)}.")
     return frames[first:first + n]
 
 
