@@ -260,6 +260,26 @@ def test_states_of_rollouts_started_apart_share_a_step():
     assert np.abs(wm.step(acts[1, 3][None])[0].astype(int) - alone_b[3]).max() <= 1
 
 
+def test_the_functional_core_equals_the_stateful_wrapper_and_keeps_no_state():
+    wm = tiny_world_model()
+    rng = np.random.default_rng(1)
+    frames = rng.integers(0, 256, (2, 64, 64, 3), dtype=np.uint8)
+    acts = rng.uniform(-0.2, 0.2, (2, 5, 4)).astype(np.float32)
+    expected = wm.rollout(frames, acts, seed=3)
+    wm.reset(frames[:1], seed=9)
+    held = wm.state
+    state = wm.reset_state(frames, seed=3)
+    out = []
+    for t in range(acts.shape[1]):
+        context = state.context.clone()
+        new, frame = wm.step_state(state, acts[:, t])
+        assert torch.equal(state.context, context) and new is not state  # the old state is left as it was
+        state = new
+        out.append(frame)
+    np.testing.assert_array_equal(np.stack(out, 1), expected)
+    assert wm.state is held  # the wrapper's rollout is untouched
+
+
 def action_world(n: int, g: torch.Generator, positional: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Synthetic two-frame episodes where only the action decides a frame, on a static
     background (channels 1-3): frame t's channel 0 holds a dot where action t (the one

@@ -5,6 +5,13 @@
     frame = wm.step(actions)            # actions (B, A) in the data's units -> uint8 (B, H, W, 3)
     video = wm.rollout(frames, actions) # actions (B, N, A) -> uint8 (B, N, H, W, 3)
 
+The core is functional, on an explicit :class:`StreamState` the model does not keep::
+
+    state = wm.reset_state(frames)               # the same arguments as reset
+    state, frame = wm.step_state(state, actions) # the same as step, returning the next state
+
+``reset / step / rollout`` are a thin stateful wrapper around it (the state in ``wm.state``).
+
 A step predicts the next latent from a sliding window of the last K latents (older ones
 are dropped), so a step costs the same at step 10 and at step 10,000, and memory stays
 flat. The actions are the motion the robot executes: for a task with a speed limit,
@@ -19,8 +26,8 @@ Randomness: the noise of batch item i comes from its own generator, seeded by
 ``seed + i`` (or ``seeds[i]``) at reset, so a batched rollout equals per-item rollouts.
 
 Independent rollouts (e.g. the browser sessions of ``iwsim play``) can share forward
-passes: ``wm.state`` is a :class:`StreamState`, which ``StreamState.cat`` joins and
-``.split()`` separates again, so each rollout keeps its own state between batched steps.
+passes: ``StreamState.cat`` joins their states for one ``step_state`` and ``.split()``
+separates them again, so each rollout keeps its own state between batched steps.
 """
 
 from __future__ import annotations
@@ -59,7 +66,10 @@ class StreamState:
     """The state of B rollouts between two steps: the window ``context`` (B, K, C, h, w)
     of standardised latents, newest last; the normalised action (B, A) that produced the
     newest one and whether it is known (B,) (not right after a reset from one frame,
-    where the first action stands in for it); each item's noise generator."""
+    where the first action stands in for it); each item's noise generator.
+
+    Stepping returns a new state and leaves the old one's tensors as they were; the
+    generators are shared and advance, so a state is stepped once."""
 
     context: torch.Tensor
     action: torch.Tensor
@@ -214,12 +224,13 @@ class WorldModel(nn.Module):
     def unstandardize(self, z: torch.Tensor) -> torch.Tensor:
         return z * self.latent_scale + self.latent_mean
 
+    # -- functional core: explicit states ------------------------------------------------------
     @torch.inference_mode()
-    def reset_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
-                      seed: int | Sequence[int] = 0) -> None:
-        """Start rollouts from context latents (B, K0, C, h, w) (as ``encode`` returns them)
-        and the normalised actions (B, K0-1, A) between them. The window keeps the last K;
-        fewer are padded by repeating the first, as in training at an episode's start."""
+    def reset_state_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
+                            seed: int | Sequence[int] = 0) -> StreamState:
+        """The state of rollouts from context latents (B, K0, C, h, w) (as ``encode`` returns
+        them) and the normalised actions (B, K0-1, A) between them. The window keeps the
+        last K; fewer are padded by repeating the first, as in training at an episode's start."""
         b, k0 = latents.shape[:2]
         z = self.standardize(latents.to(self.device))
         if k0 > 1 and (actions is None or actions.shape[:2] != (b, k0 - 1)):
@@ -231,26 +242,60 @@ class WorldModel(nn.Module):
         if len(seeds) != b:
             raise ValueError(f"got {len(seeds)} seeds for a batch of {b}.")
         action = torch.zeros(b, self.action_dim, device=self.device) if k0 == 1 else actions[:, -1].to(self.device)
-        self._state = StreamState(z[:, -k:].contiguous(), action, torch.full((b,), k0 > 1, device=self.device),
-                                  [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
+        return StreamState(z[:, -k:].contiguous(), action, torch.full((b,), k0 > 1, device=self.device),
+                           [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
 
-    def _noise(self, shape: tuple[int, ...]) -> torch.Tensor:
-        """Clipped Gaussian noise (B, *shape), item i from its own generator."""
-        return torch.cat([gaussian((1, *shape), g, self.device) for g in self.state.generators])
+    def _noise(self, generators: Sequence[torch.Generator], shape: tuple[int, ...]) -> torch.Tensor:
+        """Clipped Gaussian noise (B, *shape), item i from generator i."""
+        return torch.cat([gaussian((1, *shape), g, self.device) for g in generators])
 
     @torch.inference_mode()
-    def step_latent(self, actions: torch.Tensor) -> torch.Tensor:
-        """Normalised actions (B, A) -> the next latents (B, C, h, w), as ``encode`` gives them."""
-        st = self.state
-        b = st.batch_size
+    def step_state_latent(self, state: StreamState, actions: torch.Tensor) -> tuple[StreamState, torch.Tensor]:
+        """Normalised actions (B, A) -> the next state and the next latents (B, C, h, w), as
+        ``encode`` gives them."""
+        b = state.batch_size
         if actions.shape != (b, self.action_dim):
             raise ValueError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
-        prev = torch.where(st.known[:, None], st.action, actions)
-        y = self.predict(st.context, torch.stack([prev, actions], 1), self._noise(tuple(st.context.shape[2:])))
-        z = y + st.context[:, -1] if self.cfg.predict_delta else y
-        self._state = StreamState(torch.cat([st.context[:, 1:], z[:, None]], 1), actions,
-                                  torch.ones_like(st.known), st.generators)
-        return self.unstandardize(z)
+        prev = torch.where(state.known[:, None], state.action, actions)
+        noise = self._noise(state.generators, tuple(state.context.shape[2:]))
+        y = self.predict(state.context, torch.stack([prev, actions], 1), noise)
+        z = y + state.context[:, -1] if self.cfg.predict_delta else y
+        return (StreamState(torch.cat([state.context[:, 1:], z[:, None]], 1), actions, torch.ones_like(state.known),
+                            state.generators), self.unstandardize(z))
+
+    @torch.inference_mode()
+    def step_state_images(self, state: StreamState, actions: torch.Tensor) -> tuple[StreamState, torch.Tensor]:
+        """Normalised actions (B, A) -> the next state and images (B, 3, H, W) in [-1, 1].
+        With ``reencode``, the newest context latent becomes the encoding of the decoded
+        frame (the decoder renders a clean frame and the encoder projects it back onto the
+        data), instead of the predicted latent."""
+        state, z = self.step_state_latent(state, actions)
+        images = self.decode_latents(z, state.generators)
+        if self.reencode:
+            state.context[:, -1] = self.standardize(self.ae.encode_tensor(images.clamp(-1, 1)))
+        return state, images
+
+    def reset_state(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
+                    seed: int | Sequence[int] = 0) -> StreamState:
+        """The state of B rollouts from one context frame each, uint8 (B, H, W, 3), or from
+        K frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them."""
+        x = torch.as_tensor(frames)
+        x = self.check_frames(x[:, None] if x.ndim == 4 else x, 5)
+        b, k = x.shape[:2]
+        a = None
+        if k > 1:
+            if actions is None:
+                raise ValueError(f"{k} context frames need the {k - 1} actions (B, {k - 1}, A) between them.")
+            a = self.normalize_actions(actions, b)
+            if a.shape != (b, k - 1, self.action_dim):
+                raise ValueError(f"expected actions ({b}, {k - 1}, {self.action_dim}), got {tuple(a.shape)}.")
+        return self.reset_state_latents(self.encode(x.flatten(0, 1)).unflatten(0, (b, k)), a, seed)
+
+    @torch.inference_mode()
+    def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor) -> tuple[StreamState, np.ndarray]:
+        """Actions (B, A) in the data's units -> the next state and frames, uint8 (B, H, W, 3)."""
+        state, images = self.step_state_images(state, self.normalize_actions(actions, state.batch_size))
+        return state, to_uint8(images)
 
     def predict(self, context: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """What the objective generates for the next frame (its change from the newest
@@ -265,46 +310,14 @@ class WorldModel(nn.Module):
         steps = self.euler_steps if self.cfg.objective == "edm" else self.jumps
         return OBJECTIVE_TABLE[self.cfg.objective].sample(net, self.schedule, noise, steps)
 
-    # -- the public, uint8 API ----------------------------------------------------------------
-    def reset(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
-              seed: int | Sequence[int] = 0) -> None:
-        """Start B rollouts from one context frame each, uint8 (B, H, W, 3), or from K
-        frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them."""
-        x = torch.as_tensor(frames)
-        x = self.check_frames(x[:, None] if x.ndim == 4 else x, 5)
-        b, k = x.shape[:2]
-        a = None
-        if k > 1:
-            if actions is None:
-                raise ValueError(f"{k} context frames need the {k - 1} actions (B, {k - 1}, A) between them.")
-            a = self.normalize_actions(actions, b)
-            if a.shape != (b, k - 1, self.action_dim):
-                raise ValueError(f"expected actions ({b}, {k - 1}, {self.action_dim}), got {tuple(a.shape)}.")
-        self.reset_latents(self.encode(x.flatten(0, 1)).unflatten(0, (b, k)), a, seed)
-
     @torch.inference_mode()
-    def step(self, actions: np.ndarray | torch.Tensor) -> np.ndarray:
-        """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)."""
-        return to_uint8(self.step_frames(self.normalize_actions(actions, self.state.batch_size)))
-
-    @torch.inference_mode()
-    def step_frames(self, actions: torch.Tensor) -> torch.Tensor:
-        """Normalised actions (B, A) -> the next images (B, 3, H, W) in [-1, 1]. With
-        ``reencode``, the newest context latent becomes the encoding of the decoded frame
-        (the decoder renders a clean frame and the encoder projects it back onto the data),
-        instead of the predicted latent."""
-        images = self.decode_latents(self.step_latent(actions))
-        if self.reencode:
-            self.state.context[:, -1] = self.standardize(self.ae.encode_tensor(images.clamp(-1, 1)))
-        return images
-
-    @torch.inference_mode()
-    def decode_latents(self, z: torch.Tensor) -> torch.Tensor:
+    def decode_latents(self, z: torch.Tensor, generators: Sequence[torch.Generator] | None = None) -> torch.Tensor:
         """Latents (B, ..., C, h, w) -> images (B, ..., 3, H, W) in [-1, 1], item i's
-        noise from its own generator."""
+        noise from ``generators[i]`` (default: the current rollouts' generators)."""
         lead = tuple(z.shape[1:-3])
         size = self.image_size
-        noise = self._noise((*lead, self.ae.cfg.decoder.image_channels, size, size)).flatten(0, len(lead))
+        gens = self.state.generators if generators is None else generators
+        noise = self._noise(gens, (*lead, self.ae.cfg.decoder.image_channels, size, size)).flatten(0, len(lead))
         # channels-last activations: ~25% faster decoder convolutions on CPU (measured at batch 4)
         cl = torch.channels_last
         images = self.ae.decode_tensor(z.flatten(0, len(lead)).contiguous(memory_format=cl), 1,
@@ -321,15 +334,45 @@ class WorldModel(nn.Module):
         a = self.normalize_actions(actions)
         if a.ndim != 3:
             raise ValueError(f"expected actions (B, N, {self.action_dim}), got {tuple(a.shape)}.")
-        self.reset(context_frames, context_actions, seed)
-        if a.shape[0] != self.batch_size:
-            raise ValueError(f"{self.batch_size} context frames but actions for {a.shape[0]} rollouts.")
+        state = self._state = self.reset_state(context_frames, context_actions, seed)
+        if a.shape[0] != state.batch_size:
+            raise ValueError(f"{state.batch_size} context frames but actions for {a.shape[0]} rollouts.")
         out = []
         with torch.inference_mode():
             for i in tqdm(range(a.shape[1]), desc="rollout", disable=not progress):
-                out.append(to_uint8(self.step_frames(a[:, i])))
-        return np.stack(out, 1) if out else np.zeros((self.batch_size, 0, self.image_size, self.image_size, 3),
+                state, images = self.step_state_images(state, a[:, i])
+                self._state = state
+                out.append(to_uint8(images))
+        return np.stack(out, 1) if out else np.zeros((state.batch_size, 0, self.image_size, self.image_size, 3),
                                                      np.uint8)
+
+    # -- the stateful wrapper: the rollouts' state kept in ``self.state`` ----------------------
+    def reset(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
+              seed: int | Sequence[int] = 0) -> None:
+        """Start B rollouts from one context frame each, uint8 (B, H, W, 3), or from K
+        frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them."""
+        self._state = self.reset_state(frames, actions, seed)
+
+    def step(self, actions: np.ndarray | torch.Tensor) -> np.ndarray:
+        """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)."""
+        self._state, frames = self.step_state(self.state, actions)
+        return frames
+
+    def reset_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
+                      seed: int | Sequence[int] = 0) -> None:
+        """``reset`` from context latents (see :meth:`reset_state_latents`)."""
+        self._state = self.reset_state_latents(latents, actions, seed)
+
+    def step_latent(self, actions: torch.Tensor) -> torch.Tensor:
+        """Normalised actions (B, A) -> the next latents (B, C, h, w), as ``encode`` gives them."""
+        self._state, z = self.step_state_latent(self.state, actions)
+        return z
+
+    def step_frames(self, actions: torch.Tensor) -> torch.Tensor:
+        """Normalised actions (B, A) -> the next images (B, 3, H, W) in [-1, 1] (see
+        :meth:`step_state_images`)."""
+        self._state, images = self.step_state_images(self.state, actions)
+        return images
 
     # -- checkpoints ----------------------------------------------------------------------------
     def export(self) -> dict[str, torch.Tensor]:

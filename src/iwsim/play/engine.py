@@ -6,7 +6,8 @@ and sends what they return. The server makes every call from one thread, so sess
 no locks; only saving an episode goes to a writer thread.
 
 Each session holds its own :class:`~iwsim.world_model.StreamState`. A tick joins the
-states of all sessions into one batch, takes one forward pass and splits the states again.
+states of all sessions into one batch, takes one functional step
+(:meth:`~iwsim.world_model.WorldModel.step_state`) and splits the states again.
 
 Motion: a session's action is a commanded target; the pushers approach it at the task's
 speed limit (:func:`iwsim.envs.pusht.limit_targets`, the function MuJoCo runs too), and
@@ -254,8 +255,8 @@ class Engine:
         """Start the session's episode from a MuJoCo reset or a store frame."""
         seed = int(self._rng.integers(proto.MAX_SEED)) if seed is None else seed
         start = self.starts.draw(seed, source)
-        self.model.reset(start.frame[None], seed=seed)
-        s.state, s.start, s.source, s.seed, s.step = self.model.state, start, source, seed, 0
+        s.state = self.model.reset_state(start.frame[None], seed=seed)
+        s.start, s.source, s.seed, s.step = start, source, seed, 0
         s.frame, s.agent_pos = start.frame, start.agent_pos.astype(np.float32)
         s.target = np.clip(s.agent_pos, self.low, self.high)  # the pushers hold still
         s.setpoint = s.agent_pos.copy()  # MuJoCo's position controllers start at the pushers
@@ -277,16 +278,16 @@ class Engine:
             if s.take is not None and len(s.take["img"]) < self.cfg.max_record_steps:
                 for key, value in zip(EPISODE_KEYS, (s.frame, s.agent_pos, s.target, s.setpoint, s.iou)):
                     s.take[key].append(np.asarray(value, np.uint8 if key == "img" else np.float32))
-        self.model.state = sessions[0].state if len(sessions) == 1 else StreamState.cat([s.state for s in sessions])
+        state = sessions[0].state if len(sessions) == 1 else StreamState.cat([s.state for s in sessions])
         # One session's step is too small to gain from a second thread, and with the browser
         # on the same two cores a second thread made it slower (p95 key-to-frame 107 vs
         # 95 ms at 25 Hz, bench/bench_play.py); batches do gain (4 sessions: 84 vs 113 ms).
         torch.set_num_threads(1 if len(sessions) == 1 else self._threads)
         try:
-            frames = self.model.step(np.stack([s.setpoint for s in sessions]))
+            state, frames = self.model.step_state(state, np.stack([s.setpoint for s in sessions]))
         finally:
             torch.set_num_threads(self._threads)
-        states = [self.model.state] if len(sessions) == 1 else self.model.state.split()
+        states = [state] if len(sessions) == 1 else state.split()
         for s, state, frame in zip(sessions, states, frames):
             s.state, s.frame = state, frame
         ious, pos = observe(np.stack([s.frame for s in sessions]), np.stack([s.agent_pos for s in sessions]))
