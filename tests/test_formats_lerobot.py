@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from iwsim.cli import main
 from iwsim.data.formats import FormatError, export, import_, validate
 from iwsim.data.formats.lerobot import QUANTILES, PathTemplate, read_v3
-from iwsim.data.formats.video import probe, write_video
+from iwsim.data.formats.video import probe, write_episode_video
 from iwsim.data.lock import DirLock
 from iwsim.data.store import EpisodeStore
 
@@ -181,7 +181,7 @@ def handwritten_v3(root: Path, action_dim: int = 6, image_dtype: str = "video") 
             cols[f"observation.images.{cam}"] = pa.array(cells)
     else:
         for cam, x in frames.items():
-            write_video(root / f"videos/observation.images.{cam}/chunk-000/file-000.mp4", x, 10)
+            write_episode_video(root / f"videos/observation.images.{cam}/chunk-000/file-000.mp4", x, 10)
     pq.write_table(pa.table(cols), root / "data/chunk-000/file-000.parquet")
     rows = []
     for i, (lo, hi) in enumerate([(0, 5), (5, 8)]):

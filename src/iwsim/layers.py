@@ -9,7 +9,7 @@ ids, ``__version__`` and a lazy ``iwsim.WorldModel``) is outside the layers.
 LAYERS: list[tuple[str, ...]] = [
     # 1. foundations: networks, noise and samplers, checkpoint I/O, metrics, errors, configs
     ("iwsim.errors", "iwsim.resources", "iwsim.models", "iwsim.diffusion", "iwsim.checkpoint", "iwsim.metrics",
-     "iwsim.config", "iwsim.layers"),
+     "iwsim.normalize", "iwsim.config", "iwsim.layers"),
     # 2. the ground truth: MuJoCo tasks, their scripted policies, pixel scorers
     ("iwsim.envs",),
     # 3. data, then the models as objects

@@ -47,13 +47,9 @@ from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
 from iwsim.diffusion.schedule import Schedule, gaussian
 from iwsim.models.dynamics import Dynamics
+from iwsim.normalize import scale
 
 KIND = "world_model"
-
-
-def scale_actions(a: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
-    """Actions in the data's units -> [-1, 1] over [low, high] (not clipped)."""
-    return (a - low) / (high - low) * 2 - 1
 
 
 def label(sigma: float | torch.Tensor) -> float | torch.Tensor:
@@ -197,7 +193,7 @@ class WorldModel(nn.Module):
         if bad.any():
             raise ValueError(f"actions must be finite, got {a[bad][0].item()} at index "
                              f"{tuple(i.item() for i in bad.nonzero()[0])}.")
-        return scale_actions(a, self.action_low, self.action_high).clamp(-1, 1)
+        return scale(a, self.action_low, self.action_high).clamp(-1, 1)
 
     @torch.inference_mode()
     def encode(self, frames: np.ndarray | torch.Tensor) -> torch.Tensor:

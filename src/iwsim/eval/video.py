@@ -25,8 +25,9 @@ def score_bar(values: np.ndarray, width: int, height: int, threshold: float) -> 
 
 
 def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float) -> Path:
-    """Write (T, H, W, 3) uint8 frames to an H.264 MP4 at ``path``; the file appears only
-    when complete. H and W should be multiples of 16 for every player to accept them."""
+    """Write (T, H, W, 3) uint8 frames to an H.264 MP4 for people to watch at ``path``; the
+    file appears only when complete (datasets' videos: :mod:`iwsim.data.formats.video`).
+    H and W should be multiples of 16 for every player to accept them."""
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
         raise ValueError(f"expected (T, H, W, 3) uint8 frames, got {frames.shape} {frames.dtype}.")

@@ -35,9 +35,13 @@ class ResBlock(nn.Module):
         return self.skip(x) + self.conv2(F.silu(h))
 
 
-def sinusoidal(x: torch.Tensor, dim: int, max_period: float = 10_000.0) -> torch.Tensor:
-    """(B,) values -> (B, dim) sinusoidal features (Vaswani et al. 2017)."""
+def sinusoidal(x: torch.Tensor, dim: int, max_period: float = 10_000.0, *, sin_first: bool = False,
+               include_max: bool = False) -> torch.Tensor:
+    """(B,) values -> (B, dim) sinusoidal features (Vaswani et al. 2017): cosines then
+    sines of frequencies from 1 down to 1 / max_period (exclusive). ``sin_first`` and
+    ``include_max`` (the last frequency exactly 1 / max_period) give Diffusion Policy's layout."""
     half = dim // 2
-    freqs = torch.exp(-math.log(max_period) * torch.arange(half, device=x.device, dtype=torch.float32) / half)
+    steps = half - 1 if include_max else half
+    freqs = torch.exp(-math.log(max_period) * torch.arange(half, device=x.device, dtype=torch.float32) / steps)
     angles = x.float()[:, None] * freqs[None]
-    return torch.cat([angles.cos(), angles.sin()], dim=1)
+    return torch.cat([angles.sin(), angles.cos()] if sin_first else [angles.cos(), angles.sin()], dim=1)

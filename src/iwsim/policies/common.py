@@ -20,23 +20,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-
-class Normalizer(nn.Module):
-    """Min-max scaling of (..., D) values to [-1, 1]; its bounds travel with the weights."""
-
-    def __init__(self, low: np.ndarray | torch.Tensor, high: np.ndarray | torch.Tensor) -> None:
-        super().__init__()
-        low = torch.as_tensor(low, dtype=torch.float32)
-        high = torch.as_tensor(high, dtype=torch.float32)
-        span = torch.clamp(high - low, min=1e-4)  # a constant dimension still normalises
-        self.register_buffer("low", (low + high) / 2 - span / 2)
-        self.register_buffer("high", (low + high) / 2 + span / 2)
-
-    def normalize(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.low) / (self.high - self.low) * 2 - 1
-
-    def unnormalize(self, y: torch.Tensor) -> torch.Tensor:
-        return (y + 1) / 2 * (self.high - self.low) + self.low
+from iwsim.normalize import Normalizer
 
 
 @dataclass

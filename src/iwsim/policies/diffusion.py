@@ -10,7 +10,6 @@ To = 2, Tp = 16, Ta = 8). The trainer keeps EMA weights, which are what gets exp
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +17,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from iwsim.diffusion.ddpm import add_noise, ddim_sample, squared_cosine_alphas_cumprod
+from iwsim.models.blocks import sinusoidal
 from iwsim.policies.common import (
     ImageEncoder,
     Normalizer,
@@ -48,23 +49,6 @@ class DiffusionConfig:
         if self.horizon % 2 ** (len(self.down_dims) - 1):
             raise ValueError(f"horizon {self.horizon} must be divisible by {2 ** (len(self.down_dims) - 1)} "
                              f"for {len(self.down_dims)} UNet levels.")
-
-
-def squared_cosine_alphas_cumprod(steps: int) -> torch.Tensor:
-    """alpha-bar_t of the squared-cosine schedule (Nichol & Dhariwal 2021, Eq. 17), with
-    betas clipped at 0.999 as diffusers' "squaredcos_cap_v2"."""
-    def f(t: float) -> float:
-        return math.cos((t + 0.008) / 1.008 * math.pi / 2) ** 2
-
-    betas = torch.tensor([min(1 - f((i + 1) / steps) / f(i / steps), 0.999) for i in range(steps)], dtype=torch.float64)
-    return torch.cumprod(1 - betas, 0).float()
-
-
-def sinusoidal(t: torch.Tensor, dim: int) -> torch.Tensor:
-    half = dim // 2
-    freq = torch.exp(-math.log(10000) * torch.arange(half, device=t.device) / (half - 1))
-    arg = t.float()[:, None] * freq
-    return torch.cat([arg.sin(), arg.cos()], -1)
 
 
 class Conv1dBlock(nn.Sequential):
@@ -111,7 +95,7 @@ class ConditionalUnet1D(nn.Module):
         self.out = nn.Sequential(Conv1dBlock(dims[1], dims[1], k), nn.Conv1d(dims[1], action_dim, 1))
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        g = torch.cat([self.step_mlp(sinusoidal(t, self.step_dim)), cond], -1)
+        g = torch.cat([self.step_mlp(sinusoidal(t, self.step_dim, sin_first=True, include_max=True)), cond], -1)
         skips = []
         for res1, res2, down in self.down:
             x = res2(res1(x, g), g)
@@ -148,23 +132,15 @@ class DiffusionPolicy(Policy):
         t = torch.randint(0, self.cfg.train_steps, (b,), device=x0.device)
         eps = torch.randn_like(x0)
         abar = self.alphas_cumprod[t][:, None, None]
-        x_t = abar.sqrt() * x0 + (1 - abar).sqrt() * eps
+        x_t = add_noise(x0, eps, abar)
         loss = F.mse_loss(self.unet(x_t, t, self.condition(batch.image, batch.agent_pos)), eps)
         return loss, {}
 
     @torch.no_grad()
     def sample(self, cond: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """DDIM (eta = 0) from noise: condition (B, C) -> normalised chunk (B, Tp, A)."""
-        b = cond.shape[0]
-        x = torch.randn(b, self.action_dim, self.cfg.horizon, generator=generator, device=cond.device)
-        steps = torch.linspace(self.cfg.train_steps - 1, 0, self.cfg.inference_steps).round().long().tolist()
-        for i, t in enumerate(steps):
-            abar = self.alphas_cumprod[t]
-            eps = self.unet(x, torch.full((b,), t, device=cond.device), cond)
-            x0 = ((x - (1 - abar).sqrt() * eps) / abar.sqrt()).clamp(-1, 1)
-            abar_prev = self.alphas_cumprod[steps[i + 1]] if i + 1 < len(steps) else torch.tensor(1.0)
-            eps = (x - abar.sqrt() * x0) / (1 - abar).sqrt()  # consistent with the clipped x0
-            x = abar_prev.sqrt() * x0 + (1 - abar_prev).sqrt() * eps
+        noise = torch.randn(cond.shape[0], self.action_dim, self.cfg.horizon, generator=generator, device=cond.device)
+        x = ddim_sample(lambda x, t: self.unet(x, t, cond), self.alphas_cumprod, noise, self.cfg.inference_steps)
         return x.transpose(1, 2)
 
     def reset(self) -> None:

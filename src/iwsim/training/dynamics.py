@@ -48,8 +48,9 @@ from iwsim.diffusion.objectives import Levels
 from iwsim.diffusion.schedule import Schedule, gaussian
 from iwsim.metrics import psnr
 from iwsim.models.dynamics import Dynamics
+from iwsim.normalize import scale, widen
 from iwsim.training import trainer
-from iwsim.world_model import KIND, WorldModel, label, scale_actions
+from iwsim.world_model import KIND, WorldModel, label
 
 log = logging.getLogger(__name__)
 
@@ -163,11 +164,10 @@ class DynamicsTask:
         self.ep_starts = torch.from_numpy(starts[train_long])
         self.ep_lengths = torch.from_numpy(ends[train_long] - starts[train_long])
         train_idx = np.concatenate([np.arange(starts[e], ends[e]) for e in self.train_episodes])
-        low, high = actions[train_idx].min(0), actions[train_idx].max(0)
-        span = np.maximum(high - low, 1e-3)  # a constant action dimension still normalises
-        self.action_low, self.action_high = (low + high) / 2 - span / 2, (low + high) / 2 + span / 2
-        self.actions = scale_actions(torch.from_numpy(actions), torch.from_numpy(self.action_low),
-                                     torch.from_numpy(self.action_high))
+        train_actions = torch.from_numpy(actions[train_idx])
+        low, high = widen(train_actions.amin(0), train_actions.amax(0), 1e-3)
+        self.action_low, self.action_high = low.numpy(), high.numpy()
+        self.actions = scale(torch.from_numpy(actions), low, high)
         self.latents = self._encode(store, device, progress, latent_cache)
         # The action size and latent shape follow the data; positional actions where the
         # task declares them (see iwsim.models.dynamics).

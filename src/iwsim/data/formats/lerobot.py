@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from iwsim.data.formats.common import FormatError, check_episode, positive_int, store_episodes, where
-from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video
+from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video, write_episode_video
 from iwsim.data.store import EpisodeStore
 
 V3, V21 = "v3.0", "v2.1"
@@ -317,10 +317,8 @@ def export_v21(store: EpisodeStore, out: Path, *, fps: int, task: str, progress:
         path = out / V21_DATA.format(episode_chunk=chunk, episode_index=e)
         path.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(_table(cols), path)
-        writer = VideoWriter(out / V21_VIDEO.format(episode_chunk=chunk, video_key=IMAGE, episode_index=e), fps,
-                             *ep["img"].shape[1:3])
-        writer.write(ep["img"])
-        writer.close()
+        write_episode_video(out / V21_VIDEO.format(episode_chunk=chunk, video_key=IMAGE, episode_index=e), ep["img"],
+                            fps)
         episodes.append({"episode_index": e, "tasks": [task], "length": t})
         stats = {f: {k: v for k, v in s.items() if k not in QUANTILES} for f, s in all_stats(cols, ep["img"]).items()}
         stats_lines.append({"episode_index": e, "stats": _jsonable(stats)})

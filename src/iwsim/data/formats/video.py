@@ -46,7 +46,9 @@ class VideoWriter:
         self._container.close()
 
 
-def write_video(path: Path, frames: np.ndarray, fps: int) -> None:
+def write_episode_video(path: Path, frames: np.ndarray, fps: int) -> None:
+    """One episode's (T, H, W, 3) uint8 frames as a LeRobot MP4 at ``path`` (the videos
+    people watch are :func:`iwsim.eval.video.write_video`'s)."""
     writer = VideoWriter(path, fps, frames.shape[1], frames.shape[2])
     try:
         writer.write(frames)
