@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 CHROMIUM := /usr/bin/chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test install clean
+.PHONY: demo test test-fast lint install clean
 
 # torch is pinned and installed first: an unpinned torch would pull the CUDA build.
 $(STAMP): pyproject.toml
@@ -27,8 +27,16 @@ $(CHROMIUM):
 	$(SUDO) apt-get update -q
 	DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q chromium
 
+# Everything: unit tests, end-to-end runs, the browser and the two-process DDP tests.
 test: $(STAMP) $(CHROMIUM)
 	MUJOCO_GL=egl $(PY) -m pytest -q
+
+# The inner loop: without the tests marked slow, browser or ddp (pyproject.toml).
+test-fast: $(STAMP)
+	MUJOCO_GL=egl $(PY) -m pytest -q -m "not slow and not browser and not ddp"
+
+lint: $(STAMP)
+	$(PY) -m ruff check src tests bench
 
 clean:
 	rm -rf $(VENV) outputs

@@ -5,6 +5,15 @@ import torch
 
 from iwsim.data.collect import collect
 
+# Files whose every test is end to end (a demo run, the shipped checkpoint against MuJoCo).
+SLOW_FILES = ("test_demo.py", "test_shipped_checkpoint.py")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.name in SLOW_FILES:
+            item.add_marker(pytest.mark.slow)
+
 
 @pytest.fixture(scope="session")
 def play_store(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -61,6 +61,7 @@ def test_missing_weights_are_reported_not_scored(tmp_path):
     assert "lpips" not in bm.frame_metrics(v, v, nets) and bm.set_metrics({}, v, nets) == {}
 
 
+@pytest.mark.slow
 def test_lpips_fid_fvd_with_random_weights(tmp_path):
     for cls, name, seed in ((ft.LPIPS, ft.LPIPS_FILE, 0), (ft.InceptionFID, ft.INCEPTION_FILE, 1),
                             (ft.I3D, ft.I3D_FILE, 2)):
@@ -114,6 +115,7 @@ def test_markdown_table():
     assert "ours is 3.00x as fast" in md
 
 
+@pytest.mark.slow
 def test_bench_cli_end_to_end(play_store, tmp_path, capsys):
     paths = {}
     for name in ("ours", "deterministic", "diffusion"):

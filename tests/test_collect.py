@@ -77,6 +77,7 @@ def test_collect_writes_the_requested_episodes(two_episodes: Path) -> None:
     assert ep["action"].shape == ep["state"].shape == (5, 4) and ep["block_pose"].shape == (5, 3)
 
 
+@pytest.mark.slow
 def test_console_script_with_two_workers_gives_identical_data(two_episodes: Path, tmp_path: Path) -> None:
     out = tmp_path / "pusht.zarr"
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
@@ -211,6 +212,7 @@ def test_argparse_errors_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert e.value.code == 2
 
 
+@pytest.mark.slow
 def test_two_collect_processes_on_one_store_take_turns(tmp_path: Path) -> None:
     """Two real `iwsim collect` processes appending to one store: while the first holds the
     store, a second is refused with one line naming it, or waits with --wait-for-lock and

@@ -295,6 +295,7 @@ def action_world(n: int, g: torch.Generator, positional: bool) -> tuple[torch.Te
     return torch.cat([first[:, :, None], bg], 2), a
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("positional", [False, True])
 def test_a_short_training_run_learns_to_follow_the_action(positional):
     """Trained for a few hundred tiny steps on a world where only the action decides the

@@ -142,6 +142,7 @@ def test_inception_loads_and_embeds(monkeypatch: pytest.MonkeyPatch, weights: Pa
     assert torch.isfinite(out).all()
 
 
+@pytest.mark.slow
 def test_i3d_loads_and_embeds(monkeypatch: pytest.MonkeyPatch, weights: Path, states: dict) -> None:
     monkeypatch.setenv(ft.WEIGHTS_ENV, str(weights))
     model = ft.load_i3d()

@@ -11,6 +11,8 @@ from iwsim.data.store import EpisodeStore
 from iwsim.play.server import running
 from tests.test_play import engine
 
+pytestmark = pytest.mark.browser
+
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
          "--no-first-run"]

@@ -80,6 +80,7 @@ def test_random_shift_moves_whole_windows_with_the_border_repeated():
                                               for b in range(2))  # both frames of a window move together
 
 
+@pytest.mark.slow
 def test_diffusion_policy_overfits_and_acts(play_store):
     """The noise-prediction loss on 4 fixed windows falls by 2.5x in 300 steps."""
     torch.manual_seed(0)

@@ -5,6 +5,7 @@ from iwsim.envs.pusht import BimanualPushTEnv
 from iwsim.envs.scripted import ExpertPolicy, make_policy, record_episode
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("source", ["state", "pixels"])
 def test_expert_solves_an_episode(source):
     env = BimanualPushTEnv(64)

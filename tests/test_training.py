@@ -75,6 +75,8 @@ def test_resume_equals_uninterrupted(play_store, tmp_path):
     assert logged() == before
 
 
+@pytest.mark.ddp
+@pytest.mark.slow
 def test_two_process_ddp_matches_single_process(play_store, tmp_path):
     out = tmp_path / "ranks"
     out.mkdir()

@@ -82,6 +82,7 @@ def test_vector_env_equals_single_envs(wm):
     np.testing.assert_array_equal(obs["pixels"][0], WorldModelEnv(model=wm).reset(seed=103)[0]["pixels"])
 
 
+@pytest.mark.slow
 def test_stage2_cli_end_to_end(play_store, tmp_path, capsys):
     ae, dyn, wm_dir = tmp_path / "ae", tmp_path / "dyn", tmp_path / "wm"
     assert main(["train", "ae", "--data", str(play_store), "--preset", "tiny", "--out", str(ae), "--no-progress"]) == 0
