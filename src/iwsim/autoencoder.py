@@ -18,6 +18,7 @@ from iwsim.config import AEConfig, from_dict
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.consistency import sample
 from iwsim.diffusion.schedule import Schedule
+from iwsim.errors import InputError
 from iwsim.models.autoencoder import DecoderUNet, Encoder
 
 KIND = "autoencoder"  # config.json's kind
@@ -66,7 +67,7 @@ class Autoencoder(nn.Module):
         x = to_model(frames).to(self._device())
         if x.ndim != 4 or x.shape[-1] != self.image_size or x.shape[-2] != self.image_size:
             s = self.image_size
-            raise ValueError(f"expected frames (B, {s}, {s}, 3), got {tuple(frames.shape)}.")
+            raise InputError(f"expected frames (B, {s}, {s}, 3), got {tuple(frames.shape)}.")
         return self.encode_tensor(x)
 
     @torch.inference_mode()

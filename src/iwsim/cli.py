@@ -8,7 +8,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from iwsim.errors import IwsimError
+from iwsim.errors import InputError, IwsimError
 from iwsim.resources import human_bytes, set_threads
 
 log = logging.getLogger("iwsim")
@@ -221,7 +221,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `iwsim data info x | head`: the reader left, nothing to say
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_USER_ERROR
-    except (ValueError, OSError, IwsimError) as e:
+    except (IwsimError, OSError) as e:  # a user's error (see iwsim.errors); anything else is a bug
         print(f"iwsim: error: {_one_line(e)}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
@@ -290,7 +290,7 @@ def _data_import(args: argparse.Namespace) -> int:
     from iwsim.data.formats import import_
 
     if args.image_size < 0:
-        raise ValueError(f"--image-size must be a positive integer or 0, got {args.image_size}.")
+        raise InputError(f"--image-size must be a positive integer or 0, got {args.image_size}.")
     store = import_(args.format, args.src, args.out, camera=args.camera, image_size=args.image_size or None,
                     progress=not args.no_progress)
     print(f"{store.path}: {store.n_episodes} episodes, {store.n_frames} frames")
@@ -336,7 +336,7 @@ def _check_positive(args: argparse.Namespace, *names: str) -> None:
     for name in names:
         v = getattr(args, name)
         if v is not None and v < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
+            raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
 
 
 def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
@@ -348,7 +348,7 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
     from iwsim.config import to_dict
 
     if args.preset not in presets:
-        raise ValueError(f"unknown preset {args.preset!r}; expected one of {sorted(presets)}.")
+        raise InputError(f"unknown preset {args.preset!r}; expected one of {sorted(presets)}.")
     cfg = presets[args.preset]
     overrides = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed))
                  if v is not None}
@@ -435,7 +435,7 @@ def _train_policy(args: argparse.Namespace) -> int:
     if cfg is None:
         return 0
     if cfg.policy != args.policy:
-        raise ValueError(f"preset {args.preset!r} is a {cfg.policy!r} policy, not {args.policy!r}.")
+        raise InputError(f"preset {args.preset!r} is a {cfg.policy!r} policy, not {args.policy!r}.")
     from iwsim.policies.data import parse_mixture
     from iwsim.training.policy import train_policy
     from iwsim.training.trainer import resolve_device
@@ -478,7 +478,7 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
 
     _check_positive(args, "steps", "batch_size")
     if not args.lr > 0:
-        raise ValueError(f"--lr must be positive, got {args.lr}.")
+        raise InputError(f"--lr must be positive, got {args.lr}.")
     if args.batch_size is not None:
         _check_batch_memory("decoder-finetune", args.batch_size, args.data)
     _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
@@ -502,11 +502,11 @@ def _rollout(args: argparse.Namespace) -> int:
     from iwsim.world_model import WorldModel
 
     if not str(args.out).endswith(".mp4"):
-        raise ValueError(f"--out must be an .mp4 path, got {args.out!r}.")
+        raise InputError(f"--out must be an .mp4 path, got {args.out!r}.")
     _check_positive(args, "steps", "context")
     store = EpisodeStore.open(args.data, "r")
     if not 0 <= args.episode < store.n_episodes:  # (a negative index would silently count from the end)
-        raise ValueError(f"--episode must be in 0..{store.n_episodes - 1} ({args.data} holds {store.n_episodes} "
+        raise InputError(f"--episode must be in 0..{store.n_episodes - 1} ({args.data} holds {store.n_episodes} "
                          f"episodes), got {args.episode}.")
     wm = WorldModel.load(args.checkpoint, resolve_device(args.device))
     result = open_loop(wm, store, [args.episode], args.steps, args.context, args.seed, progress=True)
@@ -527,13 +527,13 @@ def _bench(args: argparse.Namespace) -> int:
     for item in filter(None, (x.strip() for x in args.baselines.split(","))):
         name, sep, path = item.partition("=")
         if not sep or not name or not path:
-            raise ValueError(f"--baselines entries must be NAME=CHECKPOINT, got {item!r}.")
+            raise InputError(f"--baselines entries must be NAME=CHECKPOINT, got {item!r}.")
         if name in models:
-            raise ValueError(f"model name {name!r} is given twice.")
+            raise InputError(f"model name {name!r} is given twice.")
         models[name] = path
     _check_positive(args, "episodes", "steps", "stability_every", "speed_batch", "speed_calls")
     if args.stability_steps < 0:
-        raise ValueError(f"--stability-steps must be >= 0, got {args.stability_steps}.")
+        raise InputError(f"--stability-steps must be >= 0, got {args.stability_steps}.")
     # the recorded episodes and every model's rollout of them
     _check_frames_memory(f"--episodes {args.episodes} x --steps {args.steps}", args.episodes * (args.steps + 1),
                          len(models) + 1)

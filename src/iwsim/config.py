@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 
 from iwsim.diffusion import objectives
 from iwsim.diffusion.schedule import ScheduleConfig
+from iwsim.errors import InputError
 from iwsim.models.autoencoder import DecoderConfig, EncoderConfig
 from iwsim.models.dynamics import DynamicsConfig
 
@@ -166,7 +167,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
 def variant(cfg: DynamicsStageConfig, name: str) -> DynamicsStageConfig:
     """``cfg`` changed into the named benchmark variant (see VARIANTS)."""
     if name not in VARIANTS:
-        raise ValueError(f"unknown variant {name!r}; expected one of {', '.join(VARIANTS)}.")
+        raise InputError(f"unknown variant {name!r}; expected one of {', '.join(VARIANTS)}.")
     changes = dict(VARIANTS[name])
     if "dynamics" in changes:
         changes["dynamics"] = dataclasses.replace(cfg.dynamics, **changes["dynamics"])
@@ -184,7 +185,7 @@ def from_dict(cls: type[T], data: dict[str, Any]) -> T:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(data) - names
     if unknown:
-        raise ValueError(f"unknown {cls.__name__} fields {sorted(unknown)}.")
+        raise InputError(f"unknown {cls.__name__} fields {sorted(unknown)}.")
     kwargs = {}
     for name, value in data.items():
         hint = hints[name]

@@ -12,6 +12,7 @@ import json
 import logging
 from pathlib import Path
 
+from iwsim.errors import InputError
 from iwsim.eval.rollout import against_mujoco, write_side_by_side
 from iwsim.world_model import WorldModel
 
@@ -22,7 +23,7 @@ DEFAULT_CHECKPOINT = "checkpoints/pusht-64"
 
 def main(args: argparse.Namespace) -> int:
     if args.steps < 1:
-        raise ValueError(f"--steps must be a positive integer, got {args.steps}.")
+        raise InputError(f"--steps must be a positive integer, got {args.steps}.")
     wm = WorldModel.load(args.checkpoint)
     result = against_mujoco(wm, args.seed, args.steps, args.policy, progress=True)
     out = Path(args.out)

@@ -11,10 +11,12 @@ import torch
 from torch.nn import functional as F
 from torchmetrics.functional.image import structural_similarity_index_measure
 
+from iwsim.errors import InputError
+
 
 def _check(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     if a.ndim != 4 or a.shape != b.shape:
-        raise ValueError(f"expected two image batches (B, C, H, W) of one shape, got {tuple(a.shape)} and "
+        raise InputError(f"expected two image batches (B, C, H, W) of one shape, got {tuple(a.shape)} and "
                          f"{tuple(b.shape)}.")
     return a.float(), b.float()
 

@@ -17,7 +17,7 @@ import logging
 import os
 import sys
 
-from iwsim.errors import IwsimError
+from iwsim.errors import InputError, IwsimError
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +43,7 @@ def choose_threads(requested: int | None = None) -> int:
     cores this process may use."""
     if requested is not None:
         if requested < 1:
-            raise ValueError(f"--threads must be a positive integer, got {requested}.")
+            raise InputError(f"--threads must be a positive integer, got {requested}.")
         return requested
     env = os.environ.get("OMP_NUM_THREADS", "").strip()
     if env:

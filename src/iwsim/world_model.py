@@ -46,6 +46,7 @@ from iwsim.config import OBJECTIVES, AEConfig, DynamicsStageConfig, from_dict
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
 from iwsim.diffusion.schedule import Schedule, gaussian
+from iwsim.errors import InputError
 from iwsim.models.dynamics import Dynamics
 from iwsim.normalize import scale
 
@@ -80,7 +81,7 @@ class StreamState:
     def cat(states: Sequence[StreamState]) -> StreamState:
         """One state for the rollouts of ``states``."""
         if not states:
-            raise ValueError("StreamState.cat needs at least one state.")
+            raise InputError("StreamState.cat needs at least one state.")
         return StreamState(torch.cat([s.context for s in states]), torch.cat([s.action for s in states]),
                            torch.cat([s.known for s in states]), [g for s in states for g in s.generators])
 
@@ -105,21 +106,21 @@ class WorldModel(nn.Module):
                  latent_mean: torch.Tensor | None = None, latent_scale: float = 1.0) -> None:
         super().__init__()
         if cfg.objective not in OBJECTIVES:
-            raise ValueError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
+            raise InputError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
         self.ae, self.dynamics, self.cfg = ae, dynamics, cfg
         ae.decoder.to(memory_format=torch.channels_last)  # see decode_latents
         self.schedule = Schedule(cfg.schedule)
         low = torch.as_tensor(action_low, dtype=torch.float32)
         high = torch.as_tensor(action_high, dtype=torch.float32)
         if low.shape != (cfg.dynamics.action_dim,) or high.shape != low.shape or not bool((high > low).all()):
-            raise ValueError(f"action bounds must be two vectors of {cfg.dynamics.action_dim} values with "
+            raise InputError(f"action bounds must be two vectors of {cfg.dynamics.action_dim} values with "
                              f"high > low, got {low.tolist()} and {high.tolist()}.")
         self.register_buffer("action_low", low)
         self.register_buffer("action_high", high)
         c = cfg.dynamics.latent_channels
         mean = torch.zeros(c, 1, 1) if latent_mean is None else torch.as_tensor(latent_mean, dtype=torch.float32)
         if mean.ndim != 3 or mean.shape[0] != c or not latent_scale > 0:
-            raise ValueError(f"latent mean must be ({c}, h, w) or ({c}, 1, 1) and the scale positive, got "
+            raise InputError(f"latent mean must be ({c}, h, w) or ({c}, 1, 1) and the scale positive, got "
                              f"{tuple(mean.shape)} and {latent_scale}.")
         self.register_buffer("latent_mean", mean)
         self.latent_scale = float(latent_scale)
@@ -138,7 +139,7 @@ class WorldModel(nn.Module):
     @context_label.setter
     def context_label(self, value: float) -> None:
         if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
-            raise ValueError(f"context_label must be a finite std >= 0, got {value!r}.")
+            raise InputError(f"context_label must be a finite std >= 0, got {value!r}.")
         self._context_label = float(value)
 
     # -- properties -------------------------------------------------------------------------
@@ -176,10 +177,10 @@ class WorldModel(nn.Module):
         x = torch.as_tensor(frames)
         s = self.image_size
         if x.dtype != torch.uint8:
-            raise ValueError(f"frames must be uint8, got {x.dtype}.")
+            raise InputError(f"frames must be uint8, got {x.dtype}.")
         if x.ndim != ndim or tuple(x.shape[-3:]) != (s, s, 3):
             want = "(B, H, W, 3)" if ndim == 4 else "(B, T, H, W, 3)"
-            raise ValueError(f"expected frames {want} with H = W = {s}, got shape {tuple(x.shape)}.")
+            raise InputError(f"expected frames {want} with H = W = {s}, got shape {tuple(x.shape)}.")
         return x
 
     def normalize_actions(self, actions: np.ndarray | torch.Tensor, batch: int | None = None) -> torch.Tensor:
@@ -188,10 +189,10 @@ class WorldModel(nn.Module):
         a = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
         if a.ndim < 1 or a.shape[-1] != self.action_dim or (batch is not None and a.shape[0] != batch):
             lead = "B" if batch is None else str(batch)
-            raise ValueError(f"expected actions of shape ({lead}, ..., {self.action_dim}), got {tuple(a.shape)}.")
+            raise InputError(f"expected actions of shape ({lead}, ..., {self.action_dim}), got {tuple(a.shape)}.")
         bad = ~torch.isfinite(a)
         if bad.any():
-            raise ValueError(f"actions must be finite, got {a[bad][0].item()} at index "
+            raise InputError(f"actions must be finite, got {a[bad][0].item()} at index "
                              f"{tuple(i.item() for i in bad.nonzero()[0])}.")
         return scale(a, self.action_low, self.action_high).clamp(-1, 1)
 
@@ -208,7 +209,7 @@ class WorldModel(nn.Module):
         z = torch.as_tensor(latents, dtype=torch.float32, device=self.device)
         c, h = self.cfg.dynamics.latent_channels, self.image_size // 4
         if z.ndim != 4 or tuple(z.shape[1:]) != (c, h, h):
-            raise ValueError(f"expected latents (B, {c}, {h}, {h}), got shape {tuple(z.shape)}.")
+            raise InputError(f"expected latents (B, {c}, {h}, {h}), got shape {tuple(z.shape)}.")
         g = torch.Generator(self.device).manual_seed(seed)
         return to_uint8(self.ae.decode_tensor(z, 1, g))
 
@@ -230,13 +231,13 @@ class WorldModel(nn.Module):
         b, k0 = latents.shape[:2]
         z = self.standardize(latents.to(self.device))
         if k0 > 1 and (actions is None or actions.shape[:2] != (b, k0 - 1)):
-            raise ValueError(f"{k0} context frames need actions (B, {k0 - 1}, A) between them.")
+            raise InputError(f"{k0} context frames need actions (B, {k0 - 1}, A) between them.")
         k = self.cfg.dynamics.context
         if k0 < k:
             z = torch.cat([z[:, :1].expand(b, k - k0, *z.shape[2:]), z], 1)
         seeds = [seed + i for i in range(b)] if isinstance(seed, int) else list(seed)
         if len(seeds) != b:
-            raise ValueError(f"got {len(seeds)} seeds for a batch of {b}.")
+            raise InputError(f"got {len(seeds)} seeds for a batch of {b}.")
         action = torch.zeros(b, self.action_dim, device=self.device) if k0 == 1 else actions[:, -1].to(self.device)
         return StreamState(z[:, -k:].contiguous(), action, torch.full((b,), k0 > 1, device=self.device),
                            [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
@@ -251,7 +252,7 @@ class WorldModel(nn.Module):
         ``encode`` gives them."""
         b = state.batch_size
         if actions.shape != (b, self.action_dim):
-            raise ValueError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
+            raise InputError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
         prev = torch.where(state.known[:, None], state.action, actions)
         noise = self._noise(state.generators, tuple(state.context.shape[2:]))
         y = self.predict(state.context, torch.stack([prev, actions], 1), noise)
@@ -281,10 +282,10 @@ class WorldModel(nn.Module):
         a = None
         if k > 1:
             if actions is None:
-                raise ValueError(f"{k} context frames need the {k - 1} actions (B, {k - 1}, A) between them.")
+                raise InputError(f"{k} context frames need the {k - 1} actions (B, {k - 1}, A) between them.")
             a = self.normalize_actions(actions, b)
             if a.shape != (b, k - 1, self.action_dim):
-                raise ValueError(f"expected actions ({b}, {k - 1}, {self.action_dim}), got {tuple(a.shape)}.")
+                raise InputError(f"expected actions ({b}, {k - 1}, {self.action_dim}), got {tuple(a.shape)}.")
         return self.reset_state_latents(self.encode(x.flatten(0, 1)).unflatten(0, (b, k)), a, seed)
 
     @torch.inference_mode()
@@ -329,10 +330,10 @@ class WorldModel(nn.Module):
 
         a = self.normalize_actions(actions)
         if a.ndim != 3:
-            raise ValueError(f"expected actions (B, N, {self.action_dim}), got {tuple(a.shape)}.")
+            raise InputError(f"expected actions (B, N, {self.action_dim}), got {tuple(a.shape)}.")
         state = self._state = self.reset_state(context_frames, context_actions, seed)
         if a.shape[0] != state.batch_size:
-            raise ValueError(f"{state.batch_size} context frames but actions for {a.shape[0]} rollouts.")
+            raise InputError(f"{state.batch_size} context frames but actions for {a.shape[0]} rollouts.")
         out = []
         with torch.inference_mode():
             for i in tqdm(range(a.shape[1]), desc="rollout", disable=not progress):

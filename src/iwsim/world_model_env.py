@@ -33,6 +33,7 @@ from iwsim.data.store import EpisodeStore
 from iwsim.envs import make_env
 from iwsim.envs.pixels import pixel_iou, pusher_positions, read_frames
 from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, limit_targets, spaces
+from iwsim.errors import InputError
 from iwsim.world_model import WorldModel
 
 SOURCES = ("mujoco", "store")
@@ -53,9 +54,9 @@ class Starts:
 
     def __init__(self, source: str, image_size: int, store: str | Path | None, task: str) -> None:
         if source not in SOURCES:
-            raise ValueError(f"reset_source must be one of {SOURCES}, got {source!r}.")
+            raise InputError(f"reset_source must be one of {SOURCES}, got {source!r}.")
         if source == "store" and store is None:
-            raise ValueError("reset_source 'store' needs store=<path of an episode store>.")
+            raise InputError("reset_source 'store' needs store=<path of an episode store>.")
         self.source, self.image_size, self.task = source, image_size, task
         self._env: gym.Env | None = None
         self._store = None
@@ -63,7 +64,7 @@ class Starts:
             self._store = EpisodeStore.open(store, "r")
             size = self._store.array("img").shape[1]
             if size != image_size:
-                raise ValueError(f"{store} holds {size}x{size} frames; the world model needs "
+                raise InputError(f"{store} holds {size}x{size} frames; the world model needs "
                                  f"{image_size}x{image_size}.")
 
     @property
@@ -79,7 +80,7 @@ class Starts:
             obs, _ = self._env.reset(seed=int(seed), options=None if state is None else {"reset_to_state": state})
             return Start(obs["pixels"], obs["agent_pos"], self._env.unwrapped.get_state())
         if source != "store" or self._store is None:
-            raise ValueError(f"reset source {source!r} is not available; expected one of {SOURCES} "
+            raise InputError(f"reset source {source!r} is not available; expected one of {SOURCES} "
                              "(and a store for 'store').")
         rng = np.random.default_rng(seed)
         ends = self._store.episode_ends
@@ -122,7 +123,7 @@ def check_actions(actions: Any, shape: tuple[int, ...]) -> np.ndarray:
     """Commanded targets as float64 of ``shape``, or a ValueError (before any state changes)."""
     a = np.asarray(actions, dtype=np.float64)
     if a.shape != shape or not np.all(np.isfinite(a)):
-        raise ValueError(f"expected finite actions of shape {shape} [lx, ly, rx, ry] in metres, got "
+        raise InputError(f"expected finite actions of shape {shape} [lx, ly, rx, ry] in metres, got "
                          f"{a.shape if a.shape != shape else a.tolist()}.")
     return a
 
@@ -131,7 +132,7 @@ def _load(model: WorldModel | None, checkpoint: str | Path | None, device: str) 
     if model is not None:
         return model
     if checkpoint is None:
-        raise ValueError("WorldModel-v0 needs checkpoint=<world-model checkpoint directory> (or model=...).")
+        raise InputError("WorldModel-v0 needs checkpoint=<world-model checkpoint directory> (or model=...).")
     return WorldModel.load(checkpoint, device)
 
 
@@ -145,10 +146,10 @@ class WorldModelEnv(gym.Env):
                  device: str = "cpu", render_mode: str | None = "rgb_array",
                  terminate_on_success: bool = False) -> None:
         if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}.")
+            raise InputError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}.")
         self.model = _load(model, checkpoint, device)
         if self.model.action_dim != 4:
-            raise ValueError(f"the world model takes {self.model.action_dim}-D actions; {task} needs 4.")
+            raise InputError(f"the world model takes {self.model.action_dim}-D actions; {task} needs 4.")
         self.render_mode, self.terminate_on_success = render_mode, terminate_on_success
         self.action_space, self.observation_space = spaces(self.model.image_size)
         self._starts = Starts(reset_source, self.model.image_size, store, task)
@@ -160,7 +161,7 @@ class WorldModelEnv(gym.Env):
         options = dict(options or {})
         unknown = set(options) - {"frame", "agent_pos", "source", "reset_to_state"}
         if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; expected frame, agent_pos, source, "
+            raise InputError(f"unknown reset options {sorted(unknown)}; expected frame, agent_pos, source, "
                              "reset_to_state.")
         # the start's seed and the model's noise seed: the given seed, as in the vector env
         draw = int(self.np_random.integers(2**31)) if seed is None else seed
@@ -214,7 +215,7 @@ class WorldModelVectorEnv(VectorEnv):
                  reset_source: str = "mujoco", store: str | Path | None = None, task: str = "pusht",
                  device: str = "cpu", max_episode_steps: int = 600) -> None:
         if num_envs < 1 or max_episode_steps < 1:
-            raise ValueError(f"num_envs and max_episode_steps must be >= 1, got {num_envs}, {max_episode_steps}.")
+            raise InputError(f"num_envs and max_episode_steps must be >= 1, got {num_envs}, {max_episode_steps}.")
         self.model = _load(model, checkpoint, device)
         self.num_envs, self.max_episode_steps = num_envs, max_episode_steps
         self.single_action_space, self.single_observation_space = spaces(self.model.image_size)
@@ -237,12 +238,12 @@ class WorldModelVectorEnv(VectorEnv):
         else:
             seeds = [int(s) for s in seed]
             if len(seeds) != self.num_envs:
-                raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} environments.")
+                raise InputError(f"got {len(seeds)} seeds for {self.num_envs} environments.")
         self._next_seed = max(seeds) + 1
         if "frames" in options:
             frames = self.model.check_frames(np.asarray(options["frames"]), 4).numpy()
             if len(frames) != self.num_envs:
-                raise ValueError(f"got {len(frames)} frames for {self.num_envs} environments.")
+                raise InputError(f"got {len(frames)} frames for {self.num_envs} environments.")
             pos = np.asarray(options.get("agent_pos", read_agent_pos(frames, np.zeros((len(frames), 4), np.float32))))
         else:
             drawn = [self._starts.draw(s, options.get("source")) for s in seeds]

@@ -25,6 +25,7 @@ from iwsim.data.store import EpisodeStore
 from iwsim.envs import POLICIES, check_task
 from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU, TaskSpec
 from iwsim.envs.scripted import record_episode
+from iwsim.errors import InputError
 from iwsim.resources import require_memory
 
 log = logging.getLogger(__name__)
@@ -91,7 +92,7 @@ def collect(
     attrs = store_attrs(task, policy, steps, image_size)
     if out.exists():
         if not os.access(out, os.W_OK | os.X_OK):
-            raise ValueError(f"cannot append to {out}: the directory is not writable.")
+            raise InputError(f"cannot append to {out}: the directory is not writable.")
     else:
         _check_creatable(out)
     with EpisodeStore.open_or_create(out, attrs, check=lambda s: _check_existing(s, attrs, seed),
@@ -142,16 +143,16 @@ def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episo
 def _check_args(task: str, policy: str, episodes: int, steps: int, image_size: int, workers: int, seed: int) -> None:
     check_task(task)
     if task not in TASK_SPECS:
-        raise ValueError(f"task {task!r} has no TaskSpec registered for collection.")
+        raise InputError(f"task {task!r} has no TaskSpec registered for collection.")
     if policy not in POLICIES:
-        raise ValueError(f"unknown policy {policy!r}; expected one of {list(POLICIES)}.")
+        raise InputError(f"unknown policy {policy!r}; expected one of {list(POLICIES)}.")
     if image_size not in IMAGE_SIZES:
-        raise ValueError(f"image size must be one of {list(IMAGE_SIZES)}, got {image_size!r}.")
+        raise InputError(f"image size must be one of {list(IMAGE_SIZES)}, got {image_size!r}.")
     for name, value in (("episodes", episodes), ("steps", steps), ("workers", workers)):
         if not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+            raise InputError(f"{name} must be a positive integer, got {value!r}.")
     if not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}.")
+        raise InputError(f"seed must be a non-negative integer, got {seed!r}.")
     # An episode is held in memory until appended, in each worker and again in this process.
     step_bytes = image_size * image_size * 3 + STEP_LOWDIM_BYTES
     require_memory(2 * min(workers, episodes) * steps * step_bytes,
@@ -165,9 +166,9 @@ def _check_creatable(out: Path) -> None:
     while not ancestor.exists():
         ancestor = ancestor.parent
     if not ancestor.is_dir():
-        raise ValueError(f"cannot create {out}: {ancestor} is not a directory.")
+        raise InputError(f"cannot create {out}: {ancestor} is not a directory.")
     if not os.access(ancestor, os.W_OK | os.X_OK):
-        raise ValueError(f"cannot create {out}: {ancestor} is not writable.")
+        raise InputError(f"cannot create {out}: {ancestor} is not writable.")
 
 
 def _check_existing(store: EpisodeStore, attrs: dict[str, Any], seed: int) -> None:
@@ -178,11 +179,11 @@ def _check_existing(store: EpisodeStore, attrs: dict[str, Any], seed: int) -> No
     if diffs:
         have = ", ".join(f"{k}={stored.get(k)!r}" for k in diffs)
         want = ", ".join(f"{k}={attrs[k]!r}" for k in diffs)
-        raise ValueError(f"{out} holds episodes with {have}, not {want}; choose another --out.")
+        raise InputError(f"{out} holds episodes with {have}, not {want}; choose another --out.")
     expected = [seed + i for i in range(store.n_episodes)]
     if store.seeds != expected:
         first = next(s for s, e in zip(store.seeds, expected, strict=True) if s != e)
-        raise ValueError(
+        raise InputError(
             f"{out} holds an episode with seed {first}, which --seed {seed} would not give "
             f"(episode i uses seed {seed} + i); rerun with the store's original --seed or choose another --out."
         )

@@ -10,13 +10,14 @@ import numpy as np
 import torch
 
 from iwsim.data.store import EpisodeStore
+from iwsim.errors import InputError
 
 
 def to_model(frames: np.ndarray | torch.Tensor) -> torch.Tensor:
     """uint8 (..., H, W, 3) -> float32 (..., 3, H, W) in [-1, 1]."""
     x = torch.as_tensor(frames)
     if x.dtype != torch.uint8 or x.ndim < 3 or x.shape[-1] != 3:
-        raise ValueError(f"expected uint8 frames of shape (..., H, W, 3), got {tuple(x.shape)} {x.dtype}.")
+        raise InputError(f"expected uint8 frames of shape (..., H, W, 3), got {tuple(x.shape)} {x.dtype}.")
     return x.movedim(-1, -3).float().div(127.5).sub(1.0)
 
 
@@ -43,7 +44,7 @@ class FrameSource:
 
     def __init__(self, store: EpisodeStore, episodes: list[int]) -> None:
         if not episodes:
-            raise ValueError(f"{store.path} has no episodes to read for this split.")
+            raise InputError(f"{store.path} has no episodes to read for this split.")
         ends = store.episode_ends
         starts = np.concatenate([[0], ends[:-1]])
         self.store = store

@@ -36,6 +36,7 @@ import zarr
 from numcodecs import Blosc
 
 from iwsim.data.lock import DirLock, LockedError, remove_stale_temps, temp_sibling
+from iwsim.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +50,7 @@ ENDS_CHUNK = 4096  # episode_ends entries per chunk
 _EXPECTED = "an episode store (a Zarr format 2 group with data/ and meta/episode_ends)"
 
 
-class StoreError(ValueError):
+class StoreError(InputError):
     """A path that is not a usable episode store, or an episode that does not fit it."""
 
 
@@ -148,11 +149,11 @@ class EpisodeStore:
         path = Path(path)
         attrs = dict(attrs or {})
         if "seeds" in attrs or "store_version" in attrs:
-            raise ValueError("attrs must not set 'seeds' or 'store_version'; the store manages them.")
+            raise InputError("attrs must not set 'seeds' or 'store_version'; the store manages them.")
         try:
             json.dumps(attrs)
         except TypeError as e:
-            raise ValueError(f"store attributes must be JSON-serialisable: {e}.") from None
+            raise InputError(f"store attributes must be JSON-serialisable: {e}.") from None
         if path.exists():
             raise StoreError(f"cannot create an episode store at {path}: it already exists.")
         tmp = temp_sibling(path)
@@ -198,7 +199,7 @@ class EpisodeStore:
         past ``episode_ends[-1]``, an unwritten trailing end, temporary files).
         """
         if mode not in ("r", "a"):
-            raise ValueError(f"mode must be 'r' or 'a', got {mode!r}.")
+            raise InputError(f"mode must be 'r' or 'a', got {mode!r}.")
         path = Path(path)
         if not path.exists():
             raise StoreError(f"{path} does not exist; expected {_EXPECTED}.")

@@ -20,6 +20,7 @@ import torch
 from tqdm import tqdm
 
 from iwsim.diffusion.schedule import Schedule, gaussian
+from iwsim.errors import InputError
 
 JumpNet = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 SNR_MIN, SNR_MAX = 1.0, 5.0  # loss weight: the SNR of the input level, clipped to [1, 5]
@@ -84,7 +85,7 @@ def jump_levels(num_jumps: int, start: int) -> list[int]:
     """Levels visited by a K-jump decode from ``start``: K = 3 from 999 gives
     999, 666, 333, 0 (the public code's schedule)."""
     if num_jumps < 1:
-        raise ValueError(f"num_jumps must be >= 1, got {num_jumps}.")
+        raise InputError(f"num_jumps must be >= 1, got {num_jumps}.")
     return [round(start * (num_jumps - k) / num_jumps) for k in range(num_jumps + 1)]
 
 

@@ -14,6 +14,7 @@ from collections.abc import Callable
 import torch
 
 from iwsim.diffusion.schedule import Schedule
+from iwsim.errors import InputError
 
 SIGMA_DATA = 1.0
 P_MEAN, P_STD = -0.4, 1.2
@@ -57,7 +58,7 @@ def loss(net_out: torch.Tensor, x0: torch.Tensor, x_noisy: torch.Tensor, sigma: 
 def karras_sigmas(steps: int) -> list[float]:
     """The sampler's sigmas, SIGMA_MAX down to SIGMA_MIN in ``steps`` values, then 0."""
     if steps < 1:
-        raise ValueError(f"Euler steps must be >= 1, got {steps}.")
+        raise InputError(f"Euler steps must be >= 1, got {steps}.")
     if steps == 1:
         return [SIGMA_MAX, 0.0]
     ramp = torch.linspace(0, 1, steps, dtype=torch.float64)

@@ -7,6 +7,8 @@ from __future__ import annotations
 import gymnasium as gym
 from gymnasium.envs.registration import register, registry
 
+from iwsim.errors import InputError
+
 if "iwsim/BimanualPushT-v0" not in registry:
     register(
         id="iwsim/BimanualPushT-v0",
@@ -28,7 +30,7 @@ POLICIES = ("play", "expert")
 def check_task(task: str) -> str:
     """Return the Gymnasium id of ``task`` or raise a one-line ValueError."""
     if task not in TASKS:
-        raise ValueError(f"unknown task {task!r}; expected one of {sorted(TASKS)}.")
+        raise InputError(f"unknown task {task!r}; expected one of {sorted(TASKS)}.")
     return TASKS[task]
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from iwsim.envs import geometry as geo
 from iwsim.envs.pusht import GOAL_POSE, PALETTE, VIEW_HALF
+from iwsim.errors import InputError
 
 # Palette as rendered (8-bit), block first.
 _NAMES = ["block"] + [n for n in PALETTE if n != "block"]
@@ -68,7 +69,7 @@ def goal_mask(image_size: int, goal_pose: np.ndarray = GOAL_POSE) -> np.ndarray:
 def _check_frame(frame: np.ndarray) -> np.ndarray:
     frame = np.asarray(frame)
     if frame.ndim < 3 or frame.shape[-1] != 3 or frame.shape[-2] != frame.shape[-3]:
-        raise ValueError(f"expected RGB frames of shape (..., H, W, 3) with H == W, got {frame.shape}.")
+        raise InputError(f"expected RGB frames of shape (..., H, W, 3) with H == W, got {frame.shape}.")
     return frame
 
 
@@ -81,7 +82,7 @@ def colour_fractions(frame: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     """
     for name in names:
         if name not in _NAMES:
-            raise ValueError(f"unknown surface {name!r}; expected one of {_NAMES}.")
+            raise InputError(f"unknown surface {name!r}; expected one of {_NAMES}.")
     p = _check_frame(frame).astype(np.float64)  # (..., H, W, 3)
     a, b = _COLOURS[_PAIRS[:, 0]].astype(np.float64), _COLOURS[_PAIRS[:, 1]].astype(np.float64)  # (P, 3)
     d = b - a
@@ -203,7 +204,7 @@ def estimate_block_pose(frame: np.ndarray, init: np.ndarray | None = None) -> Po
     """
     frame = _check_frame(frame)
     if frame.ndim != 3:
-        raise ValueError(f"estimate_block_pose takes one (H, W, 3) frame, got {frame.shape}.")
+        raise InputError(f"estimate_block_pose takes one (H, W, 3) frame, got {frame.shape}.")
     size = frame.shape[0]
     a = block_fraction(frame).astype(np.float64)
     centers = pixel_centers(size)

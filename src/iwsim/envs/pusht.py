@@ -20,6 +20,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from iwsim.envs import geometry as geo  # noqa: E402
+from iwsim.errors import InputError
 
 IMAGE_SIZES = (64, 96, 128)
 CONTROL_HZ = 10
@@ -196,14 +197,14 @@ class BimanualPushTEnv(gym.Env):
         max_step: float = MAX_STEP,
     ) -> None:
         if image_size not in IMAGE_SIZES:
-            raise ValueError(f"image_size must be one of {IMAGE_SIZES}, got {image_size!r}.")
+            raise InputError(f"image_size must be one of {IMAGE_SIZES}, got {image_size!r}.")
         if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}.")
+            raise InputError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}.")
         self.image_size = image_size
         self.render_mode = render_mode
         self.terminate_on_success = terminate_on_success
         if not max_step > 0:
-            raise ValueError(f"max_step must be a positive distance in metres, got {max_step!r}.")
+            raise InputError(f"max_step must be a positive distance in metres, got {max_step!r}.")
         self.max_step = float(max_step)
         self.spec_info = TaskSpec()
         self.goal_pose = GOAL_POSE.copy()
@@ -238,7 +239,7 @@ class BimanualPushTEnv(gym.Env):
     def _set_state(self, state: np.ndarray) -> None:
         state = np.asarray(state, dtype=np.float64)
         if state.shape != (7,) or not np.all(np.isfinite(state)):
-            raise ValueError(
+            raise InputError(
                 f"reset_to_state must be 7 finite floats [lx, ly, rx, ry, bx, by, byaw], got {state!r}."
             )
         mujoco.mj_resetData(self.model, self.data)
@@ -298,7 +299,7 @@ class BimanualPushTEnv(gym.Env):
     def step(self, action):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (4,) or not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be 4 finite floats [lx, ly, rx, ry], got {action!r}.")
+            raise InputError(f"action must be 4 finite floats [lx, ly, rx, ry], got {action!r}.")
         self.data.ctrl[:] = limit_targets(self.data.ctrl, action, self.max_step)
         mujoco.mj_step(self.model, self.data, nstep=SUBSTEPS)
         info = self._info()

@@ -28,6 +28,7 @@ from iwsim.envs import geometry as geo
 from iwsim.envs.geometry import to_block, to_world
 from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import GOAL_POSE, MAX_STEP, PUSHER_RADIUS, WORKSPACE
+from iwsim.errors import InputError
 
 # The pinch, in the block frame: grip level just under the bar, on both sides of the stem.
 _BAR_BOTTOM = geo.BAR_CENTER[1] - geo.BAR_WIDTH / 2
@@ -212,7 +213,7 @@ class ExpertPolicy:
 
     def __init__(self, pose_source: str = "state", goal_pose: np.ndarray = GOAL_POSE) -> None:
         if pose_source not in ("state", "pixels"):
-            raise ValueError(f"pose_source must be 'state' or 'pixels', got {pose_source!r}.")
+            raise InputError(f"pose_source must be 'state' or 'pixels', got {pose_source!r}.")
         self.pose_source = pose_source
         self.goal_pose = np.asarray(goal_pose, dtype=np.float64)
         self.pinch = Pinch()
@@ -330,7 +331,7 @@ def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
     """A scripted policy by name: ``play`` (randomised by ``seed``) or ``expert``
     (deterministic, block pose from state)."""
     if name not in POLICIES:
-        raise ValueError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
+        raise InputError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
     return ExpertPolicy() if name == "expert" else PlayPolicy(seed)
 
 

@@ -17,7 +17,6 @@ weights are missing the report says so in their columns instead of giving a numb
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import platform
@@ -30,11 +29,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from iwsim.checkpoint import resolve_checkpoint, write_json_atomic
+from iwsim.checkpoint import load_json, resolve_checkpoint, write_json_atomic
 from iwsim.data.frames import split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
 from iwsim.envs.pixels import block_fraction, estimate_block_pose, pixel_iou
 from iwsim.envs.scripted import run_scripted
+from iwsim.errors import InputError
 from iwsim.eval import features as feats
 from iwsim.metrics import mse, psnr, ssim, uiqi
 from iwsim.world_model import WorldModel
@@ -108,7 +108,7 @@ def frame_metrics(truth: np.ndarray, pred: np.ndarray, nets: FeatureNets | None 
     """Per-frame MSE, PSNR, SSIM, UIQI (and LPIPS when its network is given) of uint8
     videos (E, S, H, W, 3) on [0, 1] images; each (E, S)."""
     if truth.shape != pred.shape or truth.ndim != 5:
-        raise ValueError(f"expected two videos (E, S, H, W, 3) of one shape, got {truth.shape} and {pred.shape}.")
+        raise InputError(f"expected two videos (E, S, H, W, 3) of one shape, got {truth.shape} and {pred.shape}.")
     fns: dict[str, Callable] = {"mse": mse, "psnr": psnr, "ssim": ssim, "uiqi": uiqi}
     if nets is not None and nets.lpips is not None:
         fns["lpips"] = nets.lpips
@@ -138,7 +138,7 @@ def i3d_features(net: torch.nn.Module, video: np.ndarray, clip: int = FVD_CLIP, 
     (E, S, H, W, 3): E * (S // clip) clips."""
     e, s = video.shape[:2]
     if s < clip:
-        raise ValueError(f"FVD needs videos of at least {clip} frames, got {s}.")
+        raise InputError(f"FVD needs videos of at least {clip} frames, got {s}.")
     clips = video[:, :s // clip * clip].reshape(-1, clip, *video.shape[2:])
     dev = next(net.parameters()).device
     out = []
@@ -190,7 +190,7 @@ def stability(models: dict[str, WorldModel], steps: int, seed: int = 100000, eve
     ``every`` steps, per model and for MuJoCo ("mujoco"): frame mean and std, block pixels,
     whether the block is detected (a T fits with IoU >= 0.8) and resident memory."""
     if steps < 1 or every < 1:
-        raise ValueError(f"stability steps and interval must be >= 1, got {steps} and {every}.")
+        raise InputError(f"stability steps and interval must be >= 1, got {steps} and {every}.")
     size = next(iter(models.values())).image_size
     rows: dict[str, dict[str, list]] = {k: {"step": [], "mean": [], "std": [], "block": [], "detected": []}
                                         for k in (*models, "mujoco")}
@@ -322,12 +322,12 @@ def training_info(path: Path) -> dict[str, float]:
     state = path / "training_state" / "state.json"
     if not state.is_file():
         return {}
-    s = json.loads(state.read_text())
+    s = load_json(state)
     return {"train_steps": int(s["step"]), "train_minutes": float(s["elapsed_s"]) / 60}
 
 
 def _data_of(path: Path) -> str | None:
-    config = json.loads((path / "config.json").read_text())
+    config = load_json(path / "config.json")
     return config.get("data") or config.get("provenance", {}).get("data")
 
 
@@ -340,22 +340,22 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
     from iwsim.eval.rollout import open_loop
 
     if not models:
-        raise ValueError("no model to benchmark.")
+        raise InputError("no model to benchmark.")
     paths = {name: resolve_checkpoint(p) for name, p in models.items()}
     wms = {name: WorldModel.load(p, device) for name, p in paths.items()}
     first = next(iter(paths.values()))
     data = data or _data_of(first)
     if data is None:
-        raise ValueError(f"{first} does not say which store it was trained on; pass --data.")
+        raise InputError(f"{first} does not say which store it was trained on; pass --data.")
     store = EpisodeStore.open(data, "r")
     sizes = {wm.image_size for wm in wms.values()}
     if sizes != {store.array("img").shape[1]}:
-        raise ValueError(f"the models' image sizes {sorted(sizes)} do not match the {store.array('img').shape[1]} "
+        raise InputError(f"the models' image sizes {sorted(sizes)} do not match the {store.array('img').shape[1]} "
                          f"px frames of {data}.")
     _, held = split_episodes(store.n_episodes, next(iter(wms.values())).cfg.holdout_every)
     long_enough = [e for e in held if len(store.episode(e)["action"]) >= steps + 1]
     if len(long_enough) < episodes:
-        raise ValueError(f"{data} has {len(long_enough)} held-out episodes of at least {steps + 1} frames; "
+        raise InputError(f"{data} has {len(long_enough)} held-out episodes of at least {steps + 1} frames; "
                          f"{episodes} were asked for (lower --episodes or --steps).")
     chosen = long_enough[:episodes]
     out = Path(out)

@@ -41,7 +41,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from iwsim.checkpoint import CheckpointError, load_tensors
-from iwsim.errors import IwsimError
+from iwsim.errors import InputError, IwsimError
 
 WEIGHTS_ENV = "IWSIM_WEIGHTS"
 LPIPS_FILE = "lpips_alex.safetensors"
@@ -124,7 +124,7 @@ class LPIPS(nn.Module):
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Distances between images a, b of shape (N, 3, H, W) in [0, 1], H, W >= 32; (N,)."""
         if a.ndim != 4 or a.shape[1] != 3 or a.shape != b.shape:
-            raise ValueError(f"LPIPS expects two image batches of equal shape (N, 3, H, W), "
+            raise InputError(f"LPIPS expects two image batches of equal shape (N, 3, H, W), "
                              f"got {tuple(a.shape)} and {tuple(b.shape)}.")
         n = a.shape[0]
         x = (torch.cat([a, b]) * 2 - 1 - self.shift) / self.scale
@@ -294,7 +294,7 @@ class InceptionFID(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """Pool3 features of images (N, 3, H, W) in [0, 1]; (N, 2048)."""
         if images.ndim != 4 or images.shape[1] != 3:
-            raise ValueError(f"InceptionFID expects images of shape (N, 3, H, W), got {tuple(images.shape)}.")
+            raise InputError(f"InceptionFID expects images of shape (N, 3, H, W), got {tuple(images.shape)}.")
         # Resize then scale to [-1, 1], as pytorch-fid does.
         x = F.interpolate(images, size=(299, 299), mode="bilinear", align_corners=False)
         x = 2 * x - 1
@@ -397,10 +397,10 @@ class I3D(nn.Module):
     def forward(self, videos: torch.Tensor) -> torch.Tensor:
         """Logits of videos (N, T, 3, H, W) in [0, 1], T >= 9, averaged over time; (N, 400)."""
         if videos.ndim != 5 or videos.shape[2] != 3:
-            raise ValueError(f"I3D expects videos of shape (N, T, 3, H, W), got {tuple(videos.shape)}.")
+            raise InputError(f"I3D expects videos of shape (N, T, 3, H, W), got {tuple(videos.shape)}.")
         n, t = videos.shape[:2]
         if t < self.min_frames:
-            raise ValueError(f"I3D needs at least {self.min_frames} frames per video, got {t}.")
+            raise InputError(f"I3D needs at least {self.min_frames} frames per video, got {t}.")
         # Frames resized to 224 and scaled to [-1, 1] as in the FVD reference (Unterthiner et al. 2018).
         x = F.interpolate(videos.flatten(0, 1), size=(224, 224), mode="bilinear", align_corners=False)
         x = (2 * x - 1).unflatten(0, (n, t)).transpose(1, 2)  # (N, 3, T, 224, 224)
@@ -489,11 +489,11 @@ def convert(kind: str, sources: list[Path], out_dir: Path | None = None) -> Path
     <out_dir or weights_dir()>/<file name>.
     """
     if kind not in _KINDS:
-        raise ValueError(f"unknown weights kind {kind!r}; expected one of {', '.join(_KINDS)}.")
+        raise InputError(f"unknown weights kind {kind!r}; expected one of {', '.join(_KINDS)}.")
     sources = [Path(p) for p in sources]
     expected = 2 if kind == "lpips" else 1
     if len(sources) != expected:
-        raise ValueError(f"converting {kind} weights takes {expected} source file(s), got {len(sources)}.")
+        raise InputError(f"converting {kind} weights takes {expected} source file(s), got {len(sources)}.")
     if kind == "lpips":
         trunk = {k: v for k, v in _read_torch(sources[0]).items() if k.startswith("features.")}
         tensors = {**trunk, **_read_torch(sources[1])}
@@ -525,11 +525,11 @@ def frechet_distance(a: np.ndarray, b: np.ndarray, eps: float = 1e-6) -> float:
 
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     if a.ndim != 2 or b.ndim != 2:
-        raise ValueError(f"frechet_distance expects two (N, D) feature arrays, got shapes {a.shape} and {b.shape}.")
+        raise InputError(f"frechet_distance expects two (N, D) feature arrays, got shapes {a.shape} and {b.shape}.")
     if a.shape[1] != b.shape[1]:
-        raise ValueError(f"frechet_distance needs features of equal dimension, got {a.shape[1]} and {b.shape[1]}.")
+        raise InputError(f"frechet_distance needs features of equal dimension, got {a.shape[1]} and {b.shape[1]}.")
     if len(a) < 2 or len(b) < 2:
-        raise ValueError(f"frechet_distance needs at least 2 samples per set to estimate a covariance, "
+        raise InputError(f"frechet_distance needs at least 2 samples per set to estimate a covariance, "
                          f"got {len(a)} and {len(b)}.")
     mu_a, mu_b = a.mean(0), b.mean(0)
     s_a, s_b = np.atleast_2d(np.cov(a, rowvar=False)), np.atleast_2d(np.cov(b, rowvar=False))
@@ -540,7 +540,7 @@ def frechet_distance(a: np.ndarray, b: np.ndarray, eps: float = 1e-6) -> float:
         covmean = linalg.sqrtm((s_a + offset) @ (s_b + offset))
     if np.iscomplexobj(covmean):
         if not np.allclose(np.diagonal(covmean).imag, 0, atol=1e-3):
-            raise ValueError(f"the matrix square root has a large imaginary part ({np.abs(covmean.imag).max():.3g}); "
+            raise InputError(f"the matrix square root has a large imaginary part ({np.abs(covmean.imag).max():.3g}); "
                              "the covariances are too ill-conditioned, use more samples.")
         covmean = covmean.real
     diff = mu_a - mu_b

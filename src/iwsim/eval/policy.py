@@ -25,6 +25,7 @@ from tqdm import tqdm
 from iwsim.checkpoint import write_json_atomic
 from iwsim.envs import make_env
 from iwsim.envs.pusht import SUCCESS_IOU
+from iwsim.errors import InputError
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.eval.video import upscale, write_video
 from iwsim.world_model_env import WorldModelVectorEnv
@@ -37,13 +38,13 @@ def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, im
     :class:`~gymnasium.vector.SyncVectorEnv`, or the world model's batched
     :class:`~iwsim.world_model_env.WorldModelVectorEnv` (one forward pass per step)."""
     if env not in ENVS:
-        raise ValueError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
+        raise InputError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
     if env == "pusht":
         return SyncVectorEnv([lambda: make_env("pusht", image_size)] * n)
     if world_model is None:
-        raise ValueError("evaluating inside the world model needs --world-model CHECKPOINT.")
+        raise InputError("evaluating inside the world model needs --world-model CHECKPOINT.")
     if world_model.image_size != image_size:
-        raise ValueError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
+        raise InputError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
                          f"renders {world_model.image_size}x{world_model.image_size}.")
     return WorldModelVectorEnv(n, model=world_model, reset_source="mujoco", max_episode_steps=steps + 1)
 
@@ -102,11 +103,11 @@ def check_args(episodes: int, seed: int, steps: int, videos: int) -> None:
     """Raise ValueError for evaluation flags that cannot work (before anything is loaded)."""
     for name, v in (("episodes", episodes), ("steps", steps)):
         if v < 1:
-            raise ValueError(f"--{name} must be a positive integer, got {v}.")
+            raise InputError(f"--{name} must be a positive integer, got {v}.")
     if videos < 0:
-        raise ValueError(f"--videos must be 0 or more, got {videos}.")
+        raise InputError(f"--videos must be 0 or more, got {videos}.")
     if not 0 <= seed <= MAX_SEED - episodes + 1:  # episode i uses the MuJoCo seed seed + i
-        raise ValueError(f"--seed must be in 0..{MAX_SEED - episodes + 1} for {episodes} episodes (MuJoCo seeds "
+        raise InputError(f"--seed must be in 0..{MAX_SEED - episodes + 1} for {episodes} episodes (MuJoCo seeds "
                          f"are 0..2**32-1), got {seed}.")
 
 

@@ -14,6 +14,7 @@ from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
 from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.scripted import run_scripted
+from iwsim.errors import InputError
 from iwsim.eval.video import score_bar, upscale, write_video
 from iwsim.metrics import psnr, ssim
 from iwsim.world_model import WorldModel
@@ -56,11 +57,11 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
     """Roll ``wm`` out on ``episodes`` of ``store`` (batched): the first ``context`` frames
     (and the actions between them) are the context; then ``steps`` recorded actions."""
     if context < 1 or steps < 1:
-        raise ValueError(f"context and steps must be >= 1, got {context} and {steps}.")
+        raise InputError(f"context and steps must be >= 1, got {context} and {steps}.")
     eps = [store.episode(e) for e in episodes]  # raises on a bad index
     for e, ep in zip(episodes, eps):
         if len(ep["img"]) < context + steps:
-            raise ValueError(f"episode {e} of {store.path} has {len(ep['img'])} frames; {context} context frames "
+            raise InputError(f"episode {e} of {store.path} has {len(ep['img'])} frames; {context} context frames "
                              f"and {steps} steps need {context + steps} (use --steps {len(ep['img']) - context}).")
     frames = np.stack([ep["img"][:context] for ep in eps])
     key = conditioning_key(store.keys)  # the executed motion when the store has it
@@ -78,7 +79,7 @@ def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert"
     policy's actions (the policy sees MuJoCo), against MuJoCo's frames of the same actions;
     the model is conditioned on the motion MuJoCo executed (``info["target"]``)."""
     if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}.")
+        raise InputError(f"steps must be >= 1, got {steps}.")
     run = list(run_scripted(policy, seed, steps, "pusht", wm.image_size))
     first = run[0].obs["pixels"]
     truth_v = np.stack([tr.next_obs["pixels"] for tr in run])[None]

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from scipy import stats
 
+from iwsim.errors import InputError
+
 
 def beta_posterior(successes: int, trials: int, level: float = 0.95) -> dict[str, float]:
     """Posterior Beta(1 + k, 1 + n - k) of a success rate after k successes in n trials
@@ -26,4 +28,4 @@ def clopper_pearson(successes: int, trials: int, level: float = 0.95) -> tuple[f
 
 def _check(successes: int, trials: int) -> None:
     if trials < 1 or not 0 <= successes <= trials:
-        raise ValueError(f"need 0 <= successes <= trials and trials >= 1, got {successes} of {trials}.")
+        raise InputError(f"need 0 <= successes <= trials and trials >= 1, got {successes} of {trials}.")

@@ -8,6 +8,8 @@ from pathlib import Path
 import imageio.v2 as imageio
 import numpy as np
 
+from iwsim.errors import InputError
+
 
 def upscale(frames: np.ndarray, factor: int) -> np.ndarray:
     """(..., H, W, C) -> (..., H*f, W*f, C) by pixel repetition (keeps pixels crisp)."""
@@ -30,7 +32,7 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float) -> Path
     H and W should be multiples of 16 for every player to accept them."""
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-        raise ValueError(f"expected (T, H, W, 3) uint8 frames, got {frames.shape} {frames.dtype}.")
+        raise InputError(f"expected (T, H, W, 3) uint8 frames, got {frames.shape} {frames.dtype}.")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from iwsim.errors import InputError
 from iwsim.models.blocks import ResBlock, group_norm, sinusoidal
 
 
@@ -43,7 +44,7 @@ class Encoder(nn.Module):
     def __init__(self, cfg: EncoderConfig = EncoderConfig()) -> None:
         super().__init__()
         if len(cfg.channels) != 3:
-            raise ValueError(f"the encoder downsamples by 4: give 3 levels of channels, got {cfg.channels}.")
+            raise InputError(f"the encoder downsamples by 4: give 3 levels of channels, got {cfg.channels}.")
         self.cfg = cfg
         self.conv_in = nn.Conv2d(cfg.image_channels, cfg.channels[0], 3, padding=1)
         layers: list[nn.Module] = []

@@ -32,6 +32,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from iwsim.errors import InputError
 from iwsim.models.blocks import ResBlock, group_norm, sinusoidal
 
 
@@ -85,7 +86,7 @@ class Dynamics(nn.Module):
         self.cfg = cfg
         c, e, s = cfg.channels, cfg.emb_dim, cfg.latent_size
         if cfg.point_index and not (len(cfg.point_scale) == len(cfg.point_offset) == cfg.action_dim):
-            raise ValueError(f"point_scale and point_offset need {cfg.action_dim} values each (one per action "
+            raise InputError(f"point_scale and point_offset need {cfg.action_dim} values each (one per action "
                              f"entry), got {len(cfg.point_scale)} and {len(cfg.point_offset)}.")
         self.level_mlp = nn.Sequential(nn.Linear(3 * (e // 2), e), nn.SiLU(), nn.Linear(e, e))
         self.action_mlp = nn.Sequential(nn.Linear(2 * cfg.action_dim, e), nn.SiLU(), nn.Linear(e, e)) \

@@ -28,7 +28,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from iwsim.errors import IwsimError
+from iwsim.errors import InputError, IwsimError
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 WILDCARD = ("0.0.0.0", "::", "")
@@ -44,7 +44,7 @@ def check_bind(host: str, token: str | None) -> None:
     """Refuse to serve beyond this machine without a token chosen by the user (a random
     one would be unknown to the remote users, and is never printed)."""
     if host not in LOOPBACK and not token:
-        raise ValueError(f"refusing to bind {host} without --token: anyone who can reach it could drive "
+        raise InputError(f"refusing to bind {host} without --token: anyone who can reach it could drive "
                          "the simulator and write to the store; give a token with --token-file FILE or "
                          f"${TOKEN_ENV} (clients add ?token=SECRET).")
 
@@ -59,7 +59,7 @@ def resolve_token(flag: str | None = None, file: str | os.PathLike | None = None
         try:
             lines = Path(file).read_text().splitlines()
         except (OSError, UnicodeDecodeError) as e:
-            raise ValueError(f"cannot read the token file {file}: {getattr(e, 'strerror', None) or e}.") from None
+            raise InputError(f"cannot read the token file {file}: {getattr(e, 'strerror', None) or e}.") from None
         token, source = (lines[0].strip() if lines else ""), f"--token-file {file}"
     elif env.get(TOKEN_ENV):
         token, source = env[TOKEN_ENV].strip(), f"${TOKEN_ENV}"
@@ -68,7 +68,7 @@ def resolve_token(flag: str | None = None, file: str | os.PathLike | None = None
     else:
         return None, "random"
     if len(token) < MIN_TOKEN_CHARS or not token.isprintable() or " " in token:
-        raise ValueError(f"the token from {source} must be at least {MIN_TOKEN_CHARS} printable characters "
+        raise InputError(f"the token from {source} must be at least {MIN_TOKEN_CHARS} printable characters "
                          "without spaces.")
     return token, source
 
@@ -81,7 +81,7 @@ def bind(host: str, port: int) -> socket.socket:
     """A listening TCP socket on ``host:port`` (port 0: any free port), or a PlayError
     saying why not (port in use, no such address, ...)."""
     if not 0 <= port < 65536:
-        raise ValueError(f"--port must be in 0..65535 (0: any free port), got {port}.")
+        raise InputError(f"--port must be in 0..65535 (0: any free port), got {port}.")
     try:
         infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
         family, _, _, _, addr = infos[0]
@@ -144,7 +144,7 @@ def check_origin(origin: str) -> str:
 
     parts = urlsplit(origin)
     if parts.scheme not in ("http", "https") or not parts.netloc or parts.path not in ("", "/") or parts.query:
-        raise ValueError(f"--allow-origin must look like http://host:port, got {origin!r}.")
+        raise InputError(f"--allow-origin must look like http://host:port, got {origin!r}.")
     return f"{parts.scheme}://{parts.netloc}"
 
 

@@ -34,6 +34,7 @@ import torch
 
 from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.pusht import TaskSpec, limit_targets
+from iwsim.errors import InputError
 from iwsim.play import protocol as proto
 from iwsim.world_model import StreamState, WorldModel
 from iwsim.world_model_env import Start, Starts, observe
@@ -56,11 +57,11 @@ class PlayConfig:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.hz, (int, float)) and 0 < self.hz <= 60):
-            raise ValueError(f"the control rate must be in (0, 60] Hz, got {self.hz!r}.")
+            raise InputError(f"the control rate must be in (0, 60] Hz, got {self.hz!r}.")
         if not (isinstance(self.max_sessions, int) and self.max_sessions >= 1):
-            raise ValueError(f"max sessions must be a positive integer, got {self.max_sessions!r}.")
+            raise InputError(f"max sessions must be a positive integer, got {self.max_sessions!r}.")
         if not (isinstance(self.max_record_steps, int) and self.max_record_steps >= 1):
-            raise ValueError(f"max record steps must be a positive integer, got {self.max_record_steps!r}.")
+            raise InputError(f"max record steps must be a positive integer, got {self.max_record_steps!r}.")
 
 
 @dataclass
@@ -126,7 +127,7 @@ class Engine:
 
     def __init__(self, model: WorldModel, cfg: PlayConfig = PlayConfig()) -> None:
         if model.action_dim != 4:
-            raise ValueError(f"the world model takes {model.action_dim}-D actions; {cfg.task} needs 4.")
+            raise InputError(f"the world model takes {model.action_dim}-D actions; {cfg.task} needs 4.")
         self.model, self.cfg = model, cfg
         self.spec = TaskSpec()
         self.low = np.asarray(self.spec.action_low, np.float32)

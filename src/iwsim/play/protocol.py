@@ -28,12 +28,14 @@ from typing import Any
 
 import numpy as np
 
+from iwsim.errors import InputError
+
 MAX_MESSAGE_BYTES = 4096
 RESET_SOURCES = ("mujoco", "store")
 MAX_SEED = 2**31 - 1
 
 
-class ProtocolError(ValueError):
+class ProtocolError(InputError):
     """A client message that is malformed, too large or unknown; the session goes on."""
 
 

@@ -20,6 +20,7 @@ from torch import nn
 
 from iwsim.checkpoint import CheckpointError, load_model_dir
 from iwsim.config import TrainConfig, from_dict, to_dict
+from iwsim.errors import InputError
 from iwsim.policies.common import Normalizer
 
 KIND = "policy"
@@ -45,7 +46,7 @@ def config_class(policy: str) -> type:
         from iwsim.policies.act import ACTConfig
 
         return ACTConfig
-    raise ValueError(f"unknown policy {policy!r}; expected one of {', '.join(POLICIES)}.")
+    raise InputError(f"unknown policy {policy!r}; expected one of {', '.join(POLICIES)}.")
 
 
 def make_policy(policy: str, model: dict[str, Any], action_norm: Normalizer, state_norm: Normalizer) -> nn.Module:

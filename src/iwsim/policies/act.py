@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from iwsim.errors import InputError
 from iwsim.policies.common import (
     ImageEncoder,
     Normalizer,
@@ -59,17 +60,17 @@ class ACTConfig:
 
     def __post_init__(self) -> None:
         if self.obs_horizon != 1:
-            raise ValueError(f"ACT observes the current step only: obs_horizon must be 1, got {self.obs_horizon}.")
+            raise InputError(f"ACT observes the current step only: obs_horizon must be 1, got {self.obs_horizon}.")
         if not 1 <= self.n_action_steps <= self.chunk_size:
-            raise ValueError(f"n_action_steps must be in 1..chunk_size ({self.chunk_size}), got {self.n_action_steps}.")
+            raise InputError(f"n_action_steps must be in 1..chunk_size ({self.chunk_size}), got {self.n_action_steps}.")
         if self.temporal_ensemble is not None and self.n_action_steps != 1:
-            raise ValueError(f"temporal ensembling queries every step, so n_action_steps must be 1, got "
+            raise InputError(f"temporal ensembling queries every step, so n_action_steps must be 1, got "
                              f"{self.n_action_steps}; set temporal_ensemble to None to execute several.")
         if self.dim % 4 or self.dim % self.heads:
-            raise ValueError(f"dim must be divisible by 4 (2D sine embedding) and by heads ({self.heads}), "
+            raise InputError(f"dim must be divisible by 4 (2D sine embedding) and by heads ({self.heads}), "
                              f"got {self.dim}.")
         if not self.encoder_channels or any(c % 8 for c in self.encoder_channels):
-            raise ValueError(f"encoder_channels must be multiples of 8 (GroupNorm(8)), got {self.encoder_channels}.")
+            raise InputError(f"encoder_channels must be multiples of 8 (GroupNorm(8)), got {self.encoder_channels}.")
 
 
 def sinusoid(pos: torch.Tensor, dim: int) -> torch.Tensor:
@@ -153,13 +154,13 @@ class TemporalEnsemble:
         action (B, A) for it and advance one step."""
         b, k, a = chunk.shape
         if k != self.chunk_size:
-            raise ValueError(f"expected chunks of {self.chunk_size} actions, got {k}.")
+            raise InputError(f"expected chunks of {self.chunk_size} actions, got {k}.")
         if self.sums is None:
             self.sums = chunk.new_zeros(b, k, a)
             self.weights = chunk.new_zeros(k)
             self.counts = torch.zeros(k, dtype=torch.long, device=chunk.device)
         elif self.sums.shape[0] != b or self.sums.shape[2] != a:
-            raise ValueError(f"the ensemble holds {self.sums.shape[0]} episodes of {self.sums.shape[2]}-D actions, "
+            raise InputError(f"the ensemble holds {self.sums.shape[0]} episodes of {self.sums.shape[2]}-D actions, "
                              f"got a chunk {tuple(chunk.shape)}; call reset() when episodes start.")
         w = torch.exp(-self.m * self.counts.to(chunk.dtype))  # (k,): w_i, i = predictions already made
         self.sums = self.sums + w[:, None] * chunk
@@ -238,12 +239,12 @@ class ACTPolicy(Policy):
         actions (B, k, A) and padding (B, k)."""
         image, pos, action, pad = batch.image, batch.agent_pos, batch.action, batch.action_is_pad
         if image.ndim != 5 or image.shape[1:3] != (1, 3) or pos.shape[1:] != (1, self.state_dim):
-            raise ValueError(f"expected image (B, 1, 3, H, W) and agent_pos (B, 1, {self.state_dim}), got "
+            raise InputError(f"expected image (B, 1, 3, H, W) and agent_pos (B, 1, {self.state_dim}), got "
                              f"{tuple(image.shape)} and {tuple(pos.shape)}.")
         k = self.cfg.chunk_size
         if (action.ndim != 3 or action.shape[1] < k or action.shape[2] != self.action_dim
                 or pad.shape != action.shape[:2]):
-            raise ValueError(f"expected action (B, >={k}, {self.action_dim}) and action_is_pad (B, >={k}), got "
+            raise InputError(f"expected action (B, >={k}, {self.action_dim}) and action_is_pad (B, >={k}), got "
                              f"{tuple(action.shape)} and {tuple(pad.shape)}.")
         return image[:, 0], pos[:, 0], action[:, :k], pad[:, :k]
 

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from iwsim.errors import InputError
 from iwsim.normalize import Normalizer
 
 
@@ -120,14 +121,14 @@ def prepare_obs(obs: dict, state_norm: Normalizer, obs_horizon: int) -> tuple[to
     image = torch.as_tensor(np.asarray(obs["image"]) if not torch.is_tensor(obs["image"]) else obs["image"])
     pos = torch.as_tensor(np.asarray(obs["agent_pos"]), dtype=torch.float32)
     if image.ndim != 5 or pos.ndim != 3 or image.shape[:2] != pos.shape[:2]:
-        raise ValueError(f"expected image (B, To, H, W, 3) and agent_pos (B, To, S), got {tuple(image.shape)} "
+        raise InputError(f"expected image (B, To, H, W, 3) and agent_pos (B, To, S), got {tuple(image.shape)} "
                          f"and {tuple(pos.shape)}.")
     if image.shape[1] != obs_horizon:
-        raise ValueError(f"this policy observes {obs_horizon} steps, got {image.shape[1]}.")
+        raise InputError(f"this policy observes {obs_horizon} steps, got {image.shape[1]}.")
     if image.dtype == torch.uint8:
         if image.shape[-1] != 3:
-            raise ValueError(f"uint8 images must be (B, To, H, W, 3), got {tuple(image.shape)}.")
+            raise InputError(f"uint8 images must be (B, To, H, W, 3), got {tuple(image.shape)}.")
         image = image.permute(0, 1, 4, 2, 3).float() / 127.5 - 1
     if pos.shape[-1] != state_norm.low.shape[0]:
-        raise ValueError(f"this policy takes a {state_norm.low.shape[0]}-D agent_pos, got {pos.shape[-1]}.")
+        raise InputError(f"this policy takes a {state_norm.low.shape[0]}-D agent_pos, got {pos.shape[-1]}.")
     return image.float().to(device), state_norm.normalize(pos.to(device))

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from iwsim.data.store import EpisodeStore
+from iwsim.errors import InputError
 from iwsim.policies.common import Normalizer, PolicyBatch
 
 
@@ -37,17 +38,17 @@ def parse_mixture(spec: str) -> list[Source]:
         if not sep or not count.isdigit():
             path, count = part, ""
         if count and int(count) < 1:
-            raise ValueError(f"episode count of {path} must be >= 1, got {count}.")
+            raise InputError(f"episode count of {path} must be >= 1, got {count}.")
         sources.append(Source(Path(path), int(count) if count else None))
     seen: dict[str, str] = {}
     for src in sources:  # the same store twice would repeat its episodes without a word
         key = os.path.realpath(src.path)
         if key in seen:
-            raise ValueError(f"--data names the store {seen[key]} twice ({spec!r}); give each store once, "
+            raise InputError(f"--data names the store {seen[key]} twice ({spec!r}); give each store once, "
                              "with the number of episodes to take from it.")
         seen[key] = str(src.path)
     if not sources:
-        raise ValueError(f"--data {spec!r} names no episode store; expected STORE[:N][,STORE:N...].")
+        raise InputError(f"--data {spec!r} names no episode store; expected STORE[:N][,STORE:N...].")
     return sources
 
 
@@ -56,17 +57,17 @@ class PolicyData:
 
     def __init__(self, sources: list[Source], obs_horizon: int, horizon: int) -> None:
         if not sources:
-            raise ValueError("the data mixture is empty; give at least one STORE[:N].")
+            raise InputError("the data mixture is empty; give at least one STORE[:N].")
         self.obs_horizon, self.horizon = obs_horizon, horizon
         imgs, states, actions, lengths, self.counts = [], [], [], [], {}
         for src in sources:
             store = EpisodeStore.open(src.path, "r")
             for key in ("img", "state", "action"):
                 if key not in store.keys:
-                    raise ValueError(f"{src.path} has no data/{key}; policies need img, state and action.")
+                    raise InputError(f"{src.path} has no data/{key}; policies need img, state and action.")
             n = store.n_episodes if src.episodes is None else src.episodes
             if n > store.n_episodes or n < 1:
-                raise ValueError(f"{src.path} holds {store.n_episodes} episodes; {n} were asked for.")
+                raise InputError(f"{src.path} holds {store.n_episodes} episodes; {n} were asked for.")
             end = int(store.episode_ends[n - 1])
             imgs.append(np.asarray(store.array("img")[:end]))
             states.append(np.asarray(store.array("state")[:end], np.float32))
@@ -76,7 +77,7 @@ class PolicyData:
             self.counts[os.fspath(src.path)] = n
             for name, arrays in (("frames", imgs), ("state", states), ("action", actions)):
                 if arrays[-1].shape[1:] != arrays[0].shape[1:]:
-                    raise ValueError(f"{src.path} has {name} of shape {arrays[-1].shape[1:]} per step, "
+                    raise InputError(f"{src.path} has {name} of shape {arrays[-1].shape[1:]} per step, "
                                      f"{sources[0].path} {arrays[0].shape[1:]}; a mixture must agree.")
         self.img = torch.from_numpy(np.concatenate(imgs))
         self.state = torch.from_numpy(np.concatenate(states))

@@ -18,6 +18,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from iwsim.diffusion.ddpm import add_noise, ddim_sample, squared_cosine_alphas_cumprod
+from iwsim.errors import InputError
 from iwsim.models.blocks import sinusoidal
 from iwsim.policies.common import (
     ImageEncoder,
@@ -44,10 +45,10 @@ class DiffusionConfig:
 
     def __post_init__(self) -> None:
         if not 1 <= self.n_action_steps <= self.horizon - self.obs_horizon + 1:
-            raise ValueError(f"n_action_steps must be in 1..{self.horizon - self.obs_horizon + 1} "
+            raise InputError(f"n_action_steps must be in 1..{self.horizon - self.obs_horizon + 1} "
                              f"(horizon {self.horizon}, obs_horizon {self.obs_horizon}), got {self.n_action_steps}.")
         if self.horizon % 2 ** (len(self.down_dims) - 1):
-            raise ValueError(f"horizon {self.horizon} must be divisible by {2 ** (len(self.down_dims) - 1)} "
+            raise InputError(f"horizon {self.horizon} must be divisible by {2 ** (len(self.down_dims) - 1)} "
                              f"for {len(self.down_dims)} UNet levels.")
 
 

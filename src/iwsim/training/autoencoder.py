@@ -19,6 +19,7 @@ from iwsim.data.frames import FrameSource, split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.diffusion.consistency import sample_levels, two_jump_loss
 from iwsim.diffusion.schedule import gaussian
+from iwsim.errors import InputError
 from iwsim.metrics import psnr, ssim
 from iwsim.training import trainer
 from iwsim.world_model import WorldModel
@@ -67,10 +68,10 @@ class AETask:
             raise StoreError(f"{data} has no data/img frames to train on.")
         size = store.array("img").shape[1]
         if size != cfg.image_size:
-            raise ValueError(f"{data} holds {size}x{size} frames but the config expects {cfg.image_size}x"
+            raise InputError(f"{data} holds {size}x{size} frames but the config expects {cfg.image_size}x"
                              f"{cfg.image_size}; pick a preset for {size} px or collect {cfg.image_size} px data.")
         if store.n_episodes < 2:
-            raise ValueError(f"{data} holds {store.n_episodes} episode(s); training needs at least 2 "
+            raise InputError(f"{data} holds {store.n_episodes} episode(s); training needs at least 2 "
                              "(one is held out for evaluation).")
         self.cfg = cfg
         self.train_episodes, self.heldout_episodes = split_episodes(store.n_episodes, cfg.holdout_every)

@@ -46,6 +46,7 @@ from iwsim.diffusion.consistency import sample_levels
 from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
 from iwsim.diffusion.objectives import Levels
 from iwsim.diffusion.schedule import Schedule, gaussian
+from iwsim.errors import InputError
 from iwsim.metrics import psnr
 from iwsim.models.dynamics import Dynamics
 from iwsim.normalize import scale, widen
@@ -83,7 +84,7 @@ class DynamicsTrainModule(nn.Module):
     def __init__(self, dynamics: Dynamics, schedule: Schedule, cfg: DynamicsStageConfig) -> None:
         super().__init__()
         if cfg.objective not in OBJECTIVES:
-            raise ValueError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
+            raise InputError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
         self.dynamics, self.schedule, self.cfg = dynamics, schedule, cfg
         self.objective = OBJECTIVE_TABLE[cfg.objective]
         # Whether the loss's one-pass estimate is exactly what inference generates (then it
@@ -144,14 +145,14 @@ class DynamicsTask:
         self.ae = Autoencoder.load(self.ae_path, device)
         size = store.array("img").shape[1]
         if size != self.ae.image_size:
-            raise ValueError(f"{data} holds {size}x{size} frames but the autoencoder {self.ae_path} expects "
+            raise InputError(f"{data} holds {size}x{size} frames but the autoencoder {self.ae_path} expects "
                              f"{self.ae.image_size}x{self.ae.image_size}.")
         self.action_key = conditioning_key(store.keys)
         actions = np.asarray(store.array(self.action_key)[:], dtype=np.float32)
         if actions.ndim != 2:
             raise StoreError(f"{data}: data/{self.action_key} must be (frames, action_dim), got {actions.shape}.")
         if store.n_episodes < 2:
-            raise ValueError(f"{data} holds {store.n_episodes} episode(s); training needs at least 2 "
+            raise InputError(f"{data} holds {store.n_episodes} episode(s); training needs at least 2 "
                              "(one is held out for evaluation).")
         self.train_episodes, self.heldout_episodes = split_episodes(store.n_episodes, cfg.holdout_every)
         ends = store.episode_ends.astype(np.int64)
@@ -159,7 +160,7 @@ class DynamicsTask:
         longest = max(cfg.unroll_at(s) for s, _ in cfg.unroll) if cfg.unroll else 1
         train_long = [e for e in self.train_episodes if ends[e] - starts[e] >= longest + 1]
         if not train_long:
-            raise ValueError(f"no training episode of {data} has the {longest + 1} frames the longest unroll "
+            raise InputError(f"no training episode of {data} has the {longest + 1} frames the longest unroll "
                              f"needs ({longest} predictions); lower cfg.unroll or collect longer episodes.")
         self.ep_starts = torch.from_numpy(starts[train_long])
         self.ep_lengths = torch.from_numpy(ends[train_long] - starts[train_long])

@@ -41,7 +41,7 @@ from iwsim.checkpoint import (
     write_json_atomic,
 )
 from iwsim.config import TrainConfig
-from iwsim.errors import IwsimError
+from iwsim.errors import InputError, IwsimError
 from iwsim.training import distributed
 
 log = logging.getLogger(__name__)
@@ -90,7 +90,7 @@ def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False) 
 
         if comparable(old) != comparable(config) and not force:
             diff = sorted(_diff_keys(comparable(old), comparable(config)))
-            raise ValueError(
+            raise InputError(
                 f"{run_dir} holds a run with a different config (differs in {', '.join(diff)}); "
                 "use another --out, or --force to train it with the new config."
             )
@@ -152,9 +152,9 @@ def train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, An
         device = torch.device("cuda", d.local_rank)
         torch.cuda.set_device(device)
     if cfg.lr_decay not in ("cosine", "constant"):
-        raise ValueError(f"lr_decay must be 'cosine' or 'constant', got {cfg.lr_decay!r}.")
+        raise InputError(f"lr_decay must be 'cosine' or 'constant', got {cfg.lr_decay!r}.")
     if cfg.batch_size % d.world:
-        raise ValueError(f"batch size {cfg.batch_size} does not split evenly over {d.world} processes.")
+        raise InputError(f"batch size {cfg.batch_size} does not split evenly over {d.world} processes.")
     run_dir = Path(run_dir)
     if d.main:
         prepare_run_dir(run_dir, config, force)
@@ -308,16 +308,16 @@ def resolve_device(name: str) -> torch.device:
     try:
         device = torch.device(name)
     except RuntimeError:
-        raise ValueError(f"unknown device {name!r}; expected auto, cpu, cuda or cuda:N.") from None
+        raise InputError(f"unknown device {name!r}; expected auto, cpu, cuda or cuda:N.") from None
     if device.type == "cuda":
         if not torch.cuda.is_available():
             build = "this PyTorch build has no CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"
-            raise ValueError(f"--device {name}: {build}; use --device cpu (or auto).")
+            raise InputError(f"--device {name}: {build}; use --device cpu (or auto).")
         if device.index is not None and device.index >= torch.cuda.device_count():
-            raise ValueError(f"--device {name}: there are only {torch.cuda.device_count()} CUDA devices "
+            raise InputError(f"--device {name}: there are only {torch.cuda.device_count()} CUDA devices "
                              f"(cuda:0..cuda:{torch.cuda.device_count() - 1}).")
     elif device.type != "cpu":
-        raise ValueError(f"unknown device {name!r}; expected auto, cpu, cuda or cuda:N.")
+        raise InputError(f"unknown device {name!r}; expected auto, cpu, cuda or cuda:N.")
     return device
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from iwsim.data.formats.common import FormatError, check_resize_memory, output_dir, write_store
 from iwsim.data.store import EpisodeStore
+from iwsim.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -35,13 +36,13 @@ def export(fmt: str, store: str | os.PathLike, out: str | os.PathLike, *, fps: i
            task: str | None = None, progress: bool = True) -> Path:
     """Write the episode store ``store`` as ``fmt`` to the new directory ``out``."""
     if fmt not in EXPORT_FORMATS:
-        raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}.")
+        raise InputError(f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}.")
     src = EpisodeStore.open(store, "r")
     if src.n_episodes == 0:
         raise FormatError(f"{store} holds no episodes to export.")
     fps = int(fps or src.attrs.get("fps") or 10)
     if fps < 1:
-        raise ValueError(f"--fps must be a positive integer, got {fps}.")
+        raise InputError(f"--fps must be a positive integer, got {fps}.")
     task = task or str(src.attrs.get("task") or "")
     dropped = sorted(set(src.keys) - {"img", "state", "action"})
     if dropped:
@@ -62,9 +63,9 @@ def import_(fmt: str, src: str | os.PathLike, out: str | os.PathLike, *, camera:
     """Read ``src`` (in ``fmt``) into a new episode store at ``out``, frames resized to
     ``image_size`` (None keeps them)."""
     if fmt not in IMPORT_FORMATS:
-        raise ValueError(f"unknown import format {fmt!r}; expected one of {', '.join(IMPORT_FORMATS)}.")
+        raise InputError(f"unknown import format {fmt!r}; expected one of {', '.join(IMPORT_FORMATS)}.")
     if image_size is not None and image_size < 1:
-        raise ValueError(f"--image-size must be a positive integer, got {image_size}.")
+        raise InputError(f"--image-size must be a positive integer, got {image_size}.")
     if image_size is not None:  # before reading anything: one frame must fit
         check_resize_memory(1, image_size, f"--image-size {image_size} (for a single frame)")
     src = Path(src)

@@ -19,12 +19,13 @@ import numpy as np
 
 from iwsim.data.lock import LOCK_NAME, DirLock, remove_stale_temps, temp_sibling
 from iwsim.data.store import EpisodeStore
+from iwsim.errors import InputError
 from iwsim.resources import require_memory
 
 REQUIRED = ("img", "state", "action")
 
 
-class FormatError(ValueError):
+class FormatError(InputError):
     """A file that does not follow its format; the message names the file, key and episode."""
 
 

@@ -41,6 +41,7 @@ import numpy as np
 from iwsim.data.formats.common import FormatError, check_episode, positive_int, store_episodes, where
 from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video, write_episode_video
 from iwsim.data.store import EpisodeStore
+from iwsim.errors import InputError
 
 V3, V21 = "v3.0", "v2.1"
 CHUNKS_SIZE = 1000  # files per chunk directory
@@ -395,10 +396,10 @@ def _column(table, key: str, path: Path, episode: int | None = None) -> np.ndarr
     try:
         if pa.types.is_list(col.type) or pa.types.is_fixed_size_list(col.type) or pa.types.is_large_list(col.type):
             if col.null_count:
-                raise ValueError("null rows")
+                raise InputError("null rows")
             lengths = set(np.asarray(col.value_lengths().to_numpy(zero_copy_only=False)).tolist())
             if len(lengths) > 1:
-                raise ValueError(f"rows of different lengths {sorted(lengths)}")
+                raise InputError(f"rows of different lengths {sorted(lengths)}")
             values = np.asarray(col.flatten().to_numpy(zero_copy_only=False))
             return values.reshape(len(col), -1)
         return np.asarray(col.to_numpy(zero_copy_only=False))
