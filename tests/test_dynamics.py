@@ -13,7 +13,8 @@ from iwsim.config import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant
 from iwsim.diffusion.edm import training_sigmas
 from iwsim.diffusion.schedule import Schedule
 from iwsim.models.dynamics import Dynamics, DynamicsConfig, blobs
-from iwsim.training.dynamics import DynamicsTrainModule, DynBatch
+from iwsim.training.dynamics import DynamicsTrainModule
+from iwsim.training.dynamics_data import DynBatch
 from iwsim.world_model import StreamState, WorldModel
 
 LOW, HIGH = [-0.22] * 4, [0.22] * 4

@@ -1,0 +1,174 @@
+"""Stage 2's training data: an episode store as latent sequences (``iwsim train dynamics``).
+
+Every frame of the store is encoded once by the frozen stage-1 encoder (and cached); the
+conditioning actions are min-max normalised over the training episodes; the latents are
+standardised for the dynamics (see :class:`iwsim.world_model.WorldModel`). A batch holds
+windows of training episodes with everything random a training step needs.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
+from tqdm import tqdm
+
+from iwsim.autoencoder import Autoencoder
+from iwsim.checkpoint import resolve_checkpoint
+from iwsim.config import DynamicsStageConfig
+from iwsim.data.frames import split_episodes, to_model
+from iwsim.data.store import EpisodeStore, StoreError, conditioning_key
+from iwsim.diffusion import edm
+from iwsim.diffusion.consistency import sample_levels
+from iwsim.diffusion.schedule import gaussian
+from iwsim.errors import InputError
+from iwsim.normalize import scale, widen
+
+
+@dataclass
+class DynBatch:
+    """Standardised latents z (B, K+n, C, h, w): the window, then the n frames to predict;
+    normalised actions (B, n+1, A): prediction u takes actions u (the one that produced its
+    newest context frame) and u+1 (the one that produces its frame); whether frame K+u
+    changed from K+u-1 per cell (B, n, 1, h, w); context-noise stds (B, n) and noise
+    (B, n, K, C, h, w); target levels t, s and EDM sigmas (B, n) and noise (B, n, C, h, w)."""
+
+    z: torch.Tensor
+    actions: torch.Tensor
+    ctx_sigma: torch.Tensor
+    ctx_eps: torch.Tensor
+    t: torch.Tensor
+    s: torch.Tensor
+    sigma: torch.Tensor
+    eps: torch.Tensor
+
+    def to(self, device: torch.device) -> DynBatch:
+        return DynBatch(*(v.to(device) for v in vars(self).values()))
+
+
+class DynamicsData:
+    """Latents of every frame of the store (encoded once), normalised actions, the
+    train/held-out split, and sequences from the training episodes (``batch``). ``cfg``
+    is the given config with the sizes the data decides (action size, latent shape,
+    positional actions)."""
+
+    def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path,
+                 device: torch.device = torch.device("cpu"), progress: bool = True,
+                 latent_cache: Path | None = None) -> None:
+        store = EpisodeStore.open(data, "r")
+        for key in ("img", "action"):
+            if key not in store.keys:
+                raise StoreError(f"{data} has no data/{key} to train the dynamics on.")
+        self.ae_path = resolve_checkpoint(ae_path)
+        self.ae = Autoencoder.load(self.ae_path, device)
+        size = store.array("img").shape[1]
+        if size != self.ae.image_size:
+            raise InputError(f"{data} holds {size}x{size} frames but the autoencoder {self.ae_path} expects "
+                             f"{self.ae.image_size}x{self.ae.image_size}.")
+        self.action_key = conditioning_key(store.keys)
+        actions = np.asarray(store.array(self.action_key)[:], dtype=np.float32)
+        if actions.ndim != 2:
+            raise StoreError(f"{data}: data/{self.action_key} must be (frames, action_dim), got {actions.shape}.")
+        if store.n_episodes < 2:
+            raise InputError(f"{data} holds {store.n_episodes} episode(s); training needs at least 2 "
+                             "(one is held out for evaluation).")
+        self.train_episodes, self.heldout_episodes = split_episodes(store.n_episodes, cfg.holdout_every)
+        ends = store.episode_ends.astype(np.int64)
+        starts = np.concatenate([[0], ends[:-1]])
+        longest = max(cfg.unroll_at(s) for s, _ in cfg.unroll) if cfg.unroll else 1
+        train_long = [e for e in self.train_episodes if ends[e] - starts[e] >= longest + 1]
+        if not train_long:
+            raise InputError(f"no training episode of {data} has the {longest + 1} frames the longest unroll "
+                             f"needs ({longest} predictions); lower cfg.unroll or collect longer episodes.")
+        self.ep_starts = torch.from_numpy(starts[train_long])
+        self.ep_lengths = torch.from_numpy(ends[train_long] - starts[train_long])
+        train_idx = np.concatenate([np.arange(starts[e], ends[e]) for e in self.train_episodes])
+        train_actions = torch.from_numpy(actions[train_idx])
+        low, high = widen(train_actions.amin(0), train_actions.amax(0), 1e-3)
+        self.action_low, self.action_high = low.numpy(), high.numpy()
+        self.actions = scale(torch.from_numpy(actions), low, high)
+        self.latents = encode_store(self.ae, store, device, progress, latent_cache)
+        # The action size and latent shape follow the data; positional actions where the
+        # task declares them (see iwsim.models.dynamics).
+        cfg = replace(cfg, dynamics=replace(cfg.dynamics, action_dim=actions.shape[1],
+                                            latent_channels=self.latents.shape[1],
+                                            latent_size=self.latents.shape[-1],
+                                            **self.points(store.attrs, cfg)))
+        self.cfg = cfg
+        # Standardisation of the latents for the dynamics (see WorldModel): per-element
+        # mean over the training frames, and the RMS of the per-element standard deviation.
+        train_z = self.latents[torch.from_numpy(train_idx)]
+        self.latent_mean = train_z.mean(0)
+        self.latent_scale = float(train_z.var(0).mean().sqrt().clamp_min(1e-6))
+        self.store, self.starts, self.ends = store, starts, ends
+    def points(self, attrs: dict, cfg: DynamicsStageConfig) -> dict:
+        """The positional-action fields of the network's config: which action entries are
+        image positions and the map from normalised actions to image coordinates, from the
+        task's declaration in the store (``action_points``, ``view_half``), if any."""
+        points, view = attrs.get("action_points"), attrs.get("view_half")
+        if not (cfg.dynamics.positional_actions and points and view):
+            return {"point_index": (), "point_scale": (), "point_offset": ()}
+        half = (self.action_high - self.action_low) / 2 / view
+        mid = (self.action_high + self.action_low) / 2 / view
+        return {"point_index": tuple(tuple(int(i) for i in p) for p in points),
+                "point_scale": tuple(float(v) for v in half), "point_offset": tuple(float(v) for v in mid)}
+
+    def split(self) -> dict[str, list[int]]:
+        return {"train_episodes": self.train_episodes, "heldout_episodes": self.heldout_episodes}
+
+    def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device) -> DynBatch:
+        """This rank's ``part`` of step ``step``'s global batch of training sequences (see
+        :class:`DynBatch`), everything random drawn from ``generator``."""
+        cfg = self.cfg
+        b, k, n = cfg.train.batch_size, cfg.dynamics.context, cfg.unroll_at(step)
+        # Windows end anywhere in a training episode that leaves n frames after them (a
+        # share at its first frame); frames before the episode repeat its first frame.
+        room = (self.ep_lengths - n).clamp_min(0).double()
+        ep = torch.multinomial(room, b, replacement=True, generator=generator)
+        offset = (torch.rand(b, generator=generator) * room[ep]).long()
+        offset = torch.where(torch.rand(b, generator=generator) < cfg.start_fraction, 0, offset)
+        start = self.ep_starts[ep]
+        anchor = start + offset  # the newest context frame
+        idx = torch.maximum(anchor[:, None] + torch.arange(-(k - 1), n + 1), start[:, None])  # (B, K+n)
+        act = anchor[:, None] + torch.arange(-1, n)  # (B, n+1): before the episode, its first action
+        act = torch.maximum(act, start[:, None])
+        lo, hi = cfg.context_sigma
+        ctx_sigma = lo + (hi - lo) * torch.rand(b, n, generator=generator)
+        shape = tuple(self.latents.shape[1:])
+        ctx_eps = torch.randn(b, n, k, *shape, generator=generator)
+        t, s = sample_levels(b * n, cfg.schedule.num_levels, generator, cfg.top_fraction,
+                             zero_fraction=cfg.zero_fraction)
+        eps = gaussian((b, n, *shape), generator)
+        sigma = edm.training_sigmas(b * n, generator).view(b, n)
+        z = (self.latents[idx[part]] - self.latent_mean) / self.latent_scale
+        return DynBatch(z, self.actions[act[part]], ctx_sigma[part], ctx_eps[part], t.view(b, n)[part],
+                        s.view(b, n)[part], sigma[part], eps[part]).to(device)
+
+
+@torch.no_grad()
+def encode_store(ae: Autoencoder, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
+             chunk: int = 512) -> torch.Tensor:
+    """Latents of every frame of the store, reused from ``cache`` when it was written
+    for the same frames and the same encoder weights."""
+    img = store.array("img")
+    key = f"{store.path}|{img.shape[0]}|" + ",".join(
+        f"{v.double().sum().item():.10e}" for v in ae.encoder.state_dict().values())
+    if cache is not None and cache.is_file():
+        with safe_open(cache, "pt") as f:
+            if (f.metadata() or {}).get("key") == key:
+                return f.get_tensor("latents")
+    out = []
+    for i in tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress):
+        out.append(ae.encode_tensor(to_model(img[i:i + chunk]).to(device)).cpu())
+    latents = torch.cat(out)
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_name(f".{cache.name}.tmp")
+        save_file({"latents": latents.contiguous()}, tmp, metadata={"key": key})
+        os.replace(tmp, cache)
+    return latents
