@@ -24,7 +24,7 @@ from iwsim.autoencoder import Autoencoder
 from iwsim.checkpoint import resolve_checkpoint
 from iwsim.data.frames import FrameSource, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
-from iwsim.eval.benchmark import latency_ms
+from iwsim.eval.profiling import latency_ms
 from iwsim.metrics import psnr, ssim
 
 RESULTS = Path(__file__).parent / "results"

@@ -10,8 +10,9 @@ import torch
 from safetensors.torch import save_file
 
 from iwsim.cli import main
-from iwsim.eval import benchmark as bm
 from iwsim.eval import features as ft
+from iwsim.eval import report
+from iwsim.eval import scores as sc
 from iwsim.metrics import mse, psnr, ssim, uiqi
 from tests.test_dynamics import tiny_world_model
 from tests.test_features import _random_state
@@ -23,7 +24,7 @@ def video(seed: int, e: int = 2, s: int = 16) -> np.ndarray:
 
 def test_identical_videos_score_perfectly():
     v = video(0)
-    scores = bm.frame_metrics(v, v)
+    scores = sc.frame_metrics(v, v)
     assert scores["mse"].shape == (2, 16)
     assert np.all(scores["mse"] == 0) and np.allclose(scores["ssim"], 1) and np.allclose(scores["uiqi"], 1)
     assert np.all(scores["psnr"] >= 100)
@@ -36,7 +37,7 @@ def test_a_known_shift_gives_the_known_psnr():
     v = video(1)
     shifted = v + np.uint8(26)
     expected = 20 * math.log10(255 / 26)
-    assert np.allclose(bm.frame_metrics(v, shifted)["psnr"], expected, atol=1e-3)
+    assert np.allclose(sc.frame_metrics(v, shifted)["psnr"], expected, atol=1e-3)
 
 
 def test_ssim_and_uiqi_fall_with_noise_and_handle_flat_images():
@@ -52,13 +53,13 @@ def test_ssim_and_uiqi_fall_with_noise_and_handle_flat_images():
 
 
 def test_missing_weights_are_reported_not_scored(tmp_path):
-    nets = bm.FeatureNets.load(tmp_path)
+    nets = sc.FeatureNets.load(tmp_path)
     assert nets.lpips is None and nets.inception is None and nets.i3d is None
     assert nets.missing == {"lpips": f"unavailable: {ft.LPIPS_FILE} not found",
                             "fid": f"unavailable: {ft.INCEPTION_FILE} not found",
                             "fvd": f"unavailable: {ft.I3D_FILE} not found"}
     v = video(0)
-    assert "lpips" not in bm.frame_metrics(v, v, nets) and bm.set_metrics({}, v, nets) == {}
+    assert "lpips" not in sc.frame_metrics(v, v, nets) and sc.set_metrics({}, v, nets) == {}
 
 
 @pytest.mark.slow
@@ -66,24 +67,24 @@ def test_lpips_fid_fvd_with_random_weights(tmp_path):
     for cls, name, seed in ((ft.LPIPS, ft.LPIPS_FILE, 0), (ft.InceptionFID, ft.INCEPTION_FILE, 1),
                             (ft.I3D, ft.I3D_FILE, 2)):
         save_file(_random_state(cls, seed), tmp_path / name)
-    nets = bm.FeatureNets.load(tmp_path)
+    nets = sc.FeatureNets.load(tmp_path)
     assert not nets.missing
     truth, other = video(0, 1, 4), video(1, 1, 4)
-    same = bm.frame_metrics(truth, truth, nets)
-    diff = bm.frame_metrics(truth, other, nets)
+    same = sc.frame_metrics(truth, truth, nets)
+    diff = sc.frame_metrics(truth, other, nets)
     assert np.allclose(same["lpips"], 0, atol=1e-6) and np.all(diff["lpips"] > 0)
     # One network at a time keeps the big ones on small inputs: FID on 4 frames, FVD on 2 clips.
-    fid_only = bm.FeatureNets(inception=nets.inception)
-    feats = {"fid": bm.inception_features(nets.inception, truth)}
+    fid_only = sc.FeatureNets(inception=nets.inception)
+    feats = {"fid": sc.inception_features(nets.inception, truth)}
     assert feats["fid"].shape == (4, 2048)
     assert ft.frechet_distance(feats["fid"], feats["fid"]) == pytest.approx(0.0, abs=1e-3)
-    assert bm.set_metrics(feats, other, fid_only)["fid"] > 0
-    fvd_only = bm.FeatureNets(i3d=nets.i3d)
+    assert sc.set_metrics(feats, other, fid_only)["fid"] > 0
+    fvd_only = sc.FeatureNets(i3d=nets.i3d)
     clips, clips_other = video(0, 2, 16), video(1, 2, 16)
-    feats = {"fvd": bm.i3d_features(nets.i3d, clips)}
+    feats = {"fvd": sc.i3d_features(nets.i3d, clips)}
     assert feats["fvd"].shape == (2, 400)
     assert ft.frechet_distance(feats["fvd"], feats["fvd"]) == pytest.approx(0.0, abs=1e-3)
-    assert bm.set_metrics(feats, clips_other, fvd_only)["fvd"] > 0
+    assert sc.set_metrics(feats, clips_other, fvd_only)["fvd"] > 0
 
 
 def _result() -> dict:
@@ -106,7 +107,7 @@ def _result() -> dict:
 
 
 def test_markdown_table():
-    md = bm.markdown(_result())
+    md = report.markdown(_result())
     assert "| MSE ↓ | PSNR ↑ | SSIM ↑ | UIQI ↑ | LPIPS ↓ | FID ↓ | FVD ↓ | IOU_ERR ↓ |" in md
     assert "| ours | 0.0100 +- 0.0010 | 20.00 +- 1.00 | 0.8000 +- 0.0500 | 0.7000 +- 0.0500 | unavailable: " \
            "lpips_alex.safetensors not found | unavailable: inception_fid.safetensors not found |" in md
@@ -137,10 +138,10 @@ def test_bench_cli_end_to_end(play_store, tmp_path, capsys):
         assert entry["speed"]["steps_per_s"] > 0 and entry["speed"]["frames_per_s_batch2"] > 0
         assert 0 <= entry["stability"]["block_detected"] <= 1
     assert r["models"]["diffusion"]["objective"] == "edm"
-    assert set(r["reference"][bm.COPY]["accuracy"]) == {"mse", "psnr", "ssim", "uiqi", "iou_err"}
+    assert set(r["reference"][report.COPY]["accuracy"]) == {"mse", "psnr", "ssim", "uiqi", "iou_err"}
     assert r["mujoco"]["stability"]["block_detected"] == 1.0  # MuJoCo's own frames: the T is always there
     md = (out / "results.md").read_text()
-    assert f"unavailable: {ft.LPIPS_FILE} not found" in md and "## Stability" in md and f"| *{bm.COPY}* |" in md
+    assert f"unavailable: {ft.LPIPS_FILE} not found" in md and "## Stability" in md and f"| *{report.COPY}* |" in md
     for png in ("curves.png", "frames.png", "stability.png"):
         assert (out / png).stat().st_size > 1000
     assert not list(out.glob(".*tmp*"))

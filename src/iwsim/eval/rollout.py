@@ -15,6 +15,7 @@ from iwsim.data.store import EpisodeStore, conditioning_key
 from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.scripted import run_scripted
 from iwsim.errors import InputError
+from iwsim.eval.figures import plot_psnr
 from iwsim.eval.video import score_bar, upscale, write_video
 from iwsim.metrics import psnr, ssim
 from iwsim.world_model import WorldModel
@@ -108,32 +109,3 @@ def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10
     os.replace(tmp, out.with_suffix(".json"))
     plot_psnr({"episode " + str(result.episodes[0]): result.psnr[0]}, out.with_name(f"{out.stem}_psnr.png"))
     return out
-
-
-def plot_psnr(curves: dict[str, np.ndarray], path: Path, bands: dict[str, np.ndarray] | None = None,
-              target: float | None = None) -> Path:
-    """PSNR (dB) against rollout step, one line per curve (optional +-std bands)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    for name, y in curves.items():
-        x = np.arange(1, len(y) + 1)
-        ax.plot(x, y, label=name)
-        if bands and name in bands:
-            ax.fill_between(x, y - bands[name], y + bands[name], alpha=0.2)
-    if target is not None:
-        ax.axhline(target, color="grey", linestyle="--", linewidth=1, label=f"target {target:g} dB")
-    ax.set_xlabel("rollout step")
-    ax.set_ylabel("PSNR (dB)")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
-

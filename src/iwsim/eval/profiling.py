@@ -1,0 +1,96 @@
+"""Speed and long-run stability of world models: latency, resident memory, steps per
+second, and a long rollout under a scripted policy's actions beside MuJoCo."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from iwsim.data.frames import to_uint8
+from iwsim.envs.pixels import block_fraction, estimate_block_pose
+from iwsim.envs.scripted import run_scripted
+from iwsim.errors import InputError
+from iwsim.world_model import WorldModel
+
+
+def latency_ms(fn: Callable[[], object], n: int = 200, warmup: int = 10) -> float:
+    """Median wall-clock milliseconds of ``fn()`` over ``n`` calls after ``warmup``."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(n):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return 1000 * float(np.median(times))
+
+
+def rss_mib() -> float:
+    """This process's resident memory (MiB), from /proc (NaN elsewhere)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def speed(wm: WorldModel, frame: np.ndarray, batch: int = 64, n: int = 100) -> dict[str, float]:
+    """Single-stream and batched step costs of ``wm`` from one uint8 frame (H, W, 3)."""
+    a = np.repeat(((wm.action_low + wm.action_high) / 2).cpu().numpy()[None], batch, 0)
+    wm.reset(frame[None])
+    step_ms = latency_ms(lambda: wm.step(a[:1]), n)
+    a1 = wm.normalize_actions(a[:1])
+    dyn_ms = latency_ms(lambda: wm.step_latent(a1), n)
+    wm.reset(np.repeat(frame[None], batch, 0))
+    batch_ms = latency_ms(lambda: wm.step(a), max(5, n // 10), warmup=2)
+    return {"step_ms": step_ms, "steps_per_s": 1000 / step_ms, "dynamics_step_ms": dyn_ms,
+            f"step_ms_batch{batch}": batch_ms, f"frames_per_s_batch{batch}": batch * 1000 / batch_ms}
+
+
+def stability(models: dict[str, WorldModel], steps: int, seed: int = 100000, every: int = 1,
+              progress: bool = True) -> dict[str, dict[str, np.ndarray]]:
+    """All models and MuJoCo under the same play-policy actions for ``steps`` steps; every
+    ``every`` steps, per model and for MuJoCo ("mujoco"): frame mean and std, block pixels,
+    whether the block is detected (a T fits with IoU >= 0.8) and resident memory."""
+    if steps < 1 or every < 1:
+        raise InputError(f"stability steps and interval must be >= 1, got {steps} and {every}.")
+    size = next(iter(models.values())).image_size
+    rows: dict[str, dict[str, list]] = {k: {"step": [], "mean": [], "std": [], "block": [], "detected": []}
+                                        for k in (*models, "mujoco")}
+    memory: list[float] = []
+    run = run_scripted("play", seed, steps, "pusht", size)
+    try:
+        for t, tr in enumerate(tqdm(run, total=steps, desc="stability", disable=not progress), 1):
+            if t == 1:
+                for wm in models.values():
+                    wm.reset(tr.obs["pixels"][None], seed=seed)
+            obs, info = tr.next_obs, tr.next_info
+            frames = {}
+            for name, wm in models.items():  # conditioned on the motion MuJoCo executed
+                z = wm.step_latent(wm.normalize_actions(info["target"][None]))
+                if t % every == 0 or t == steps:
+                    frames[name] = to_uint8(wm.decode_latents(z))[0]
+            if not frames:
+                continue
+            frames["mujoco"] = obs["pixels"]
+            for name, f in frames.items():
+                g = f.astype(np.float32) / 255
+                est = estimate_block_pose(f)
+                r = rows[name]
+                r["step"].append(t)
+                r["mean"].append(float(g.mean()))
+                r["std"].append(float(g.std()))
+                r["block"].append(float(block_fraction(f).sum()))
+                r["detected"].append(bool(est.found and est.fit_iou >= 0.8))
+            memory.append(rss_mib())
+    finally:
+        run.close()
+    out = {k: {kk: np.asarray(vv) for kk, vv in v.items()} for k, v in rows.items()}
+    out["mujoco"]["memory_mib"] = np.asarray(memory)
+    return out
