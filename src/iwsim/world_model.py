@@ -42,7 +42,7 @@ from torch import nn
 
 from iwsim.autoencoder import Autoencoder
 from iwsim.checkpoint import CheckpointError, load_json, load_model_dir, resolve_checkpoint, save_model_dir
-from iwsim.config import OBJECTIVES, AEConfig, DynamicsStageConfig, from_dict
+from iwsim.config import OBJECTIVES, AEConfig, DynamicsStageConfig, from_dict, to_dict
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
 from iwsim.diffusion.schedule import Schedule, gaussian
@@ -380,8 +380,6 @@ class WorldModel(nn.Module):
 
     def describe(self) -> dict:
         """The parts of ``config.json`` that ``load`` reads."""
-        from iwsim.config import to_dict
-
         return {"kind": KIND, "ae": to_dict(self.ae.cfg), "stage2": to_dict(self.cfg),
                 "action_norm": {"low": self.action_low.tolist(), "high": self.action_high.tolist()},
                 "latent_norm": {"scale": self.latent_scale}}

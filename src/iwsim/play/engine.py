@@ -32,6 +32,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from iwsim.data.collect import store_attrs
+from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.envs import make_env
 from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.pusht import TaskSpec, limit_targets
 from iwsim.errors import InputError
@@ -92,8 +95,6 @@ class Recorder:
     """Appends saved takes to an episode store, one at a time, on a writer thread."""
 
     def __init__(self, path: Path, attrs: dict[str, Any], wait_for_lock: bool = False) -> None:
-        from iwsim.data.store import EpisodeStore, StoreError
-
         def check(store: EpisodeStore) -> None:
             have = store.attrs
             for key in ("task", "image_size"):
@@ -135,8 +136,6 @@ class Engine:
         self.starts = Starts("mujoco", model.image_size, cfg.store, cfg.task)
         self.recorder: Recorder | None = None
         if cfg.record_to is not None:
-            from iwsim.data.collect import store_attrs
-
             attrs = {**store_attrs(cfg.task, "teleop", 0, model.image_size), "steps": None,
                      "source": "world_model", "world_model": cfg.checkpoint, "keys": list(EPISODE_KEYS)}
             self.recorder = Recorder(Path(cfg.record_to), attrs, cfg.wait_for_lock)
@@ -194,8 +193,6 @@ class Engine:
         if isinstance(msg, proto.SideBySide):
             dropped = self._drop_take(s)
             if msg.on and s.twin is None:
-                from iwsim.envs import make_env
-
                 s.twin = make_env(self.cfg.task, self.model.image_size)
             elif not msg.on and s.twin is not None:
                 s.twin.close()

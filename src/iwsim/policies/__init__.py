@@ -21,7 +21,9 @@ from torch import nn
 from iwsim.checkpoint import CheckpointError, load_model_dir
 from iwsim.config import TrainConfig, from_dict, to_dict
 from iwsim.errors import InputError
+from iwsim.policies.act import ACTConfig, ACTPolicy
 from iwsim.policies.common import Normalizer
+from iwsim.policies.diffusion import DiffusionConfig, DiffusionPolicy
 
 KIND = "policy"
 POLICIES = ("dp", "act")
@@ -39,12 +41,8 @@ class PolicyStageConfig:
 
 def config_class(policy: str) -> type:
     if policy == "dp":
-        from iwsim.policies.diffusion import DiffusionConfig
-
         return DiffusionConfig
     if policy == "act":
-        from iwsim.policies.act import ACTConfig
-
         return ACTConfig
     raise InputError(f"unknown policy {policy!r}; expected one of {', '.join(POLICIES)}.")
 
@@ -53,11 +51,7 @@ def make_policy(policy: str, model: dict[str, Any], action_norm: Normalizer, sta
     """A policy of type ``policy`` with config fields ``model`` (defaults for the rest)."""
     cfg = from_dict(config_class(policy), model)
     if policy == "dp":
-        from iwsim.policies.diffusion import DiffusionPolicy
-
         return DiffusionPolicy(cfg, action_norm, state_norm)
-    from iwsim.policies.act import ACTPolicy
-
     return ACTPolicy(cfg, action_norm, state_norm)
 
 
