@@ -53,9 +53,9 @@ class AEConfig:
     eval_images: int = 256  # held-out frames scored at each evaluation
     eval_jumps: tuple[int, ...] = (1, 2, 3)
     # Stage 3 (decoder fine-tuning): a frozen encoder, and the decoder's latent condition
-    # noised as z + latent_noise_scale * b_t * eps with t uniform in latent_noise [lo, hi).
+    # noised as z + latent_noise_scale * sigma * eps with sigma uniform in latent_noise [lo, hi).
     freeze_encoder: bool = False
-    latent_noise: tuple[int, int] = (0, 0)
+    latent_noise: tuple[float, float] = (0.0, 0.0)
     latent_noise_scale: float = 1.0
 
 
