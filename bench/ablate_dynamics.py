@@ -128,20 +128,30 @@ def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0) -> tuple[di
     # Open loop from the first frame: true and shuffled actions (another episode's).
     true_z = z[:, 1:horizon + 1]
 
-    def rollout(actions: torch.Tensor) -> torch.Tensor:
+    def rollout(actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Standardised latents (E, S, C, h, w) and, with ``wm.reencode``, the frames shown."""
         wm.reset_latents(wm.unstandardize(z[:, :1]), seed=seed)
-        return torch.stack([wm.standardize(wm.step_latent(actions[:, i])) for i in range(horizon)], 1)
+        latents, images = [], []
+        for i in range(horizon):
+            if wm.reencode:  # the frame is decoded at every step, and its encoding is the context
+                images.append(wm.step_frames(actions[:, i]))
+                latents.append(wm.state.context[:, -1].clone())
+            else:
+                latents.append(wm.standardize(wm.step_latent(actions[:, i])))
+        return torch.stack(latents, 1), torch.stack(images, 1) if images else None
 
-    pred = rollout(a)
+    pred, shown = rollout(a)
     err = ((pred - true_z) ** 2).mean((2, 3, 4))  # (E, S)
-    shuf = ((rollout(a.roll(1, 0)) - true_z) ** 2).mean((2, 3, 4))
+    shuf = ((rollout(a.roll(1, 0))[0] - true_z) ** 2).mean((2, 3, 4))
     for s in STEPS:
         out[f"latent_err_{s}"] = err[:, s - 1].mean().item()
     out["action_gap_5"] = (shuf[:, 4].mean() / err[:, 4].mean()).item()
     out["action_gap_10"] = (shuf[:, 9].mean() / err[:, 9].mean()).item()
     # Frames: PSNR, pushers and the block.
-    wm.reset_latents(wm.unstandardize(z[:, :1]), seed=seed)  # fresh generators for decoding
-    frames = wm.decode_latents(wm.unstandardize(pred)).clamp(-1, 1)
+    if shown is None:
+        wm.reset_latents(wm.unstandardize(z[:, :1]), seed=seed)  # fresh generators for decoding
+        shown = wm.decode_latents(wm.unstandardize(pred))
+    frames = shown.clamp(-1, 1)
     truth = to_model(ep.img[:, 1:horizon + 1]).to(frames.device)
     first = to_model(ep.img[:, :1]).expand_as(truth)
     p = psnr(((frames + 1) / 2).flatten(0, 1), ((truth + 1) / 2).flatten(0, 1)).view(ep.n, horizon)
@@ -217,11 +227,14 @@ def evaluate(args: argparse.Namespace) -> None:
     results, curves, strips = {}, {}, {}
     for item in args.models.split(","):
         name, path = item.split("=", 1)
+        path, _, option = path.partition("+")
         wm = WorldModel.load(resolve_checkpoint(path))
+        wm.reencode = option == "reencode"
         t0 = time.time()
         r, curve, u8 = score(wm, ep, horizon)
-        config = json.loads((resolve_checkpoint(path) / "config.json").read_text())
-        r.update(horizon=horizon, checkpoint=str(path), step=resolve_checkpoint(path).name, seconds=time.time() - t0)
+        step = resolve_checkpoint(path).name  # a run's checkpoints are named by their step
+        r.update(horizon=horizon, checkpoint=str(path), step=int(step) if step.isdigit() else "-",
+                 reencode=wm.reencode, seconds=time.time() - t0)
         results[name], curves[name], strips[name] = r, curve, u8[0, strip_steps(horizon)]
         logging.info("%s: %s", name, {k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
     (out / "results.json").write_text(json.dumps(results, indent=1))
@@ -262,7 +275,7 @@ def main() -> None:
     q.add_argument("--out", default="runs/ablate")
     q.set_defaults(func=train)
     q = sub.add_parser("eval")
-    q.add_argument("--models", required=True, help="NAME=RUN_OR_CHECKPOINT[,...]")
+    q.add_argument("--models", required=True, help="NAME=RUN_OR_CHECKPOINT[+reencode][,...]")
     q.add_argument("--data", default="data/play_eval.zarr")
     q.add_argument("--episodes", type=int, default=20)
     q.add_argument("--horizon", type=int, default=192)

@@ -5,7 +5,7 @@ from gymnasium.utils.env_checker import check_env
 
 import iwsim  # noqa: F401  (registers the ids)
 from iwsim.envs import pixels
-from iwsim.envs.pusht import GOAL_POSE, WORKSPACE, BimanualPushTEnv
+from iwsim.envs.pusht import GOAL_POSE, MAX_STEP, WORKSPACE, BimanualPushTEnv, limit_targets
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +77,7 @@ def test_reset_to_state(env):
 
 def test_actions_are_clipped_to_the_workspace(env):
     env.reset(options={"reset_to_state": np.array([-0.15, -0.15, 0.15, -0.15, 0.0, 0.1, 0.0])})
-    for _ in range(15):
+    for _ in range(40):  # the speed limit: 0.016 m per step
         obs, *_ = env.step(np.array([5.0, -5.0, 5.0, 5.0], np.float32))
     assert np.all(np.abs(obs["agent_pos"]) <= WORKSPACE + 1e-3)
     np.testing.assert_allclose(obs["agent_pos"], [WORKSPACE, -WORKSPACE, WORKSPACE, WORKSPACE], atol=2e-3)
@@ -116,9 +116,37 @@ def test_pushers_move_the_block(env):
     state = np.array([0.0, -0.17, 0.2, 0.2, 0.0, 0.0, 0.0])
     env.reset(options={"reset_to_state": state})
     contacts = 0
-    for _ in range(10):
+    for _ in range(25):  # 0.22 m at the speed limit of 0.016 m per step, then settling
         obs, r, term, trunc, info = env.step(np.array([0.0, 0.05, 0.2, 0.2], np.float32))
         contacts += info["n_contacts"] > 0
     # Pushed (at least) until the pusher stops at y = 0.05, touching the stem's tip.
     tip = 0.05 + 0.015 + 0.12 - 0.0143
     assert info["block_pose"][1] >= tip - 0.005 and contacts >= 1
+
+
+def test_far_targets_are_approached_at_the_speed_limit(env):
+    """A far command moves each pusher's setpoint by exactly MAX_STEP per step towards the
+    workspace-clipped target, and the executed setpoints are limit_targets' (the one
+    function the world model's callers use too)."""
+    start = np.array([-0.15, -0.15, 0.15, -0.15, 0.0, 0.1, 0.0])
+    env.reset(options={"reset_to_state": start})
+    command = np.array([5.0, -0.15, 0.15, 0.2], np.float32)  # left far right (clipped), right up
+    setpoint = start[:4].copy()
+    for t in range(30):
+        _, _, _, _, info = env.step(command)
+        expected = limit_targets(setpoint, command)
+        np.testing.assert_allclose(info["target"], expected, atol=1e-6)
+        moved = np.linalg.norm((expected - setpoint).reshape(2, 2), axis=1)
+        if t < 5:
+            np.testing.assert_allclose(moved, MAX_STEP, rtol=1e-9)
+        setpoint = expected
+    np.testing.assert_allclose(setpoint, [WORKSPACE, -0.15, 0.15, 0.2], atol=1e-9)
+    assert np.abs(info["target"] - env.unwrapped.agent_pos).max() < 0.01  # the pushers followed
+
+
+def test_limit_targets_passes_near_targets_unchanged():
+    s = np.array([0.0, 0.0, 0.1, 0.1])
+    near = s + np.array([0.01, -0.01, 0.0, 0.015])
+    np.testing.assert_allclose(limit_targets(s, near), near)
+    batch = limit_targets(np.stack([s, s]), np.stack([near, s + 1.0]))
+    assert batch.shape == (2, 4) and np.allclose(batch[0], near)

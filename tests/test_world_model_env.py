@@ -114,3 +114,25 @@ def test_stage2_cli_end_to_end(play_store, tmp_path, capsys):
                  "--steps", "50", "--out", str(video)]) == 1  # the episode is shorter
     assert main(["rollout", "--checkpoint", str(ae / "checkpoints" / "last"), "--data", str(play_store),
                  "--out", str(video)]) == 1  # not a world model
+
+
+def test_the_model_is_conditioned_on_the_motion_mujoco_executes(wm):
+    """From the same seed and under the same far commands, WorldModel-v0 conditions its
+    model on exactly the setpoints MuJoCo executes (the task's speed limit), in the single
+    and the vector env."""
+    mujoco = gym.make("iwsim/BimanualPushT-v0")
+    env = WorldModelEnv(model=wm)
+    venv = WorldModelVectorEnv(2, model=tiny_world_model())  # a model holds one rollout's state
+    mujoco.reset(seed=100000)
+    env.reset(seed=100000)
+    venv.reset(seed=100000)
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        command = rng.uniform(-0.3, 0.3, 4).astype(np.float32)  # far, some outside the workspace
+        _, _, _, _, truth = mujoco.step(command)
+        _, _, _, _, info = env.step(command)
+        _, _, _, _, vinfo = venv.step(np.stack([command, command]))
+        np.testing.assert_allclose(info["target"], truth["target"], atol=1e-6)
+        np.testing.assert_allclose(vinfo["target"][0], truth["target"], atol=1e-6)
+    with pytest.raises(ValueError, match="finite actions"):
+        env.step(np.array([0.0, np.nan, 0.0, 0.0], np.float32))

@@ -266,7 +266,7 @@ class WorldModelVectorEnv(VectorEnv):
         self._frames = self.model.step(self._setpoint.astype(np.float32))
         self._agent_pos = read_agent_pos(self._frames, self._agent_pos)
         self._t += 1
-        info = self._info()
+        info = {**self._info(), "target": self._setpoint.astype(np.float32)}
         truncated = np.full(self.num_envs, self._t >= self.max_episode_steps)
         self._needs_reset = bool(truncated.all())
         return self._obs(), info["iou"].astype(np.float64), np.zeros(self.num_envs, dtype=bool), truncated, info

@@ -99,9 +99,9 @@ class AETask:
         lo, hi = self.cfg.latent_noise
         if hi <= 0:
             return AEBatch(x0, t[part], s[part], eps[part]).to(device)
-        # stage 3: latent noise of the dynamics' context levels, in the dynamics' units
-        levels = torch.randint(lo, hi, (b,), generator=generator)
-        z_std = self.module.ae.schedule.coefficients(levels, levels.float())[1] * self.cfg.latent_noise_scale
+        # stage 3: latent noise of the dynamics' context noise, a std uniform in [lo, hi)
+        # in the dynamics' standardised units
+        z_std = (lo + (hi - lo) * torch.rand(b, generator=generator)) * self.cfg.latent_noise_scale
         z_eps = gaussian((b, self.cfg.encoder.latent_channels, size // 4, size // 4), generator)
         return AEBatch(x0, t[part], s[part], eps[part], z_std[part], z_eps[part]).to(device)
 
@@ -155,12 +155,13 @@ class DecoderFinetuneTask(AETask):
 
 def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path, *, device: torch.device,
                      steps: int = 500, batch_size: int | None = None, lr: float = 1e-4,
-                     latent_noise: tuple[int, int] = (1, 100), seed: int | None = None, force: bool = False,
+                     latent_noise: tuple[float, float] | None = None, seed: int | None = None, force: bool = False,
                      progress: bool = True) -> dict[str, float]:
     """Stage 3: fine-tune a world model's decoder on noised latents (``iwsim train
-    decoder-finetune``), at a lower learning rate, with the encoder frozen. The noise has
-    the scale of the stage-2 context noise in the dynamics' standardised units, so the
-    decoder learns to render latents as imperfect as predicted ones."""
+    decoder-finetune``), at a lower learning rate, with the encoder frozen. The noise is
+    the stage-2 context noise (``context_sigma`` stds in the dynamics' standardised units,
+    unless ``latent_noise`` says otherwise), so the decoder learns to render latents as
+    imperfect as predicted ones."""
     src = resolve_checkpoint(world_model)
     wm = WorldModel.load(src, device)
     base = wm.ae.cfg
@@ -168,7 +169,8 @@ def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path,
                                 batch_size=batch_size or base.train.batch_size,
                                 seed=base.train.seed if seed is None else seed,
                                 eval_every=min(100, steps), checkpoint_every=min(100, steps))
-    cfg = dataclasses.replace(base, train=train, freeze_encoder=True, latent_noise=tuple(latent_noise),
+    noise = wm.cfg.context_sigma if latent_noise is None else latent_noise  # stds, standardised units
+    cfg = dataclasses.replace(base, train=train, freeze_encoder=True, latent_noise=tuple(noise),
                               latent_noise_scale=wm.latent_scale)
     task = DecoderFinetuneTask(wm, cfg, data)
     config = {**task.world_model(task.module.ae).describe(), "data": str(data), "finetuned_from": str(src),
