@@ -25,18 +25,19 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
 
-from iwsim import WorldModel  # noqa: E402
-from iwsim.config import DYNAMICS_PRESETS, variant  # noqa: E402
-from iwsim.data.frames import to_model  # noqa: E402
-from iwsim.data.store import EpisodeStore, conditioning_key  # noqa: E402
-from iwsim.envs import pixels  # noqa: E402
-from iwsim.envs.pusht import VIEW_HALF  # noqa: E402
-from iwsim.eval.metrics import psnr  # noqa: E402
-from iwsim.training.dynamics import resolve_checkpoint, train_dynamics  # noqa: E402
+from iwsim import WorldModel
+from iwsim.checkpoint import resolve_checkpoint
+from iwsim.config import DYNAMICS_PRESETS, variant
+from iwsim.data.frames import to_model
+from iwsim.data.store import EpisodeStore, conditioning_key
+from iwsim.envs import pixels
+from iwsim.envs.pusht import VIEW_HALF
+from iwsim.metrics import psnr
+from iwsim.training.dynamics import train_dynamics
 
 STEPS = (1, 5, 10, 20, 32)
 POSE_STEPS = (10, 20, 32)

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from iwsim.checkpoint import write_json_atomic
 from iwsim.eval.benchmark import training_info
 from iwsim.eval.rollout import against_mujoco
-from iwsim.training.checkpoint import write_json_atomic
 from iwsim.world_model import WorldModel
 
 SEEDS = (100000, 100001, 100002, 100003)
@@ -31,7 +31,8 @@ def mujoco_rollout(wm: WorldModel, seeds: tuple[int, ...] = SEEDS, steps: int = 
     results = [against_mujoco(wm, s, steps, "expert") for s in seeds]
     psnr = [float(r.psnr.mean()) for r in results]
     return {"policy": "expert", "steps": steps, "seeds": list(seeds), "noise_seed": 0,
-            "psnr": float(np.mean(psnr)), "psnr_per_seed": psnr, "ssim": float(np.mean([r.ssim.mean() for r in results])),
+            "psnr": float(np.mean(psnr)), "psnr_per_seed": psnr,
+            "ssim": float(np.mean([r.ssim.mean() for r in results])),
             "tolerance_db": TOLERANCE_DB}
 
 
