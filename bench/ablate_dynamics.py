@@ -98,8 +98,10 @@ def block_errors(frames: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.
 
 
 @torch.inference_mode()
-def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0) -> tuple[dict, np.ndarray]:
-    """Everything the table reports for one model; also its PSNR per step (horizon,)."""
+def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0
+          ) -> tuple[dict, tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """Everything the table reports for one model; its PSNR per step (horizon,) and that of
+    repeating the first frame; its frames (E, S, H, W, 3)."""
     k = wm.cfg.dynamics.context
     z = wm.standardize(wm.encode(ep.img.reshape(-1, *ep.img.shape[2:])).unflatten(0, (ep.n, ep.length)))
     a = wm.normalize_actions(ep.actions)
@@ -179,7 +181,7 @@ def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0) -> tuple[di
     fit_steps = np.arange(0, horizon, 4)
     _, _, fits = block_errors(u8[:, fit_steps].reshape(-1, *u8.shape[2:]), ep.pose[:, fit_steps + 1].reshape(-1, 3))
     out["t_found"] = float(fits.mean())
-    return out, p.mean(0).numpy(), u8
+    return out, (p.mean(0).numpy(), p0.mean(0).numpy()), u8
 
 
 ROWS = [  # (column, key, baseline key, format)
@@ -241,8 +243,10 @@ def evaluate(args: argparse.Namespace) -> None:
         logging.info("%s: %s", name, {k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
     (out / "results.json").write_text(json.dumps(results, indent=1))
     fig, ax = plt.subplots(figsize=(7, 4))
-    for name, curve in curves.items():
-        ax.plot(np.arange(1, horizon + 1), curve, label=name)
+    steps = np.arange(1, horizon + 1)
+    for name, (curve, _) in curves.items():
+        ax.plot(steps, curve, label=name)
+    ax.plot(steps, next(iter(curves.values()))[1], "k--", label="repeat the first frame")  # same for all
     ax.set_xlabel("step"), ax.set_ylabel("PSNR (dB)"), ax.legend(), ax.grid(alpha=0.3)
     ax.set_title(f"open loop from one frame, {ep.n} held-out episodes")
     fig.tight_layout(), fig.savefig(out / "psnr.png", dpi=100)

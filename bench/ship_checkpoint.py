@@ -6,6 +6,8 @@
 - ``mujoco_rollout``: 32-step rollouts from the MuJoCo initial frames of seeds 100000..100003
   under the scripted expert's actions, PSNR/SSIM against MuJoCo's frames (noise seed 0).
 - ``open_loop_192``: copied from an ``iwsim bench`` result, when given.
+- ``fidelity``: copied from a ``bench/ablate_dynamics.py eval`` result, when given (action
+  gap, one-step error against copy-previous, pusher and block tracking, T found).
 - ``training``: steps and wall-clock of both stages, from the runs named in the provenance.
 """
 
@@ -46,6 +48,8 @@ def main() -> None:
     ap.add_argument("--checkpoint", type=Path, default=Path("checkpoints/pusht-64"))
     ap.add_argument("--bench", type=Path, help="an iwsim bench results.json holding this checkpoint")
     ap.add_argument("--bench-model", default="shipped", help="the checkpoint's name in that result")
+    ap.add_argument("--ablate", type=Path, help="a bench/ablate_dynamics.py eval results.json holding it")
+    ap.add_argument("--ablate-model", default="shipped", help="the checkpoint's name in that result")
     args = ap.parse_args()
     wm = WorldModel.load(args.checkpoint)
     config = json.loads((args.checkpoint / "config.json").read_text())
@@ -58,6 +62,8 @@ def main() -> None:
         m = r["models"][args.bench_model]
         metrics["open_loop_192"] = {"episodes": len(r["episodes"]), "steps": r["steps"], "data": r["data"],
                                     **{k: v for k, v in m["accuracy"].items()}, "speed": m.get("speed")}
+    if args.ablate:
+        metrics["fidelity"] = json.loads(args.ablate.read_text())[args.ablate_model]
     write_json_atomic(args.checkpoint / "metrics.json", metrics, sort_keys=False)
     print(json.dumps(metrics["mujoco_rollout"]))
 
