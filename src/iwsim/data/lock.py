@@ -51,19 +51,27 @@ class DirLock:
             except OSError as e:
                 if e.errno not in (errno.EWOULDBLOCK, errno.EACCES):
                     raise
-                holder = self.holder() or "another process"
+                holder = self._wait_for_holder() or "another process"
                 if not wait:
                     raise LockedError(errno.EWOULDBLOCK, f"{directory} is being written by {holder}; one writer "
                                       "at a time: wait for it to finish, or pass --wait-for-lock to queue behind "
                                       "it.") from None
                 log.warning("%s is being written by %s; waiting for it to finish", directory, holder)
                 fcntl.flock(self._fd, fcntl.LOCK_EX)
-            os.ftruncate(self._fd, 0)
-            os.pwrite(self._fd, f"pid {os.getpid()} ({_command()}), {what} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n"
-                      .encode(), 0)
+            text = f"pid {os.getpid()} ({_command()}), {what} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode()
+            os.pwrite(self._fd, text, 0)  # then cut what is left of an earlier holder's text:
+            os.ftruncate(self._fd, len(text))  # the file is never empty while it is rewritten
         except BaseException:
             self.release()
             raise
+
+    def _wait_for_holder(self, seconds: float = 1.0) -> str:
+        """The holder's text; a holder that has just taken the lock of a new file writes it
+        a moment later, so an empty file is read again for up to ``seconds``."""
+        deadline = time.monotonic() + seconds
+        while not (text := self.holder()) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return text
 
     def holder(self) -> str:
         """Who holds (or last held) the lock, as its file says."""
