@@ -70,19 +70,22 @@ def flood(server: Server, seconds: float, out: dict) -> None:
         reader = threading.Thread(target=drain, daemon=True)
         reader.start()
         seq = 0
-        while time.perf_counter() < stop:
-            seq += 1
-            for msg in [json.dumps({"type": "action", "seq": seq, "action": [0.01, 0.0, -0.01, 0.0]}),
-                        *FLOOD_MESSAGES]:
-                ws.send(msg)
-                sent += 1
-            if sent % 700 == 0:  # a foreign knock: no token
-                try:
-                    with connect(f"ws://127.0.0.1:{server.port}/ws") as bad:
-                        bad.recv(timeout=5)
-                        bad.recv(timeout=5)
-                except ConnectionClosed:
-                    refused += 1
+        try:
+            while time.perf_counter() < stop:
+                seq += 1
+                for msg in [json.dumps({"type": "action", "seq": seq, "action": [0.01, 0.0, -0.01, 0.0]}),
+                            *FLOOD_MESSAGES]:
+                    ws.send(msg)
+                    sent += 1
+                if sent % 700 == 0:  # a foreign knock: no token
+                    try:
+                        with connect(f"ws://127.0.0.1:{server.port}/ws") as bad:
+                            bad.recv(timeout=5)
+                            bad.recv(timeout=5)
+                    except ConnectionClosed:
+                        refused += 1
+        except ConnectionClosed as e:  # the server may drop a client that floods it
+            out["flood_closed"] = f"after {seconds - (stop - time.perf_counter()):.0f} s: {e}"
     out.update(sent=sent, received=received, refused_without_token=refused)
 
 
@@ -157,7 +160,9 @@ def main() -> None:
            if result["memory_mib"] else "n/a")
         + f" | {flood_out.get('sent', 0)} | {flood_out.get('received', 0)} | "
           f"{flood_out.get('refused_without_token', 0)} |", "",
-        f"Server still running at the end: {alive}.", ""])
+        f"Server still running at the end: {alive}."
+        + (f" The server closed the flood client's connection {flood_out['flood_closed']}."
+           if "flood_closed" in flood_out else ""), ""])
     (out / "results.md").write_text(md)
     print(md)
 
