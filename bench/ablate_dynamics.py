@@ -117,8 +117,7 @@ def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0
     g = torch.Generator().manual_seed(seed)
 
     def one_step(context: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        y = wm.predict(context, actions, torch.randn(context[:, -1].shape, generator=g))
-        return y + context[:, -1] if wm.cfg.predict_delta else y
+        return wm.predict(context, actions, torch.randn(context[:, -1].shape, generator=g))
 
     for lab in (0.0, wm.cfg.context_label, 0.3):
         wm.context_label = lab

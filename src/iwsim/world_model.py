@@ -255,8 +255,7 @@ class WorldModel(nn.Module):
             raise InputError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
         prev = torch.where(state.known[:, None], state.action, actions)
         noise = self._noise(state.generators, tuple(state.context.shape[2:]))
-        y = self.predict(state.context, torch.stack([prev, actions], 1), noise)
-        z = y + state.context[:, -1] if self.cfg.predict_delta else y
+        z = self.predict(state.context, torch.stack([prev, actions], 1), noise)
         return (StreamState(torch.cat([state.context[:, 1:], z[:, None]], 1), actions, torch.ones_like(state.known),
                             state.generators), self.unstandardize(z))
 
@@ -295,9 +294,10 @@ class WorldModel(nn.Module):
         return state, to_uint8(images)
 
     def predict(self, context: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        """What the objective generates for the next frame (its change from the newest
-        context latent when ``predict_delta``), from the window (B, K, C, h, w), the
-        previous and current normalised actions (B, 2, A) and the noise (B, C, h, w)."""
+        """The next standardised latent (B, C, h, w) from the window (B, K, C, h, w), the
+        previous and current normalised actions (B, 2, A) and the noise (B, C, h, w): what
+        the objective generates, plus the newest context latent when it generates the
+        change (``predict_delta``)."""
         b = context.shape[0]
         ctx_label = torch.full((b,), float(label(self.context_label)), device=context.device)
 
@@ -305,7 +305,8 @@ class WorldModel(nn.Module):
             return self.dynamics(x, context, t, s, ctx_label, actions)
 
         steps = self.euler_steps if self.cfg.objective == "edm" else self.jumps
-        return OBJECTIVE_TABLE[self.cfg.objective].sample(net, self.schedule, noise, steps)
+        y = OBJECTIVE_TABLE[self.cfg.objective].sample(net, self.schedule, noise, steps)
+        return y + context[:, -1] if self.cfg.predict_delta else y
 
     @torch.inference_mode()
     def decode_latents(self, z: torch.Tensor, generators: Sequence[torch.Generator] | None = None) -> torch.Tensor:
