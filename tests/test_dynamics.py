@@ -81,7 +81,7 @@ def batch_for(cfg, z: torch.Tensor, actions: torch.Tensor, g: torch.Generator) -
     return DynBatch(z, actions, lo + (hi - lo) * torch.rand(b, n, generator=g),
                     torch.randn(b, n, k, *z.shape[2:], generator=g), torch.full((b, n), 999),
                     torch.zeros(b, n, dtype=torch.long), training_sigmas(b * n, g).view(b, n),
-                    torch.randn(b, n, *z.shape[2:], generator=g))
+                    torch.randn(b, n, *z.shape[2:], generator=g), torch.randn(b, n, *z.shape[2:], generator=g))
 
 
 @pytest.mark.parametrize("name", VARIANTS)

@@ -93,7 +93,7 @@ class DynamicsTrainModule(nn.Module):
             if not self.feeds_estimate:
                 with torch.no_grad():
                     steps = cfg.euler_steps if cfg.objective == "edm" else cfg.jumps
-                    estimate = self.objective.sample(net, self.schedule, torch.randn_like(target), steps)
+                    estimate = self.objective.sample(net, self.schedule, batch.feed_eps[:, u], steps)
             pred = base + estimate
             ctx = torch.cat([ctx[:, 1:], (pred if cfg.unroll_grad else pred.detach())[:, None]], 1)
         return torch.stack(losses, 1)

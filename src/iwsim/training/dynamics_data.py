@@ -34,9 +34,10 @@ from iwsim.normalize import scale, widen
 class DynBatch:
     """Standardised latents z (B, K+n, C, h, w): the window, then the n frames to predict;
     normalised actions (B, n+1, A): prediction u takes actions u (the one that produced its
-    newest context frame) and u+1 (the one that produces its frame); whether frame K+u
-    changed from K+u-1 per cell (B, n, 1, h, w); context-noise stds (B, n) and noise
-    (B, n, K, C, h, w); target levels t, s and EDM sigmas (B, n) and noise (B, n, C, h, w)."""
+    newest context frame) and u+1 (the one that produces its frame); context-noise stds
+    (B, n) and noise (B, n, K, C, h, w); target levels t, s and EDM sigmas (B, n) and noise
+    (B, n, C, h, w); the noise (B, n, C, h, w) a fed-back sample starts from (objectives
+    whose one-pass estimate is not what inference generates, see DynamicsTrainModule)."""
 
     z: torch.Tensor
     actions: torch.Tensor
@@ -46,6 +47,7 @@ class DynBatch:
     s: torch.Tensor
     sigma: torch.Tensor
     eps: torch.Tensor
+    feed_eps: torch.Tensor
 
     def to(self, device: torch.device) -> DynBatch:
         return DynBatch(*(v.to(device) for v in vars(self).values()))
@@ -145,9 +147,10 @@ class DynamicsData:
                              zero_fraction=cfg.zero_fraction)
         eps = gaussian((b, n, *shape), generator)
         sigma = edm.training_sigmas(b * n, generator).view(b, n)
+        feed_eps = gaussian((b, n, *shape), generator)  # drawn last: the draws above stay as they were
         z = (self.latents[idx[part]] - self.latent_mean) / self.latent_scale
         return DynBatch(z, self.actions[act[part]], ctx_sigma[part], ctx_eps[part], t.view(b, n)[part],
-                        s.view(b, n)[part], sigma[part], eps[part]).to(device)
+                        s.view(b, n)[part], sigma[part], eps[part], feed_eps[part]).to(device)
 
 
 @torch.no_grad()
