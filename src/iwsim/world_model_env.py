@@ -32,7 +32,7 @@ from gymnasium.vector.utils import batch_space
 from iwsim.data.store import EpisodeStore
 from iwsim.envs import make_env
 from iwsim.envs.pixels import pixel_iou, pusher_positions, read_frames
-from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, limit_targets, spaces
+from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, check_actions, limit_targets, spaces
 from iwsim.errors import InputError
 from iwsim.world_model import WorldModel
 
@@ -117,15 +117,6 @@ def observe(frames: np.ndarray, previous: np.ndarray) -> tuple[np.ndarray, np.nd
 def _hold_unseen(pos: np.ndarray, found: np.ndarray, previous: np.ndarray) -> np.ndarray:
     pos = np.where(np.repeat(~found, 2, axis=-1), previous, pos)
     return np.clip(pos, -WORKSPACE, WORKSPACE).astype(np.float32)
-
-
-def check_actions(actions: Any, shape: tuple[int, ...]) -> np.ndarray:
-    """Commanded targets as float64 of ``shape``, or a ValueError (before any state changes)."""
-    a = np.asarray(actions, dtype=np.float64)
-    if a.shape != shape or not np.all(np.isfinite(a)):
-        raise InputError(f"expected finite actions of shape {shape} [lx, ly, rx, ry] in metres, got "
-                         f"{a.shape if a.shape != shape else a.tolist()}.")
-    return a
 
 
 def _load(model: WorldModel | None, checkpoint: str | Path | None, device: str) -> WorldModel:

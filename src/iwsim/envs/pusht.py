@@ -165,6 +165,16 @@ def limit_targets(setpoint: np.ndarray, command: np.ndarray, max_step: float = M
     return s + (d * scale).reshape(c.shape)
 
 
+def check_actions(actions: object, shape: tuple[int, ...]) -> np.ndarray:
+    """Commanded targets ``[lx, ly, rx, ry]`` as float64 of ``shape``, or an InputError
+    (raised before any state changes); the MuJoCo env and the world-model envs check alike."""
+    a = np.asarray(actions, dtype=np.float64)
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        raise InputError(f"expected finite actions of shape {shape} [lx, ly, rx, ry] in metres, got "
+                         f"{a.shape if a.shape != shape else a.tolist()}.")
+    return a
+
+
 def spaces(image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
     """The task's action and observation spaces (shared with ``iwsim/WorldModel-v0``)."""
     low = np.full(4, -WORKSPACE, np.float32)
@@ -297,10 +307,7 @@ class BimanualPushTEnv(gym.Env):
         return self._obs(), self._info()
 
     def step(self, action):
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (4,) or not np.all(np.isfinite(action)):
-            raise InputError(f"action must be 4 finite floats [lx, ly, rx, ry], got {action!r}.")
-        self.data.ctrl[:] = limit_targets(self.data.ctrl, action, self.max_step)
+        self.data.ctrl[:] = limit_targets(self.data.ctrl, check_actions(action, (4,)), self.max_step)
         mujoco.mj_step(self.model, self.data, nstep=SUBSTEPS)
         info = self._info()
         terminated = bool(self.terminate_on_success and info["is_success"])
