@@ -17,8 +17,9 @@ LAYERS: list[tuple[str, ...]] = [
     ("iwsim.autoencoder", "iwsim.world_model", "iwsim.policies"),
     # 4. Gymnasium envs over a world model
     ("iwsim.world_model_env",),
-    # 5. what uses all of it, then the command line
+    # 5. what uses all of it, the studies built on that, then the command line
     ("iwsim.training", "iwsim.eval", "iwsim.play", "iwsim.demo"),
+    ("iwsim.experiments",),
     ("iwsim.cli",),
 ]
 
