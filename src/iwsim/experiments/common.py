@@ -1,0 +1,186 @@
+"""What both studies share: policy trainings run side by side, and closed-loop
+evaluations cached on disk, so that rerunning a study's command resumes it.
+
+Parallel work goes to spawned processes with one torch thread each: on a small machine,
+two single-threaded trainings side by side finish sooner than the same two one after the
+other with two threads each (small convolutions do not split well over threads).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import multiprocessing as mp
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from iwsim.checkpoint import load_json, write_json_atomic
+from iwsim.errors import InputError
+from iwsim.eval.policy import rollout, summarize
+from iwsim.policies import PRESETS, PolicyStageConfig, load_policy
+from iwsim.policies.data import Source
+from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
+from iwsim.training.policy import train_policy
+from iwsim.world_model import WorldModel
+
+log = logging.getLogger(__name__)
+
+PolicySource = str | Path | ScriptedConfig  # a policy run or checkpoint directory, or a scripted policy
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyRun:
+    """One policy training: a run directory ``root / name``."""
+
+    name: str
+    policy: str = "dp"  # "dp" | "act"
+    data: tuple[tuple[str, int | None], ...] = ()  # (store path, its first N episodes; None: all)
+    steps: int | None = None  # None: the preset's
+    preset: str | None = None  # None: the policy's name
+    checkpoint_every: int | None = None  # None: the preset's
+    seed: int = 0
+
+    def stage_config(self) -> PolicyStageConfig:
+        preset = self.preset or self.policy
+        if preset not in PRESETS:
+            raise InputError(f"unknown policy preset {preset!r}; expected one of {', '.join(PRESETS)}.")
+        cfg = PRESETS[preset]
+        if cfg.policy != self.policy:
+            raise InputError(f"preset {preset!r} is a {cfg.policy!r} policy, not {self.policy!r}.")
+        train = dataclasses.replace(cfg.train, seed=self.seed, steps=self.steps or cfg.train.steps,
+                                    checkpoint_every=self.checkpoint_every or cfg.train.checkpoint_every)
+        return dataclasses.replace(cfg, train=train)
+
+    def sources(self) -> list[Source]:
+        if not self.data:
+            raise InputError(f"policy run {self.name!r} has no data.")
+        return [Source(Path(path), n) for path, n in self.data]
+
+
+def checkpoints(run: Path) -> dict[int, Path]:
+    """The kept checkpoints of a policy run: training step -> checkpoint directory."""
+    root = Path(run) / "checkpoints"
+    found = [d for d in root.iterdir() if d.name.isdigit()] if root.is_dir() else []
+    return {int(d.name): d for d in sorted(found) if (d / "model.safetensors").is_file()}
+
+
+def _finished(run: PolicyRun, root: Path) -> bool:
+    done = checkpoints(root / run.name)
+    return bool(done) and max(done) >= run.stage_config().train.steps
+
+
+def _train(run: PolicyRun, root: Path, progress: bool) -> str:
+    train_policy(run.stage_config(), run.sources(), root / run.name, device=torch.device("cpu"), progress=progress)
+    return run.name
+
+
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def _in_parallel(fn: Callable, calls: list[tuple], jobs: int, desc: str, progress: bool) -> list[Any]:
+    """``fn(*args)`` for every args of ``calls``, up to ``jobs`` at a time in spawned
+    processes with one torch thread each (``jobs`` <= 1: here, one after the other).
+    Results in the order of ``calls``."""
+    bar = tqdm(total=len(calls), desc=desc, unit="job", disable=not progress)
+    results: list[Any] = [None] * len(calls)
+    try:
+        if jobs <= 1 or len(calls) <= 1:
+            for i, args in enumerate(calls):
+                results[i] = fn(*args)
+                bar.update()
+            return results
+        with mp.get_context("spawn").Pool(min(jobs, len(calls)), initializer=_one_thread) as pool:
+            pending = [pool.apply_async(fn, args) for args in calls]
+            for i, p in enumerate(pending):
+                results[i] = p.get()
+                bar.update()
+        return results
+    finally:
+        bar.close()
+
+
+def train_runs(runs: Sequence[PolicyRun], root: Path, *, jobs: int = 1, progress: bool = True) -> dict[str, Path]:
+    """Train (or resume) each run into ``root / name``, up to ``jobs`` at a time in spawned
+    processes with one torch thread each (``jobs`` = 1: in this process). A run that has
+    reached its steps costs nothing. Returns name -> run directory."""
+    names = [r.name for r in runs]
+    if len(set(names)) != len(names):
+        raise InputError(f"policy run names must be unique, got {names}.")
+    root = Path(root)
+    for r in runs:
+        r.sources()  # a run without data fails here, before any training starts
+    todo = [r for r in runs if not _finished(r, root)]
+    if todo:
+        log.info("training %d policies (%s), %d at a time", len(todo), ", ".join(r.name for r in todo), max(jobs, 1))
+        inner = progress and (jobs <= 1 or len(todo) == 1)  # one bar per run only when runs do not interleave
+        _in_parallel(_train, [(r, root, inner) for r in todo], jobs, "training policies", progress)
+    return {r.name: root / r.name for r in runs}
+
+
+def _describe(source: PolicySource) -> Any:
+    """What identifies a policy in a cached evaluation's key: a scripted config, or the
+    checkpoint directory a path resolves to (a run's ``last`` changes as it trains)."""
+    if isinstance(source, ScriptedConfig):
+        return dataclasses.asdict(source)
+    path = Path(source)
+    last = path / "checkpoints" / "last"
+    return str((last if last.exists() else path).resolve())
+
+
+def _load(source: PolicySource) -> Any:
+    return ScriptedBatch(source) if isinstance(source, ScriptedConfig) else load_policy(source)
+
+
+def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps: int, world_model: str | None,
+              path: Path, key: dict[str, Any], progress: bool) -> dict[str, Any]:
+    torch.manual_seed(0)  # the policies' sampling noise: the same evaluation gives the same scores
+    policy = _load(source)
+    wm = WorldModel.load(world_model) if env == "world-model" else None
+    image_size = wm.image_size if wm is not None else getattr(policy, "image_size", 64)
+    run = rollout(policy, env, seeds, steps, world_model=wm, image_size=image_size, progress=progress)
+    result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds), "seconds": run["seconds"],
+              "iou_per_step": np.round(run["iou"], 4).tolist()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, result, sort_keys=False)
+    return result
+
+
+def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: Sequence[int], steps: int,
+                      world_model: str | Path | None, out: Path, jobs: int = 1,
+                      progress: bool = True) -> dict[str, dict[str, Any]]:
+    """Closed-loop evaluation of each named policy in ``env`` ("pusht" or "world-model")
+    from ``seeds``, all episodes of a policy in lockstep (:func:`iwsim.eval.policy.rollout`).
+
+    Cached: ``out / env / f"{name}.json"`` holds :func:`iwsim.eval.policy.summarize`'s
+    dict, ``iou_per_step`` (E, steps + 1), ``seconds`` and a ``key`` (the policy, seeds,
+    steps and world model); a cached result with the same key is reused. Up to ``jobs``
+    policies at once in spawned processes with one torch thread each. Returns name -> result.
+    """
+    if env == "world-model" and world_model is None:
+        raise InputError("evaluating inside the world model needs a world-model checkpoint.")
+    seeds = [int(s) for s in seeds]
+    wm = str(world_model) if env == "world-model" else None
+    results: dict[str, dict[str, Any]] = {}
+    calls = []
+    for name, source in policies.items():
+        path = Path(out) / env / f"{name}.json"
+        key = {"policy": _describe(source), "env": env, "seeds": seeds, "steps": steps, "world_model": wm}
+        if path.is_file() and load_json(path).get("key") == key:
+            results[name] = load_json(path)
+        else:
+            calls.append((name, source, env, seeds, steps, wm, path, key, progress and jobs <= 1))
+    if calls:
+        log.info("evaluating %d policies in %s (%d episodes x %d steps; %d cached)", len(calls), env, len(seeds),
+                 steps, len(results))
+        t0 = time.perf_counter()
+        for result in _in_parallel(_evaluate, calls, jobs, f"evaluating in {env}", progress):
+            results[result["name"]] = result
+        log.info("evaluated in %.0f s", time.perf_counter() - t0)
+    return {name: results[name] for name in policies}

@@ -1,0 +1,51 @@
+"""What the two studies share: policy trainings side by side (resumed, never redone) and
+closed-loop evaluations cached by what they evaluated."""
+
+import json
+
+import pytest
+
+from iwsim.errors import InputError
+from iwsim.experiments.common import PolicyRun, checkpoints, evaluate_policies, train_runs
+from iwsim.policies.scripted import ScriptedConfig
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_runs_train_side_by_side_and_are_not_redone(play_store, tmp_path):
+    runs = [PolicyRun("a", "dp", ((str(play_store), 2),), steps=4, preset="tiny-dp", checkpoint_every=2),
+            PolicyRun("b", "act", ((str(play_store), None),), steps=2, preset="tiny-act")]
+    dirs = train_runs(runs, tmp_path, jobs=2, progress=False)
+    assert dirs == {"a": tmp_path / "a", "b": tmp_path / "b"}
+    assert sorted(checkpoints(dirs["a"])) == [2, 4] and sorted(checkpoints(dirs["b"])) == [2]
+    assert json.loads((dirs["a"] / "config.json").read_text())["episodes_used"] == {str(play_store): 2}
+    stamp = (dirs["a"] / "metrics.jsonl").stat().st_mtime_ns
+    train_runs(runs[:1], tmp_path, progress=False)  # finished: nothing is trained again
+    assert (dirs["a"] / "metrics.jsonl").stat().st_mtime_ns == stamp
+
+
+def test_bad_runs_are_refused_before_training(tmp_path):
+    with pytest.raises(InputError, match="unique"):
+        train_runs([PolicyRun("a", data=(("x", 1),)), PolicyRun("a", data=(("x", 1),))], tmp_path)
+    with pytest.raises(InputError, match="no data"):
+        train_runs([PolicyRun("a")], tmp_path)
+    with pytest.raises(InputError, match="is a 'dp' policy"):
+        PolicyRun("a", "act", preset="tiny-dp").stage_config()
+
+
+def test_evaluations_are_cached_by_what_they_evaluated(tmp_path):
+    expert, noisy = ScriptedConfig("expert"), ScriptedConfig("expert", noise=0.01)
+    first = evaluate_policies({"expert": expert}, "pusht", seeds=[5, 6], steps=3, world_model=None, out=tmp_path,
+                              progress=False)["expert"]
+    path = tmp_path / "pusht" / "expert.json"
+    assert [e["seed"] for e in first["episodes"]] == [5, 6] and len(first["iou_per_step"][0]) == 4
+    stamp = path.stat().st_mtime_ns
+    again = evaluate_policies({"expert": expert}, "pusht", seeds=[5, 6], steps=3, world_model=None, out=tmp_path,
+                              progress=False)
+    assert path.stat().st_mtime_ns == stamp and again["expert"] == json.loads(path.read_text())
+    # Another policy under the same name, or other seeds, is evaluated anew.
+    changed = evaluate_policies({"expert": noisy}, "pusht", seeds=[5, 6], steps=3, world_model=None, out=tmp_path,
+                                progress=False)["expert"]
+    assert changed["key"]["policy"]["noise"] == 0.01 and path.stat().st_mtime_ns != stamp
+    with pytest.raises(InputError, match="world-model checkpoint"):
+        evaluate_policies({"expert": expert}, "world-model", seeds=[5], steps=3, world_model=None, out=tmp_path)
