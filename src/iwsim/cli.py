@@ -190,6 +190,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
     _wait_for_lock_flag(p)
     p.set_defaults(func=_play)
+    p = sub.add_parser("experiment", help="the robot-learning studies: data generation, policy evaluation")
+    exp_sub = p.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
+    q = exp_sub.add_parser("datagen", help="policies trained on world-model demonstrations vs simulator ones")
+    q.add_argument("--preset", default="default", choices=("default", "tiny"), help="scale (default: %(default)s)")
+    q.add_argument("--world-model", help="world-model checkpoint (default: checkpoints/pusht-64)")
+    q.add_argument("--policy", choices=("dp", "act"), help="policy type (default: dp)")
+    q.add_argument("--episodes", type=int, help="MuJoCo evaluation episodes per policy (default: the preset's, 50)")
+    q.add_argument("--steps", type=int, help="steps per evaluation episode (default: the preset's, 300)")
+    q.add_argument("--total", type=int, help="demonstrations per mixture run (default: the preset's)")
+    q.add_argument("--sizes", help="simulator dataset sizes, comma-separated (default: the preset's)")
+    q.add_argument("--train-steps", type=int, help="training steps per policy (default: the preset's, 3000)")
+    q.add_argument("--accept-iou", type=float,
+                   help="keep takes whose max pixel IoU reaches this (default: the preset's, 0.9)")
+    q.add_argument("--demo-steps", type=int, help="horizon of a demonstration take (default: the preset's)")
+    q.add_argument("--jobs", type=int, default=min(2, available_cores()),
+                   help="trainings/evaluations at once, one thread each (default: %(default)s)")
+    q.add_argument("--out", default="bench/results/experiments/datagen", help="report directory (default: %(default)s)")
+    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations (default: %(default)s)")
+    q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    q.set_defaults(func=_experiment_datagen)
+
     for q in _leaf_parsers(parser):
         q.add_argument("--threads", type=int,
                        help="torch threads (default: $OMP_NUM_THREADS, else the CPU cores this process may use)")
@@ -576,6 +597,26 @@ def _play(args: argparse.Namespace) -> int:
         serve(engine, sock, access)
     finally:
         sock.close()
+    return 0
+
+
+def _experiment_datagen(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from iwsim.experiments.datagen import PRESETS, run_datagen
+
+    sizes = None
+    if args.sizes is not None:
+        try:
+            sizes = tuple(int(n) for n in args.sizes.split(",") if n.strip())
+        except ValueError:
+            raise InputError(f"--sizes must be comma-separated integers, got {args.sizes!r}.") from None
+    overrides = {"world_model": args.world_model, "policy": args.policy, "episodes": args.episodes,
+                 "steps": args.steps, "total": args.total, "sim_sizes": sizes, "train_steps": args.train_steps,
+                 "accept_iou": args.accept_iou, "demo_steps": args.demo_steps}
+    cfg = dataclasses.replace(PRESETS[args.preset], **{k: v for k, v in overrides.items() if v is not None})
+    run_datagen(cfg, out=args.out, work=args.work, preset=args.preset, jobs=args.jobs, progress=not args.no_progress)
+    print(f"{args.out}/results.md")
     return 0
 
 

@@ -435,6 +435,21 @@ class EpisodeStore:
             del self._data[key]
             del self._arrays[key]
 
+    def update_attrs(self, attrs: Mapping[str, Any]) -> None:
+        """Set root attributes (JSON-serialisable) in one atomic rewrite of ``.zattrs``;
+        ``seeds`` and ``store_version`` are the store's own and cannot be set."""
+        if self.mode != "a":
+            raise StoreError(f"{self.path} is open read-only; open it with mode 'a' to set attributes.")
+        attrs = dict(attrs)
+        if "seeds" in attrs or "store_version" in attrs:
+            raise InputError("attrs must not set 'seeds' or 'store_version'; the store manages them.")
+        try:
+            json.dumps(attrs)
+        except TypeError as e:
+            raise InputError(f"store attributes must be JSON-serialisable: {e}.") from None
+        self._root.attrs.update(attrs)
+        self._attrs.update(attrs)
+
     def _set_attr(self, key: str, value: Any) -> None:
         self._root.attrs[key] = value  # rewrites .zattrs atomically
         self._attrs[key] = value

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -50,15 +51,20 @@ def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, im
 
 
 def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
-            image_size: int = 64, record: int = 0, progress: bool = True) -> dict[str, Any]:
+            image_size: int = 64, record: int = 0, progress: bool = True,
+            stop: Callable[[dict[str, np.ndarray]], bool] | None = None) -> dict[str, Any]:
     """Run ``policy`` for ``steps`` steps from each seed, all episodes together. Returns
-    per-step IoU (E, steps + 1) and the frames of the first ``record`` episodes."""
+    per-step IoU ``iou`` (E, T + 1), the pushers' positions ``agent_pos`` (E, T + 1, 4),
+    the commanded ``action`` and executed ``target`` (info["target"], the speed-limited
+    setpoints) of every step (E, T, 4) and the frames ``frames`` (E', T + 1, H, W, 3) of
+    the first ``record`` episodes; step t's action follows frame t. T = ``steps``, or fewer
+    when ``stop(obs)``, called with each step's new observations, returns True."""
     venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size)
     try:
         obs, info = venv.reset(seed=list(seeds))
         iou = info["iou"]
         history: deque[dict[str, np.ndarray]] = deque([obs] * policy.obs_horizon, maxlen=policy.obs_horizon)
-        ious, frames = [iou], [obs["pixels"][:record]]
+        ious, frames, positions, actions, targets = [iou], [obs["pixels"][:record]], [obs["agent_pos"]], [], []
         policy.reset()
         queue: list[np.ndarray] = []
         bar = tqdm(total=steps, desc=f"eval in {env}", unit="step", disable=not progress)
@@ -69,16 +75,23 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
                            "agent_pos": np.stack([h["agent_pos"] for h in history], 1)}
                 chunk = policy.predict_action(stacked)  # (E, Ta, A)
                 queue = list(chunk.transpose(1, 0, 2))
-            obs, _, _, _, info = venv.step(queue.pop(0).astype(np.float32))
+            actions.append(queue.pop(0).astype(np.float32))
+            obs, _, _, _, info = venv.step(actions[-1])
             history.append(obs)
             ious.append(info["iou"])
             frames.append(obs["pixels"][:record])
+            positions.append(obs["agent_pos"])
+            targets.append(info["target"])
             bar.update()
+            if stop is not None and stop(obs):
+                break
         bar.close()
         seconds = time.perf_counter() - t0
     finally:
         venv.close()
-    return {"iou": np.stack(ious, 1), "frames": np.stack(frames, 1) if record else None, "seconds": seconds}
+    return {"iou": np.stack(ious, 1), "frames": np.stack(frames, 1) if record else None,
+            "agent_pos": np.stack(positions, 1), "action": np.stack(actions, 1), "target": np.stack(targets, 1),
+            "seconds": seconds}
 
 
 def summarize(max_iou: np.ndarray, seeds: list[int]) -> dict[str, Any]:

@@ -1,0 +1,415 @@
+"""Demonstrations generated in the world model (``iwsim experiment datagen``), the paper's
+first robot-learning study: do policies trained on demonstrations recorded inside the
+world model perform, in the real task, like policies trained on real ones?
+
+1. Demonstrations (:func:`iwsim.experiments.demos.record_demos`): the pixel-reading expert
+   drives MuJoCo (simulator demonstrations, seeds from 0) and the world model from
+   MuJoCo's initial frames (seeds from 300000); only successful takes are kept. Seeds of
+   both are disjoint from evaluation (100000+) and validation (200000+) seeds.
+2. Policies (Diffusion Policy by default) trained on mixtures at a fixed total (0, 50,
+   100% world model) and on simulator datasets of several sizes; a run shared by the two
+   sweeps is trained once.
+3. Every policy and the expert itself evaluated in MuJoCo on seeds from 100000: the
+   paper's score (max IoU within the horizon) and success (IoU >= 0.9), with Beta-posterior
+   and Clopper-Pearson intervals, and the parity ratio score(100% world model) /
+   score(100% simulator) with a paired bootstrap interval over the evaluation seeds.
+
+Work files (demonstration stores, policy runs, cached evaluations) go under ``work``, so
+rerunning the command resumes; the report (``results.json``, ``results.md``,
+``datagen.png``) goes to ``out``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from iwsim.checkpoint import load_json, write_json_atomic
+from iwsim.envs.pusht import SUCCESS_IOU
+from iwsim.errors import InputError
+from iwsim.eval.figures import pyplot, save_figure
+from iwsim.experiments.common import PolicyRun, checkpoints, evaluate_policies, train_runs
+from iwsim.experiments.demos import DemoStats, fingerprint, record_demos
+from iwsim.policies.scripted import ScriptedConfig
+
+log = logging.getLogger(__name__)
+
+POLICIES = ("dp", "act")
+SIM_STORE = "sim_expert.zarr"  # under work/demos: a stable name, other studies reuse it
+BOOTSTRAP = 2000  # resamples of the evaluation episodes for the parity ratio's interval
+
+
+@dataclasses.dataclass(frozen=True)
+class DatagenConfig:
+    world_model: str = "checkpoints/pusht-64"
+    policy: str = "dp"  # "dp" | "act"
+    policy_preset: str = ""  # prefix of the policy's preset: "" (dp, act) or "tiny-"
+    train_steps: int | None = None  # None: the preset's
+    checkpoint_every: int | None = None  # None: the preset's
+    total: int = 50  # demonstrations per run of the mixture sweep
+    wm_fractions: tuple[float, ...] = (0.0, 0.5, 1.0)  # world-model share of the mixtures
+    sim_sizes: tuple[int, ...] = (25, 50, 100)  # simulator-only datasets of the size sweep
+    wm_sizes: tuple[int, ...] = ()  # world-model-only datasets of the size sweep
+    demo_steps: int = 300  # horizon of a demonstration take
+    demo_tail: int | None = 10  # a kept take ends this many steps after success (None: whole)
+    accept_iou: float = SUCCESS_IOU  # a take is kept when its max pixel IoU reaches this
+    attempts_per_demo: float = 2.0  # at most this many candidates per demonstration wanted
+    demo_batch: int = 16  # candidates recorded in lockstep
+    sim_seed: int = 0
+    wm_seed: int = 300000
+    episodes: int = 50  # evaluation episodes per policy
+    eval_seed: int = 100000
+    steps: int = 300  # evaluation steps per episode
+
+    def __post_init__(self) -> None:
+        if self.policy not in POLICIES:
+            raise InputError(f"unknown policy {self.policy!r}; expected one of {', '.join(POLICIES)}.")
+        for name in ("total", "demo_steps", "demo_batch", "episodes", "steps"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise InputError(f"{name} must be a positive integer, got {v!r}.")
+        for name in ("train_steps", "checkpoint_every", "demo_tail"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, int) or v < 1):
+                raise InputError(f"{name} must be a positive integer, got {v!r}.")
+        if not all(0 <= f <= 1 for f in self.wm_fractions):
+            raise InputError(f"world-model fractions must be in [0, 1], got {self.wm_fractions}.")
+        if not all(isinstance(n, int) and n >= 1 for n in (*self.sim_sizes, *self.wm_sizes)):
+            raise InputError(f"dataset sizes must be positive integers, got {self.sim_sizes} and {self.wm_sizes}.")
+        if not (math.isfinite(self.accept_iou) and self.accept_iou >= 0):
+            raise InputError(f"accept_iou must be a finite number >= 0, got {self.accept_iou!r}.")
+        if not self.attempts_per_demo >= 1:
+            raise InputError(f"attempts_per_demo must be >= 1, got {self.attempts_per_demo!r}.")
+        if not self.wm_fractions and not self.sim_sizes and not self.wm_sizes:
+            raise InputError("the study has no runs: give world-model fractions or dataset sizes.")
+
+    @property
+    def preset(self) -> str:
+        """The policy training preset (``dp``, ``tiny-act``, ...)."""
+        return f"{self.policy_preset}{self.policy}"
+
+
+PRESETS: dict[str, DatagenConfig] = {
+    # Sized for <= 2.5 h on a 2-core CPU with two jobs, all included (estimated, not yet
+    # measured end to end: demonstrations ~30 min, five trainings of 3000 steps two at a time
+    # ~100 min, six evaluations of 50 x 300 steps ~15 min).
+    "default": DatagenConfig(train_steps=3000, checkpoint_every=1000),
+    # Seconds, for tests: tiny policies, a few short takes, every take kept (a random tiny
+    # world model never places the T).
+    "tiny": DatagenConfig(policy_preset="tiny-", train_steps=4, checkpoint_every=2, total=2, sim_sizes=(1, 2),
+                          demo_steps=8, demo_tail=4, accept_iou=0.0, demo_batch=2, episodes=2, steps=6),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """A policy training of the study: its data mixture and the sweeps it belongs to."""
+
+    n_wm: int
+    n_sim: int
+    sweeps: tuple[str, ...]
+
+    @property
+    def total(self) -> int:
+        return self.n_wm + self.n_sim
+
+    @property
+    def wm_fraction(self) -> float:
+        return self.n_wm / self.total
+
+    def name(self, preset: str, wm_tag: str) -> str:
+        """``dp-wm25-sim25-<wm_tag>``: runs on world-model demonstrations name the model
+        (a retrained one at the same path gets new runs, not the old ones)."""
+        return f"{preset}-wm{self.n_wm}-sim{self.n_sim}" + (f"-{wm_tag}" if self.n_wm else "")
+
+
+def plan(cfg: DatagenConfig) -> list[Run]:
+    """The study's trainings, each mixture once (a run of both sweeps is shared)."""
+    runs: dict[tuple[int, int], list[str]] = {}
+    for f in cfg.wm_fractions:
+        n_wm = round(f * cfg.total)
+        runs.setdefault((n_wm, cfg.total - n_wm), []).append("mixture")
+    for n in cfg.sim_sizes:
+        runs.setdefault((0, n), []).append("size")
+    for n in cfg.wm_sizes:
+        runs.setdefault((n, 0), []).append("size")
+    return [Run(w, s, tuple(dict.fromkeys(sweeps))) for (w, s), sweeps in runs.items()]
+
+
+def demo_paths(cfg: DatagenConfig, work: Path, wm_tag: str) -> dict[str, Path]:
+    """The demonstration stores: ``sim`` (stable, shared with other studies) and ``wm``
+    (named after the world-model checkpoint and its fingerprint)."""
+    return {"sim": work / "demos" / SIM_STORE,
+            "wm": work / "demos" / f"wm_teleop_{Path(cfg.world_model).name}_{wm_tag}.zarr"}
+
+
+def command(cfg: DatagenConfig, preset: str, out: Path, work: Path) -> str:
+    """The command that reproduces this study (the flags that differ from the preset)."""
+    base = PRESETS[preset]
+    flags = {"world_model": "--world-model", "policy": "--policy", "total": "--total", "sim_sizes": "--sizes",
+             "train_steps": "--train-steps", "accept_iou": "--accept-iou", "demo_steps": "--demo-steps",
+             "episodes": "--episodes", "steps": "--steps"}
+    parts = ["iwsim experiment datagen", f"--preset {preset}"]
+    for field, flag in flags.items():
+        value = getattr(cfg, field)
+        if value != getattr(base, field):
+            parts.append(f"{flag} {','.join(map(str, value)) if isinstance(value, tuple) else value}")
+    return " ".join([*parts, f"--out {out}", f"--work {work}"])
+
+
+def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset: str = "default", jobs: int = 1,
+                progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) the study; write ``results.json``, ``results.md`` and
+    ``datagen.png`` to ``out``. Returns the results."""
+    out, work = Path(out), Path(work)
+    if jobs < 1:
+        raise InputError(f"jobs must be a positive integer, got {jobs}.")
+    if not Path(cfg.world_model).is_dir():
+        raise InputError(f"world model {cfg.world_model} is not a checkpoint directory; pass --world-model PATH.")
+    t0 = time.perf_counter()
+    runs = plan(cfg)
+    tag = fingerprint(cfg.world_model)[:8]
+    paths = demo_paths(cfg, work, tag)
+    names = {r: r.name(cfg.preset, tag) for r in runs}
+    need = {"sim": max((r.n_sim for r in runs), default=0), "wm": max((r.n_wm for r in runs), default=0)}
+    demos: dict[str, DemoStats] = {}
+    for key, env, seed in (("sim", "pusht", cfg.sim_seed), ("wm", "world-model", cfg.wm_seed)):
+        if need[key]:
+            demos[key] = record_demos(env, paths[key], need[key], cfg.demo_steps, seed,
+                                      world_model=cfg.world_model if key == "wm" else None,
+                                      accept_iou=cfg.accept_iou, tail=cfg.demo_tail, batch=cfg.demo_batch,
+                                      max_attempts=math.ceil(cfg.attempts_per_demo * need[key]), progress=progress)
+    trainable, skipped = [], {}
+    for r in runs:
+        short = [f"{r.n_wm if k == 'wm' else r.n_sim} {k} demonstrations, only {demos[k].episodes} were kept "
+                 f"({demos[k].candidates} candidates, acceptance {100 * demos[k].acceptance_rate:.0f}%)"
+                 for k in ("wm", "sim") if (r.n_wm if k == "wm" else r.n_sim) > (demos[k].episodes if k in demos
+                                                                                  else 0)]
+        if short:
+            skipped[names[r]] = "needs " + "; ".join(short)
+            log.warning("not training %s: %s", names[r], skipped[names[r]])
+        else:
+            trainable.append(r)
+    policy_runs = [PolicyRun(names[r], cfg.policy, data=_data(r, paths), steps=cfg.train_steps,
+                             preset=cfg.preset, checkpoint_every=cfg.checkpoint_every) for r in trainable]
+    run_dirs = train_runs(policy_runs, work / "datagen" / "runs", jobs=jobs, progress=progress)
+    seeds = list(range(cfg.eval_seed, cfg.eval_seed + cfg.episodes))
+    sources: dict[str, Any] = {**run_dirs, "expert": ScriptedConfig("expert")}
+    scores = evaluate_policies(sources, "pusht", seeds=seeds, steps=cfg.steps, world_model=None,
+                               out=work / "datagen" / "eval", jobs=jobs, progress=progress)
+    results = {
+        "config": dataclasses.asdict(cfg),
+        "preset": preset,
+        "command": command(cfg, preset, out, work),
+        "scale": {"demonstrations": need, "runs": len(runs), "trained": len(trainable),
+                  "train_steps": policy_runs[0].stage_config().train.steps if policy_runs else None,
+                  "eval_episodes": cfg.episodes, "eval_steps": cfg.steps, "eval_seeds": [seeds[0], seeds[-1]]},
+        "demos": {k: {**dataclasses.asdict(s), "complete": s.complete} for k, s in demos.items()},
+        "expert": _score(scores["expert"]),
+        "runs": [_run_result(r, names[r], paths, run_dirs, scores, skipped) for r in runs],
+        "parity": parity(cfg, names, scores),
+    }
+    results["time"] = {  # seconds of each phase, over every invocation that did its part
+        "demos": sum(d.seconds for d in demos.values()),
+        "training": sum(run["training"]["seconds"] for run in results["runs"] if "training" in run),
+        "evaluation": sum(score.get("seconds", 0.0) for score in scores.values()),
+        "this_invocation": time.perf_counter() - t0,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "results.json", results, sort_keys=False)
+    _write_atomic(out / "results.md", markdown(results))
+    figure(results, out / "datagen.png")
+    log.info("%s", headline(results))
+    return results
+
+
+def _data(r: Run, paths: dict[str, Path]) -> tuple[tuple[str, int], ...]:
+    return tuple((str(paths[k]), n) for k, n in (("wm", r.n_wm), ("sim", r.n_sim)) if n)
+
+
+def _score(result: dict[str, Any]) -> dict[str, Any]:
+    """The statistics of an evaluation (without its per-step IoU)."""
+    keep = ("mean_max_iou", "std_max_iou", "success_rate", "success_beta_posterior", "success_clopper_pearson",
+            "seconds", "episodes")
+    return {k: result[k] for k in keep if k in result}
+
+
+def _training(run_dir: Path) -> dict[str, Any]:
+    """Steps and seconds of a policy run's last checkpoint."""
+    kept = checkpoints(run_dir)
+    if not kept:
+        return {"steps": 0, "seconds": 0.0}
+    state = load_json(kept[max(kept)] / "training_state" / "state.json")
+    return {"steps": int(state["step"]), "seconds": float(state["elapsed_s"])}
+
+
+def _run_result(r: Run, name: str, paths: dict[str, Path], run_dirs: dict[str, Path], scores: dict[str, dict],
+                skipped: dict[str, str]) -> dict[str, Any]:
+    row: dict[str, Any] = {"name": name, "sweeps": list(r.sweeps), "n_wm": r.n_wm, "n_sim": r.n_sim,
+                           "wm_fraction": r.wm_fraction,
+                           "data": [{"store": s, "episodes": n} for s, n in _data(r, paths)]}
+    if name in skipped:
+        return {**row, "skipped": skipped[name]}
+    return {**row, "run": str(run_dirs[name]), "training": _training(run_dirs[name]), **_score(scores[name])}
+
+
+def parity(cfg: DatagenConfig, names: dict[Run, str], scores: dict[str, dict]) -> dict[str, Any]:
+    """score(100% world model) / score(100% simulator) at the mixture total, for mean max
+    IoU and success rate, with a 95% paired bootstrap interval over the evaluation seeds."""
+    by_data = {(r.n_wm, r.n_sim): name for r, name in names.items()}
+    wm, sim = by_data.get((cfg.total, 0)), by_data.get((0, cfg.total))
+    if wm is None or sim is None:
+        return {"note": "the mixture sweep lacks 0% or 100% world model"}
+    if wm not in scores or sim not in scores:
+        return {"note": f"{wm if wm not in scores else sim} was not trained (too few demonstrations)"}
+    a = np.array([e["max_iou"] for e in scores[wm]["episodes"]])
+    b = np.array([e["max_iou"] for e in scores[sim]["episodes"]])
+    rng = np.random.default_rng(0)
+    idx = rng.integers(len(a), size=(BOOTSTRAP, len(a)))
+    out: dict[str, Any] = {"world_model": wm, "simulator": sim}
+    for metric, fa, fb in (("mean_max_iou", a, b), ("success_rate", a >= SUCCESS_IOU, b >= SUCCESS_IOU)):
+        den = fb.mean()
+        ratio = float(fa.mean() / den) if den > 0 else None
+        boot_a, boot_b = fa[idx].mean(1), fb[idx].mean(1)
+        ok = boot_b > 0
+        lo, hi = (np.quantile(boot_a[ok] / boot_b[ok], [0.025, 0.975]).tolist() if ok.mean() > 0.5 else
+                  [None, None])
+        out[metric] = {"ratio": ratio, "bootstrap_95": [lo, hi]}
+    return out
+
+
+def headline(r: dict[str, Any]) -> str:
+    p = r["parity"]
+    if "note" in p:
+        return f"parity ratio unavailable: {p['note']}."
+    fmt = lambda m: ("n/a" if p[m]["ratio"] is None else  # noqa: E731
+                     f"{p[m]['ratio']:.2f} [{_num(p[m]['bootstrap_95'][0])}, {_num(p[m]['bootstrap_95'][1])}]")
+    return (f"parity ratio score(100% world model) / score(100% simulator) with {r['config']['total']} "
+            f"demonstrations: {fmt('mean_max_iou')} on mean max IoU, {fmt('success_rate')} on success rate "
+            f"(95% paired bootstrap intervals).")
+
+
+def _num(x: float | None, digits: int = 2) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+def _interval(iv: list[float] | None) -> str:
+    return "" if not iv else f"[{iv[0]:.2f}, {iv[1]:.2f}]"
+
+
+def markdown(r: dict[str, Any]) -> str:
+    """The report: scale, demonstrations, the two sweeps and the parity ratio."""
+    c, s, t = r["config"], r["scale"], r["time"]
+    lines = [
+        "# Demonstrations generated in the world model",
+        "",
+        f"**{headline(r)}**",
+        "",
+        f"Policy: {c['policy']} (preset `{c['policy_preset']}{c['policy']}`, {s['train_steps']} training steps); "
+        f"world model `{c['world_model']}`. Evaluation in MuJoCo: {s['eval_episodes']} episodes of "
+        f"{s['eval_steps']} steps (seeds {s['eval_seeds'][0]}..{s['eval_seeds'][1]}); score = max IoU within the "
+        f"horizon, success = IoU >= {SUCCESS_IOU}.",
+        "",
+        f"Compute (one thread per job, summed over jobs and over the invocations that did the work): "
+        f"demonstrations {t['demos'] / 60:.1f} min, training {t['training'] / 60:.1f} min, evaluation "
+        f"{t['evaluation'] / 60:.1f} min; this invocation {t['this_invocation'] / 60:.1f} min.",
+        "",
+        "```",
+        r["command"],
+        "```",
+        "",
+        "## Demonstrations",
+        "",
+        "The pixel-reading expert; a take is kept when its max pixel IoU reaches "
+        f"{c['accept_iou']} and ends {c['demo_tail']} steps after that (horizon {c['demo_steps']} steps).",
+        "",
+        "| source | kept / wanted | candidates | acceptance | mean max pixel IoU | steps per demo | s per candidate |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for k, d in r["demos"].items():
+        lines.append(f"| {'world model' if k == 'wm' else 'simulator'} | {d['episodes']} / {d['wanted']} | "
+                     f"{d['candidates']} | {100 * d['acceptance_rate']:.1f}% | {d['mean_candidate_max_iou']:.3f} | "
+                     f"{d['mean_length']:.0f} | {d['seconds_per_candidate']:.1f} |")
+    e = r["expert"]
+    lines += [
+        "",
+        "## Policies",
+        "",
+        "Mean max IoU (95% normal interval), success rate with its Beta-posterior mean and Clopper-Pearson 95% "
+        "interval.",
+        "",
+        "| run | sweeps | world model / simulator demos | training (steps, min) | mean max IoU | success | "
+        "Beta mean | Clopper-Pearson |",
+        "|---|---|---|---|---|---|---|---|",
+        f"| expert (reference) | | | | {e['mean_max_iou']:.3f} {_mean_interval(e, s['eval_episodes'])} | "
+        f"{100 * e['success_rate']:.0f}% | {e['success_beta_posterior']['mean']:.2f} | "
+        f"{_interval(e['success_clopper_pearson'])} |",
+    ]
+    for run in r["runs"]:
+        head = f"| {run['name']} | {', '.join(run['sweeps'])} | {run['n_wm']} / {run['n_sim']} |"
+        if "skipped" in run:
+            lines.append(f"{head} not trained: {run['skipped']} | | | | |")
+            continue
+        t = run["training"]
+        lines.append(f"{head} {t['steps']}, {t['seconds'] / 60:.1f} | {run['mean_max_iou']:.3f} "
+                     f"{_mean_interval(run, s['eval_episodes'])} | {100 * run['success_rate']:.0f}% | "
+                     f"{run['success_beta_posterior']['mean']:.2f} | {_interval(run['success_clopper_pearson'])} |")
+    lines += ["", "![score against world-model share and dataset size](datagen.png)", ""]
+    return "\n".join(lines)
+
+
+def _mean_interval(score: dict[str, Any], n: int) -> str:
+    half = 1.96 * score["std_max_iou"] / math.sqrt(n)
+    return f"± {half:.3f}"
+
+
+def figure(r: dict[str, Any], path: Path) -> None:
+    """Score against the world-model share of the mixtures, and against dataset size."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    n = r["scale"]["eval_episodes"]
+    trained = [run for run in r["runs"] if "skipped" not in run]
+    sweeps = (("mixture", "wm_fraction", "world-model share of the demonstrations",
+               [("mixture", trained)]),
+              ("size", "total", "demonstrations",
+               [("simulator", [t for t in trained if t["n_wm"] == 0]),
+                ("world model", [t for t in trained if t["n_sim"] == 0])]))
+    for ax, (sweep, x_key, xlabel, series) in zip(axes, sweeps):
+        for label, rows in series:
+            rows = sorted((t for t in rows if sweep in t["sweeps"]),
+                          key=lambda t: t["wm_fraction"] if x_key == "wm_fraction" else t["n_wm"] + t["n_sim"])
+            if not rows:
+                continue
+            x = np.array([t["wm_fraction"] if x_key == "wm_fraction" else t["n_wm"] + t["n_sim"] for t in rows])
+            iou = np.array([t["mean_max_iou"] for t in rows])
+            half = np.array([1.96 * t["std_max_iou"] / math.sqrt(n) for t in rows])
+            succ = np.array([t["success_rate"] for t in rows])
+            cp = np.array([t["success_clopper_pearson"] for t in rows])
+            suffix = "" if sweep == "mixture" else f" ({label})"
+            ax.errorbar(x, iou, yerr=half, marker="o", capsize=3, label=f"mean max IoU{suffix}")
+            ax.errorbar(x, succ, yerr=[succ - cp[:, 0], cp[:, 1] - succ], marker="s", capsize=3, linestyle="--",
+                        label=f"success rate{suffix}")
+        e = r["expert"]
+        ax.axhline(e["mean_max_iou"], color="grey", linewidth=0.8, label="expert: mean max IoU")
+        ax.axhline(e["success_rate"], color="grey", linewidth=0.8, linestyle=":", label="expert: success rate")
+        ax.set_xlabel(xlabel)
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0].set_title(f"mixtures of {r['config']['total']} demonstrations")
+    axes[1].set_title("dataset size")
+    axes[0].set_ylabel("score in MuJoCo (95% intervals)")
+    axes[1].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)

@@ -1,0 +1,266 @@
+"""Scripted demonstrations recorded through a vector env, in the episode-store layout,
+kept only when they succeed (what ``iwsim experiment datagen`` trains policies on).
+
+    stats = record_demos("world-model", "runs/demos/wm.zarr", episodes=50, steps=300, seed=300000,
+                         world_model="checkpoints/pusht-64")
+
+The teleoperator is the pixel-reading expert (:class:`~iwsim.policies.scripted.ScriptedBatch`
+``"expert"``: the block pose estimated from the frame, exactly what a person sees). With
+``env="world-model"`` it drives the world model's batched vector env from MuJoCo's initial
+frames (the same first frame as MuJoCo for the same seed), the motion a person makes in
+``iwsim play``; with ``env="pusht"`` the same code drives MuJoCo and gives the simulator
+demonstrations. Both go through :func:`iwsim.eval.policy.rollout`, the loop that evaluates
+policies.
+
+Acceptance, as a person discards a failed take: a candidate episode is kept when its
+pixel score (the IoU of the block segmented from the frame with the goal, the same
+scorer in both envs) reaches ``accept_iou`` at some step. Candidate i starts from seed
+``seed + i``; candidates are drawn in batches until ``episodes`` are kept or
+``max_attempts`` were tried. All candidates of a batch step together; the batch stops
+early once every one of them has recorded all it will keep (see Length).
+
+Length: a kept episode ends ``tail`` steps after the first frame that reaches
+``accept_iou`` (the success frame and ``tail - 1`` frames after it are stored), as a
+teleoperator stops recording once the task is done. The expert succeeds after some 20-140
+of a 300-step horizon in MuJoCo and then holds the block in place; kept whole, the
+episodes would be mostly that hold, and imitation learning would spend most of its
+samples on "stand still once the T is placed", a state the policy rarely reaches before
+its horizon ends. ``tail=None`` keeps whole episodes. The same rule applies in both envs.
+
+Per step (the layout of ``iwsim play``'s recorder and ``iwsim collect``): ``img`` (T, H,
+W, 3) uint8, the frame before action t; ``state`` (T, 4) float32, agent_pos (read from the
+pixels in the world model); ``action`` (T, 4) float32, the command; ``target`` (T, 4)
+float32, the speed-limited setpoints action t executed (``info["target"]``); ``iou`` (T,)
+float32, the frame's pixel score. Attributes: the task spec (as ``iwsim collect``), the
+policy (``world-model-teleop`` or ``expert-pixels``), the world-model checkpoint, the
+acceptance rule and the candidates tried with their scores.
+
+Resuming: the store is appended to under its lock; a rerun with the same arguments (or
+more ``episodes`` / ``max_attempts``) continues from the first candidate not yet tried.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from iwsim.data.collect import store_attrs
+from iwsim.data.store import EpisodeStore
+from iwsim.envs.pixels import pixel_iou
+from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU
+from iwsim.errors import InputError
+from iwsim.eval.policy import ENVS, MAX_SEED, rollout
+from iwsim.play.engine import EPISODE_KEYS
+from iwsim.policies.scripted import ScriptedBatch
+from iwsim.world_model import WorldModel
+
+log = logging.getLogger(__name__)
+
+POLICY_NAMES = {"world-model": "world-model-teleop", "pusht": "expert-pixels"}
+SOURCES = {"world-model": "world_model", "pusht": "mujoco"}
+# Attributes that must agree before a run may append to an existing store.
+MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world_model_sha256", "first_seed",
+                  "accept_iou", "tail_steps")
+EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoStats:
+    """A demonstration store after a run: totals over every run that wrote it, and what
+    this run added."""
+
+    env: str
+    path: str
+    wanted: int  # accepted episodes asked for
+    episodes: int  # accepted episodes the store holds
+    candidates: int  # candidates tried (all runs)
+    acceptance_rate: float  # episodes / candidates (nan before any candidate)
+    mean_candidate_max_iou: float  # mean over candidates of the max pixel IoU (nan before any)
+    frames: int  # frames the store holds
+    mean_length: float  # steps per kept episode
+    seconds: float  # recording time (all runs)
+    seconds_per_candidate: float
+    added: int  # episodes this run added
+    tried: int  # candidates this run tried
+
+    @property
+    def complete(self) -> bool:
+        return self.episodes >= self.wanted
+
+    def summary(self) -> str:
+        return (f"{self.path}: {self.episodes}/{self.wanted} episodes kept of {self.candidates} candidates "
+                f"(acceptance {100 * self.acceptance_rate:.1f}%, mean max pixel IoU "
+                f"{self.mean_candidate_max_iou:.3f}, {self.mean_length:.0f} steps per episode, "
+                f"{self.seconds_per_candidate:.1f} s per candidate); this run added {self.added} of {self.tried} tried")
+
+
+def fingerprint(world_model: str | os.PathLike) -> str:
+    """A short content hash of a world-model checkpoint (its weights and config), so that
+    demonstrations of a retrained model at the same path are told apart."""
+    h = hashlib.sha256()
+    for name in ("config.json", "model.safetensors"):
+        path = Path(world_model) / name
+        if not path.is_file():
+            raise InputError(f"{world_model} is not a world-model checkpoint: it has no {name}.")
+        with path.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()[:16]
+
+
+def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, seed: int, accept_iou: float,
+               tail: int | None) -> dict[str, Any]:
+    """Root attributes of a demonstration store: ``iwsim collect``'s (the task spec,
+    policy, steps, ...) plus the teleoperator, the source and the acceptance rule."""
+    return {**store_attrs("pusht", POLICY_NAMES[env], steps, image_size), "source": SOURCES[env],
+            "world_model": world_model, "world_model_sha256": None if world_model is None else fingerprint(world_model),
+            "teleoperator": "expert (block pose from pixels)",
+            "keys": list(EPISODE_KEYS), "first_seed": seed, "accept_iou": accept_iou, "tail_steps": tail,
+            "candidates_tried": 0, "candidate_max_iou": [], "acceptance_rate": None, "record_seconds": 0.0}
+
+
+def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, seed: int, *,
+                 world_model: str | os.PathLike | None = None, accept_iou: float = SUCCESS_IOU, tail: int | None = 10,
+                 batch: int = 16, max_attempts: int | None = None, image_size: int = 64, progress: bool = True,
+                 wait_for_lock: bool = False) -> DemoStats:
+    """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
+    accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried
+    (see the module docstring). ``env``: "pusht" (MuJoCo) or "world-model" (needs the
+    checkpoint ``world_model``). Returns the store's :class:`DemoStats`."""
+    max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
+    _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, image_size)
+    model = None
+    if env == "world-model":
+        model = WorldModel.load(world_model)
+        image_size = model.image_size
+    wm_name = None if world_model is None or env == "pusht" else os.fspath(world_model)
+    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail)
+    with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs),
+                                     wait=wait_for_lock) as store:
+        return _record_into(store, env, model, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
+                            progress)
+
+
+def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episodes: int, steps: int, seed: int,
+                 accept_iou: float, tail: int | None, batch: int, max_attempts: int, progress: bool) -> DemoStats:
+    a = store.attrs
+    # the candidates tried; a run killed between an append and the attribute update below
+    # re-tries the rejected candidates after the last kept one (deterministic, so harmless)
+    last_kept = max((s - seed + 1 for s in a["seeds"]), default=0)
+    tried = max(int(a["candidates_tried"]), last_kept)
+    max_ious = list(a["candidate_max_iou"])[:tried]
+    seconds = float(a["record_seconds"])
+    tried0, kept0 = tried, store.n_episodes
+    if store.n_episodes < episodes and tried < max_attempts:
+        log.info("recording %s demonstrations into %s: %d of %d kept, candidates from seed %d (of at most %d)",
+                 env, store.path, store.n_episodes, episodes, seed + tried, max_attempts)
+    bar = tqdm(total=episodes, initial=min(store.n_episodes, episodes), unit="ep", desc=f"demos {store.path.name}",
+               disable=not progress)
+    while store.n_episodes < episodes and tried < max_attempts:
+        # enough candidates for the episodes still missing at the rate so far (Laplace's rule)
+        rate = (store.n_episodes + 1) / (tried + 2)
+        n = min(batch, max_attempts - tried, math.ceil((episodes - store.n_episodes) / rate))
+        seeds = [seed + tried + i for i in range(n)]
+        t0 = time.perf_counter()
+        scores = _Scores(n, accept_iou, tail)
+        run = rollout(ScriptedBatch("expert"), env, seeds, steps, world_model=model,
+                      image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores)
+        ious = np.stack([pixel_iou(run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
+        for i, s in enumerate(seeds):
+            tried += 1
+            max_ious.append(round(float(ious[i].max()), 4))
+            if ious[i].max() >= accept_iou:
+                store.append(_episode(run, ious, i, accept_iou, tail), seed=s)
+                bar.update()
+                if store.n_episodes >= episodes:
+                    break
+        seconds += time.perf_counter() - t0
+        store.update_attrs({"candidates_tried": tried, "candidate_max_iou": max_ious, "record_seconds": seconds,
+                            "acceptance_rate": store.n_episodes / tried})
+        bar.set_postfix_str(f"{tried} tried, {100 * store.n_episodes / tried:.0f}% kept")
+    bar.close()
+    lengths = np.diff(store.episode_ends, prepend=0)
+    stats = DemoStats(
+        env=env, path=str(store.path), wanted=episodes, episodes=store.n_episodes, candidates=tried,
+        acceptance_rate=store.n_episodes / tried if tried else float("nan"),
+        mean_candidate_max_iou=float(np.mean(max_ious)) if max_ious else float("nan"),
+        frames=store.n_frames, mean_length=float(lengths.mean()) if len(lengths) else float("nan"),
+        seconds=seconds, seconds_per_candidate=seconds / tried if tried else float("nan"),
+        added=store.n_episodes - kept0, tried=tried - tried0)
+    log.info("%s", stats.summary())
+    if not stats.complete:
+        log.warning("%s holds %d of the %d demonstrations asked for: %d candidates tried (the most allowed is %d), "
+                    "%.1f%% reached pixel IoU %g", store.path, stats.episodes, episodes, tried, max_attempts,
+                    100 * stats.acceptance_rate, accept_iou)
+    return stats
+
+
+class _Scores:
+    """The rollout's ``stop``: scores each step's frames (pixel IoU) and ends the batch once
+    every episode has run ``tail`` steps past its first frame that reaches ``accept_iou``
+    (no episode of the batch would record more; never with ``tail=None``)."""
+
+    def __init__(self, n: int, accept_iou: float, tail: int | None) -> None:
+        self.accept_iou, self.tail = accept_iou, tail
+        self.ious: list[np.ndarray] = []  # (n,) per step, from step 1
+        self.first = np.full(n, np.inf)  # first step whose frame reached accept_iou
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> bool:
+        self.ious.append(np.atleast_1d(pixel_iou(obs["pixels"])))
+        t = len(self.ious)
+        self.first = np.where(np.isinf(self.first) & (self.ious[-1] >= self.accept_iou), t, self.first)
+        return self.tail is not None and bool(np.all(self.first + self.tail <= t))
+
+
+def _episode(run: dict[str, Any], ious: np.ndarray, i: int, accept_iou: float,
+             tail: int | None) -> dict[str, np.ndarray]:
+    """Episode ``i`` of a rollout in the store's layout, cut ``tail`` steps after its first
+    frame with pixel IoU >= ``accept_iou`` (whole with ``tail=None``)."""
+    first = int(np.argmax(ious[i] >= accept_iou))
+    steps = run["action"].shape[1]  # the steps run (a batch stops once no episode needs more)
+    t = steps if tail is None else min(first + tail, steps)
+    return {"img": run["frames"][i, :t], "state": run["agent_pos"][i, :t].astype(np.float32),
+            "action": run["action"][i, :t].astype(np.float32), "target": run["target"][i, :t].astype(np.float32),
+            "iou": ious[i, :t]}
+
+
+def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any, accept_iou: float,
+                tail: int | None, batch: int, max_attempts: int, image_size: int) -> None:
+    if env not in ENVS:
+        raise InputError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
+    if env == "world-model" and world_model is None:
+        raise InputError("demonstrations in the world model need a world-model checkpoint.")
+    for name, value in (("episodes", episodes), ("steps", steps), ("batch", batch), ("max_attempts", max_attempts)):
+        if not isinstance(value, int) or value < 1:
+            raise InputError(f"{name} must be a positive integer, got {value!r}.")
+    if tail is not None and (not isinstance(tail, int) or tail < 1):
+        raise InputError(f"tail must be a positive number of steps or None (whole episodes), got {tail!r}.")
+    if not (isinstance(accept_iou, (int, float)) and math.isfinite(accept_iou) and accept_iou >= 0):
+        raise InputError(f"accept_iou must be a finite number >= 0, got {accept_iou!r}.")
+    if not isinstance(seed, int) or not 0 <= seed <= MAX_SEED - max_attempts + 1:
+        raise InputError(f"seed must be in 0..{MAX_SEED - max_attempts + 1} for {max_attempts} candidates, "
+                         f"got {seed!r}.")
+    if env == "pusht" and image_size not in IMAGE_SIZES:
+        raise InputError(f"image size must be one of {list(IMAGE_SIZES)}, got {image_size!r}.")
+
+
+def _check_existing(store: EpisodeStore, attrs: dict[str, Any]) -> None:
+    """Raise unless this run may append to ``store`` (the same demonstrations)."""
+    stored = store.attrs
+    diffs = [k for k in MATCHING_ATTRS if stored.get(k) != attrs[k]]
+    if diffs:
+        have = ", ".join(f"{k}={stored.get(k)!r}" for k in diffs)
+        want = ", ".join(f"{k}={attrs[k]!r}" for k in diffs)
+        raise InputError(f"{store.path} holds demonstrations with {have}, not {want}; choose another store.")
+    if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
+        raise InputError(f"{store.path} holds arrays {store.keys}, not the recorded {sorted(EPISODE_KEYS)}; "
+                         "choose another store.")

@@ -1,0 +1,191 @@
+"""``iwsim experiment datagen``: demonstrations recorded through the vector envs with the
+acceptance filter (layout, first frames, resume), and a tiny end-to-end study."""
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iwsim.cli import main
+from iwsim.data.collect import store_attrs
+from iwsim.data.store import EpisodeStore
+from iwsim.eval.policy import rollout
+from iwsim.experiments.datagen import PRESETS, DatagenConfig, plan
+from iwsim.experiments.demos import fingerprint, record_demos
+from iwsim.play.engine import EPISODE_KEYS
+from iwsim.policies.scripted import ScriptedBatch
+from tests.test_dynamics import tiny_world_model
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def wm_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("wm") / "tiny-wm"
+    tiny_world_model().save(path)
+    return path
+
+
+def record(env: str, out: Path, wm_path: Path, episodes: int = 2, **kw):
+    kw = {"steps": 6, "seed": 300000, "accept_iou": 0.0, "tail": None, "batch": 2, "progress": False, **kw}
+    return record_demos(env, out, episodes, kw.pop("steps"), kw.pop("seed"), world_model=wm_path, **kw)
+
+
+def test_rollout_returns_every_step_and_stops_when_asked(wm_path):
+    from iwsim.world_model import WorldModel
+
+    wm = WorldModel.load(wm_path)
+    run = rollout(ScriptedBatch("expert"), "world-model", [5, 6], 4, world_model=wm, record=2, progress=False)
+    assert run["frames"].shape == (2, 5, 64, 64, 3) and run["agent_pos"].shape == (2, 5, 4)
+    assert run["action"].shape == run["target"].shape == (2, 4, 4) and run["iou"].shape == (2, 5)
+    # the executed setpoints move towards the commands at the speed limit, from the pushers at reset
+    assert np.abs(run["target"][:, 0] - run["agent_pos"][:, 0]).max() <= 0.0161
+    calls = []
+    short = rollout(ScriptedBatch("expert"), "world-model", [5, 6], 4, world_model=wm, progress=False,
+                    stop=lambda obs: calls.append(obs) or len(calls) == 2)
+    assert short["action"].shape == (2, 2, 4) and short["iou"].shape == (2, 3)
+    np.testing.assert_allclose(short["iou"], run["iou"][:, :3], atol=0.02)
+
+
+def test_acceptance_filter(wm_path, tmp_path, caplog):
+    everything = record("world-model", tmp_path / "all.zarr", wm_path, episodes=4, batch=4)
+    assert (everything.episodes, everything.candidates, everything.acceptance_rate) == (4, 4, 1.0)
+    scores = EpisodeStore.open(tmp_path / "all.zarr").attrs["candidate_max_iou"]
+    assert len(scores) == 4
+    # a threshold between the candidates' scores keeps exactly those that reach it
+    threshold = float(np.median(scores))
+    some = record("world-model", tmp_path / "some.zarr", wm_path, episodes=4, batch=4, max_attempts=4,
+                  accept_iou=threshold)
+    kept = [300000 + i for i, m in enumerate(scores) if m >= threshold]
+    store = EpisodeStore.open(tmp_path / "some.zarr")
+    assert store.seeds == kept and some.acceptance_rate == len(kept) / 4
+    assert all(store.episode(i)["iou"].max() >= threshold for i in range(len(store)))
+    with caplog.at_level(logging.WARNING):
+        none = record("world-model", tmp_path / "none.zarr", wm_path, episodes=2, max_attempts=3, accept_iou=1.5)
+    assert (none.episodes, none.candidates, none.acceptance_rate, none.complete) == (0, 3, 0.0, False)
+    assert "holds 0 of the 2 demonstrations asked for: 3 candidates tried" in caplog.text
+    assert EpisodeStore.open(tmp_path / "none.zarr").n_episodes == 0
+    with pytest.raises(ValueError, match="accept_iou must be a finite number"):
+        record("pusht", tmp_path / "bad.zarr", wm_path, accept_iou=float("nan"))
+    with pytest.raises(ValueError, match="needs? a world-model checkpoint"):
+        record_demos("world-model", tmp_path / "bad.zarr", 1, 4, 0)
+
+
+def test_kept_takes_end_tail_steps_after_success(wm_path, tmp_path):
+    """accept_iou 0: the first frame succeeds, so a take holds ``tail`` steps (and the
+    batch stops there instead of running the whole horizon)."""
+    stats = record("pusht", tmp_path / "cut.zarr", wm_path, steps=8, tail=3)
+    store = EpisodeStore.open(tmp_path / "cut.zarr")
+    assert np.diff(store.episode_ends, prepend=0).tolist() == [3, 3] and stats.mean_length == 3
+
+
+def test_first_frames_identical_and_layout_matches_collect(wm_path, tmp_path, play_store):
+    sim = record("pusht", tmp_path / "sim.zarr", wm_path, episodes=2, seed=7)
+    wm = record("world-model", tmp_path / "wm.zarr", wm_path, episodes=2, seed=7)
+    a, b = EpisodeStore.open(sim.path), EpisodeStore.open(wm.path)
+    for i in range(2):
+        x, y = a.episode(i), b.episode(i)
+        np.testing.assert_array_equal(x["img"][0], y["img"][0])
+        np.testing.assert_array_equal(x["state"][0], y["state"][0])
+        assert x["iou"][0] == y["iou"][0]
+        # step t's target is the speed-limited motion towards step t's command
+        assert np.abs(x["target"][0] - x["state"][0]).max() <= 0.0161
+    collected = EpisodeStore.open(play_store)
+    for store in (a, b):
+        assert store.keys == sorted(EPISODE_KEYS)
+        info, ref = store.info()["arrays"], collected.info()["arrays"]
+        for k in EPISODE_KEYS:
+            assert (info[k]["dtype"], info[k]["shape"][1:]) == (ref[k]["dtype"], ref[k]["shape"][1:])
+        assert set(store_attrs("pusht", "x", 1, 64)) <= set(store.attrs)
+        assert set(collected.attrs) - {"seeds"} <= set(store.attrs)
+    assert a.attrs["policy"] == "expert-pixels" and a.attrs["world_model"] is None
+    assert b.attrs["policy"] == "world-model-teleop" and b.attrs["world_model"] == str(wm_path)
+    out = tmp_path / "pol"
+    assert main(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", f"{wm.path}:1,{sim.path}:2",
+                 "--out", str(out), "--steps", "2", "--no-progress"]) == 0
+    assert (out / "checkpoints" / "last").exists()
+
+
+def test_resume_appends_only_what_is_missing(wm_path, tmp_path):
+    path = tmp_path / "r.zarr"
+    first = record("world-model", path, wm_path, episodes=2)
+    before = EpisodeStore.open(path).episode(1)["img"]
+    more = record("world-model", path, wm_path, episodes=3)
+    assert (first.added, more.added, more.tried, more.candidates) == (2, 1, 1, 3)
+    store = EpisodeStore.open(path)
+    assert store.seeds == [300000, 300001, 300002]
+    np.testing.assert_array_equal(store.episode(1)["img"], before)
+    again = record("world-model", path, wm_path, episodes=3)
+    assert (again.added, again.tried, again.episodes) == (0, 0, 3)
+    with pytest.raises(ValueError, match="accept_iou=0.0, not accept_iou=0.5"):
+        record("world-model", path, wm_path, episodes=3, accept_iou=0.5)
+    other = tmp_path / "wm"  # a retrained model at the same path does not extend the old one's demonstrations
+    tiny_world_model().save(other)
+    record("world-model", tmp_path / "o.zarr", other, episodes=1)
+    tiny_world_model(seed=1).save(other, force=True)
+    with pytest.raises(ValueError, match="world_model_sha256="):
+        record("world-model", tmp_path / "o.zarr", other, episodes=2)
+
+
+def test_store_attributes_can_be_updated_by_the_writer_only(tmp_path):
+    with EpisodeStore.create(tmp_path / "s.zarr", {"a": 1}) as store:
+        store.update_attrs({"a": 2, "b": [1.5]})
+        with pytest.raises(ValueError, match="must not set 'seeds'"):
+            store.update_attrs({"seeds": []})
+    assert EpisodeStore.open(tmp_path / "s.zarr").attrs["a"] == 2
+    with pytest.raises(ValueError, match="read-only"):
+        EpisodeStore.open(tmp_path / "s.zarr").update_attrs({"a": 3})
+
+
+def test_plan_shares_runs_between_the_sweeps():
+    cfg = DatagenConfig(total=50, wm_fractions=(0.0, 0.5, 1.0), sim_sizes=(25, 50, 100))
+    runs = {(r.n_wm, r.n_sim): r.sweeps for r in plan(cfg)}
+    assert runs == {(0, 50): ("mixture", "size"), (25, 25): ("mixture",), (50, 0): ("mixture",),
+                    (0, 25): ("size",), (0, 100): ("size",)}
+    with pytest.raises(ValueError, match="unknown policy"):
+        DatagenConfig(policy="ppo")
+    assert PRESETS["tiny"].preset == "tiny-dp"
+
+
+@pytest.mark.slow
+def test_tiny_study_end_to_end(wm_path, tmp_path):
+    out, work = tmp_path / "out", tmp_path / "work"
+    args = ["experiment", "datagen", "--preset", "tiny", "--world-model", str(wm_path), "--out", str(out),
+            "--work", str(work), "--jobs", "1", "--no-progress"]
+    assert main(args) == 0
+    r = json.loads((out / "results.json").read_text())
+    assert (out / "datagen.png").stat().st_size > 0
+    md = (out / "results.md").read_text()
+    assert r["command"] in md and "parity ratio" in md
+    assert (work / "demos" / "sim_expert.zarr").is_dir()
+    assert {k: d["episodes"] for k, d in r["demos"].items()} == {"sim": 2, "wm": 2}
+    names = [run["name"] for run in r["runs"]]
+    tag = fingerprint(wm_path)[:8]  # runs on world-model demonstrations name the model
+    assert names == ["tiny-dp-wm0-sim2", f"tiny-dp-wm1-sim1-{tag}", f"tiny-dp-wm2-sim0-{tag}", "tiny-dp-wm0-sim1"]
+    assert (work / "demos" / f"wm_teleop_tiny-wm_{tag}.zarr").is_dir()
+    for run in r["runs"]:
+        assert sum(d["episodes"] for d in run["data"]) == run["n_wm"] + run["n_sim"]
+        assert run["training"]["steps"] == 4 and len(run["episodes"]) == 2 and run["name"] in md
+        lo, hi = run["success_clopper_pearson"]
+        assert lo <= run["success_rate"] <= hi
+    p = r["parity"]
+    assert (p["world_model"], p["simulator"]) == (names[2], names[0])
+    by_name = {run["name"]: run for run in r["runs"]}
+    assert p["mean_max_iou"]["ratio"] == pytest.approx(
+        by_name[names[2]]["mean_max_iou"] / by_name[names[0]]["mean_max_iou"])
+    assert r["expert"]["episodes"][0]["seed"] == 100000
+    # a rerun resumes: nothing is recorded, trained or evaluated again
+    stamp = (work / "datagen" / "runs" / names[0] / "metrics.jsonl").stat().st_mtime_ns
+    assert main(args) == 0
+    r2 = json.loads((out / "results.json").read_text())
+    assert r2["runs"] == r["runs"] and r2["demos"]["sim"]["added"] == 0
+    assert (work / "datagen" / "runs" / names[0] / "metrics.jsonl").stat().st_mtime_ns == stamp
+    # too few demonstrations: the runs that need them are reported, not trained
+    assert main(["experiment", "datagen", "--preset", "tiny", "--world-model", str(wm_path), "--accept-iou", "1.5",
+                 "--out", str(tmp_path / "out2"), "--work", str(tmp_path / "work2"), "--jobs", "1",
+                 "--no-progress"]) == 0
+    r3 = json.loads((tmp_path / "out2" / "results.json").read_text())
+    assert all("only 0 were kept" in run["skipped"] for run in r3["runs"])
+    assert "not trained" in r3["parity"]["note"]
