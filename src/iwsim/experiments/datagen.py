@@ -187,13 +187,10 @@ def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset
                                       max_attempts=math.ceil(cfg.attempts_per_demo * need[key]), progress=progress)
     trainable, skipped = [], {}
     for r in runs:
-        short = [f"{r.n_wm if k == 'wm' else r.n_sim} {k} demonstrations, only {demos[k].episodes} were kept "
-                 f"({demos[k].candidates} candidates, acceptance {100 * demos[k].acceptance_rate:.0f}%)"
-                 for k in ("wm", "sim") if (r.n_wm if k == "wm" else r.n_sim) > (demos[k].episodes if k in demos
-                                                                                  else 0)]
+        short = _shortfall(r, demos)
         if short:
-            skipped[names[r]] = "needs " + "; ".join(short)
-            log.warning("not training %s: %s", names[r], skipped[names[r]])
+            skipped[names[r]] = short
+            log.warning("not training %s: %s", names[r], short)
         else:
             trainable.append(r)
     policy_runs = [PolicyRun(names[r], cfg.policy, data=_data(r, paths), steps=cfg.train_steps,
@@ -227,6 +224,17 @@ def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset
     figure(results, out / "datagen.png")
     log.info("%s", headline(results))
     return results
+
+
+def _shortfall(r: Run, demos: dict[str, DemoStats]) -> str | None:
+    """Why ``r`` cannot be trained (its stores hold too few demonstrations), or None."""
+    short = []
+    for key, label, n in (("wm", "world-model", r.n_wm), ("sim", "simulator", r.n_sim)):
+        if n and n > demos[key].episodes:
+            d = demos[key]
+            short.append(f"{n} {label} demonstrations, only {d.episodes} were kept ({d.candidates} candidates, "
+                         f"acceptance {100 * d.acceptance_rate:.0f}% at pixel IoU >= {d.accept_iou})")
+    return "needs " + "; ".join(short) if short else None
 
 
 def _data(r: Run, paths: dict[str, Path]) -> tuple[tuple[str, int], ...]:
@@ -288,8 +296,11 @@ def headline(r: dict[str, Any]) -> str:
     p = r["parity"]
     if "note" in p:
         return f"parity ratio unavailable: {p['note']}."
-    fmt = lambda m: ("n/a" if p[m]["ratio"] is None else  # noqa: E731
-                     f"{p[m]['ratio']:.2f} [{_num(p[m]['bootstrap_95'][0])}, {_num(p[m]['bootstrap_95'][1])}]")
+
+    def fmt(metric: str) -> str:
+        ratio, (lo, hi) = p[metric]["ratio"], p[metric]["bootstrap_95"]
+        return "n/a" if ratio is None else f"{ratio:.2f} [{_num(lo)}, {_num(hi)}]"
+
     return (f"parity ratio score(100% world model) / score(100% simulator) with {r['config']['total']} "
             f"demonstrations: {fmt('mean_max_iou')} on mean max IoU, {fmt('success_rate')} on success rate "
             f"(95% paired bootstrap intervals).")

@@ -80,6 +80,7 @@ class DemoStats:
 
     env: str
     path: str
+    accept_iou: float  # a candidate is kept when its max pixel IoU reaches this
     wanted: int  # accepted episodes asked for
     episodes: int  # accepted episodes the store holds
     candidates: int  # candidates tried (all runs)
@@ -190,7 +191,8 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
     bar.close()
     lengths = np.diff(store.episode_ends, prepend=0)
     stats = DemoStats(
-        env=env, path=str(store.path), wanted=episodes, episodes=store.n_episodes, candidates=tried,
+        env=env, path=str(store.path), accept_iou=accept_iou, wanted=episodes, episodes=store.n_episodes,
+        candidates=tried,
         acceptance_rate=store.n_episodes / tried if tried else float("nan"),
         mean_candidate_max_iou=float(np.mean(max_ious)) if max_ious else float("nan"),
         frames=store.n_frames, mean_length=float(lengths.mean()) if len(lengths) else float("nan"),
