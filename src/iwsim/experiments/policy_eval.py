@@ -219,9 +219,9 @@ def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path,
     demos, demo_info = _demos(cfg, work, progress)
     timings["demos_s"] = time.perf_counter() - t0
 
-    log.info("policy-eval 2/4: training %d policy runs on %s", len(cfg.runs(str(demos))), demos)
-    t = time.perf_counter()
     plan = cfg.runs(str(demos))
+    log.info("policy-eval 2/4: training %d policy runs on %s", len(plan), demos)
+    t = time.perf_counter()
     run_dirs = train_runs([r for r, _ in plan], work / "policy_eval" / "runs" / _store_tag(demos), jobs=jobs,
                           progress=progress)
     timings["training_s"] = time.perf_counter() - t
