@@ -210,7 +210,22 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations (default: %(default)s)")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     q.set_defaults(func=_experiment_datagen)
-
+    q = exp_sub.add_parser("policy-eval", help="does the world model rank policies like MuJoCo? (r, rho, MMRV)")
+    q.add_argument("--preset", default="default", choices=("default", "tiny"), help="scale (default: %(default)s)")
+    q.add_argument("--world-model", help="world-model checkpoint (default: checkpoints/pusht-64)")
+    q.add_argument("--episodes", type=int, help="episodes per policy and simulator (default: the preset's, 20)")
+    q.add_argument("--steps", type=int, help="steps per episode (default: the preset's, 300)")
+    q.add_argument("--seed", type=int, help="episode i starts from MuJoCo seed SEED + i (default: 100000)")
+    q.add_argument("--demos", help="demonstration store the policies train on, e.g. from iwsim collect --policy "
+                                   "expert (default: the simulator expert's, recorded under --work when missing)")
+    q.add_argument("--demo-episodes", type=int, help="demonstrations of the full-data runs (default: 100)")
+    q.add_argument("--small-demos", type=int, help="demonstrations of the small-data run (default: 25)")
+    q.add_argument("--jobs", type=int, default=1, help="trainings/evaluations at once (default: %(default)s)")
+    q.add_argument("--out", default="bench/results/experiments/policy_eval",
+                   help="report directory (default: %(default)s)")
+    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations (default: %(default)s)")
+    q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    q.set_defaults(func=_experiment_policy_eval)
     for q in _leaf_parsers(parser):
         q.add_argument("--threads", type=int,
                        help="torch threads (default: $OMP_NUM_THREADS, else the CPU cores this process may use)")
@@ -617,6 +632,20 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
     cfg = dataclasses.replace(PRESETS[args.preset], **{k: v for k, v in overrides.items() if v is not None})
     run_datagen(cfg, out=args.out, work=args.work, preset=args.preset, jobs=args.jobs, progress=not args.no_progress)
     print(f"{args.out}/results.md")
+    return 0
+
+
+def _experiment_policy_eval(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from iwsim.experiments.policy_eval import PRESETS, headline, run_policy_eval
+
+    overrides = {"world_model": args.world_model, "episodes": args.episodes, "steps": args.steps, "seed": args.seed,
+                 "demos": args.demos, "demo_episodes": args.demo_episodes, "small_demos": args.small_demos}
+    cfg = dataclasses.replace(PRESETS[args.preset], **{k: v for k, v in overrides.items() if v is not None})
+    report = run_policy_eval(cfg, out=args.out, work=args.work, preset=args.preset, jobs=args.jobs,
+                             progress=not args.no_progress)
+    print(f"{headline(report)} -> {args.out}/results.md")
     return 0
 
 

@@ -1,0 +1,405 @@
+"""Policy evaluation in the world model (``iwsim experiment policy-eval``), the paper's
+second robot-learning study: does a policy's score inside the world model rank policies
+as the simulator (our stand-in for the real robot) does?
+
+1. A zoo of policies with a wide spread of skill: Diffusion Policy trained on simulator
+   expert demonstrations, at several training steps and on a smaller dataset; ACT at two
+   training steps; the scripted expert, the expert degraded by Gaussian action noise or by
+   latency at several levels, and the play policy.
+2. Every policy evaluated closed-loop from the same seeds (``seed + i``) in MuJoCo and in
+   the world model, which starts each episode from MuJoCo's rendering of the same seed
+   (identical first frames); all episodes of a policy run in lockstep through the vector
+   envs (:func:`iwsim.experiments.common.evaluate_policies`).
+3. Agreement of the world model's scores with MuJoCo's over the zoo, for the mean max IoU
+   (the paper's T-pushing score) and for the success rate: Pearson r, Spearman rho and
+   MMRV (:mod:`iwsim.eval.ranking`), as in the paper's evaluation figure.
+
+Demonstrations: the simulator expert's (``work/demos/sim_expert.zarr``, recorded by
+:func:`iwsim.experiments.demos.record_demos` with the same recipe as ``iwsim experiment
+datagen``, so the two studies share the store), or a store the user brings (``demos``,
+e.g. written by ``iwsim collect --policy expert``). Work files (policy runs, cached
+evaluations) go under ``work``, so rerunning the command resumes; the report
+(``results.json``, ``results.md``, ``scatter.png``) goes to ``out``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from iwsim.checkpoint import write_json_atomic
+from iwsim.config import to_dict
+from iwsim.data.store import EpisodeStore
+from iwsim.errors import InputError
+from iwsim.eval.figures import pyplot, save_figure
+from iwsim.eval.policy import check_args
+from iwsim.eval.ranking import agreement
+from iwsim.experiments.common import PolicyRun, PolicySource, checkpoints, evaluate_policies, train_runs
+from iwsim.policies.scripted import ScriptedConfig
+
+log = logging.getLogger(__name__)
+
+ENVS = ("pusht", "world-model")  # the reference (MuJoCo), then the proxy
+SCORES = {"mean_max_iou": "mean max IoU", "success_rate": "success rate"}
+SIM_STORE = "sim_expert.zarr"  # under work/demos, the name ``iwsim experiment datagen`` records it under
+BOOTSTRAP = 2000  # resamples of the episodes for the interval of a mean max IoU
+LEVEL = 0.95
+# The config fields the command's flags override.
+FLAGS = {"world_model": "--world-model", "episodes": "--episodes", "steps": "--steps", "seed": "--seed",
+         "demos": "--demos", "demo_episodes": "--demo-episodes", "small_demos": "--small-demos"}
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyEvalConfig:
+    world_model: str = "checkpoints/pusht-64"
+    episodes: int = 20  # evaluation episodes per policy and environment
+    seed: int = 100000  # episode i starts from MuJoCo seed seed + i in both environments
+    steps: int = 300  # steps per evaluation episode
+    demos: str | None = None  # a demonstration store; None: the simulator expert's under work/demos
+    demo_episodes: int = 100  # demonstrations of the full-data runs (their first N)
+    small_demos: int = 25  # demonstrations of the small-data Diffusion Policy run
+    policy_preset: str = ""  # prefix of the policies' training presets: "" (dp, act) or "tiny-"
+    dp_steps: tuple[int, ...] = (500, 2000, 5000)  # Diffusion Policy checkpoints (one run, full data)
+    dp_small_steps: int = 2500  # Diffusion Policy on small_demos
+    act_steps: tuple[int, ...] = (1000, 4000)  # ACT checkpoints (one run, full data)
+    # Degradations of the expert that spread its MuJoCo score between the play policy's and
+    # its own (measured on 10 seeds x 300 steps, mean max IoU; the expert 0.97, play 0.22):
+    # noise 0.004 m 0.97, 0.008 0.94, 0.012 0.65, 0.016 0.44, 0.02 0.21; latency 1-2 steps
+    # 0.96, 3 0.92, 4 0.81, 5 0.09 (a cliff: it then misses the block).
+    noise: tuple[float, ...] = (0.008, 0.012, 0.016, 0.02)  # the expert with Gaussian action noise (m)
+    latency: tuple[int, ...] = (3, 4)  # the expert with latency (steps)
+    play: bool = True  # the play policy, a floor
+    # How the simulator demonstrations are recorded when missing: datagen's recipe, so the
+    # store is shared (a store's recipe must match to be appended to).
+    demo_steps: int = 300
+    demo_tail: int | None = 10
+    demo_seed: int = 0
+    demo_accept_iou: float = 0.9  # a take is kept when its max pixel IoU reaches this (success)
+    demo_attempts: float = 2.0  # at most this many candidates per demonstration
+
+    def __post_init__(self) -> None:
+        check_args(self.episodes, self.seed, self.steps, 0)
+        for name in ("demo_episodes", "small_demos", "dp_small_steps", "demo_steps"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise InputError(f"{FLAGS.get(name, name)} must be a positive integer, got {v!r}.")
+        if self.small_demos >= self.demo_episodes:
+            raise InputError(f"the small-data run needs fewer demonstrations (--small-demos) than the full-data runs "
+                             f"(--demo-episodes {self.demo_episodes}), got {self.small_demos}.")
+        for name in ("dp_steps", "act_steps", "latency"):
+            v = getattr(self, name)
+            if not all(isinstance(s, int) and s >= 1 for s in v):
+                raise InputError(f"{name} must be positive integers, got {v!r}.")
+        if not all(math.isfinite(n) and n > 0 for n in self.noise):
+            raise InputError(f"noise levels must be finite and positive, got {self.noise!r}.")
+        if len(self.policy_names()) < 3:
+            raise InputError(f"the study needs at least 3 policies to correlate, got {self.policy_names()}.")
+
+    def scripted(self) -> dict[str, ScriptedConfig]:
+        """The scripted policies by name: the expert, its degradations, the play policy."""
+        cfgs = [ScriptedConfig("expert"), *(ScriptedConfig("expert", noise=n) for n in self.noise),
+                *(ScriptedConfig("expert", latency=k) for k in self.latency)]
+        if self.play:
+            cfgs.append(ScriptedConfig("play"))
+        return {c.name: c for c in cfgs}
+
+    def runs(self, demos: str) -> list[tuple[PolicyRun, tuple[int, ...]]]:
+        """The trainings, each with the training steps of the checkpoints evaluated (every
+        one of them kept: checkpoints every gcd of those steps)."""
+        plan = [("dp", self.demo_episodes, self.dp_steps), ("dp", self.small_demos, (self.dp_small_steps,)),
+                ("act", self.demo_episodes, self.act_steps)]
+        return [(PolicyRun(f"{policy}-{n}demos", policy, ((demos, n),), steps=max(steps),
+                           preset=f"{self.policy_preset}{policy}", checkpoint_every=math.gcd(*steps)),
+                 tuple(sorted(set(steps)))) for policy, n, steps in plan if steps]
+
+    def policy_names(self) -> list[str]:
+        learned = [f"{run.name}-{s}steps" for run, steps in self.runs("") for s in steps]
+        return learned + list(self.scripted())
+
+
+PRESETS: dict[str, PolicyEvalConfig] = {
+    # <= 2.5 h on a 2-core CPU with --jobs 2, demonstrations and training included (README, Experiments).
+    "default": PolicyEvalConfig(),
+    # Seconds, for tests: tiny policies trained a few steps, 2 short episodes.
+    "tiny": PolicyEvalConfig(episodes=2, steps=6, demo_episodes=2, small_demos=1, policy_preset="tiny-",
+                             dp_steps=(2, 4), dp_small_steps=2, act_steps=(2,), noise=(0.01,), latency=(2,),
+                             demo_steps=12, demo_tail=None, demo_accept_iou=0.0),
+}
+
+def command(cfg: PolicyEvalConfig, preset: str, out: Path, work: Path, jobs: int) -> str:
+    """The command that reproduces this study (the flags that differ from the preset)."""
+    base = PRESETS[preset]
+    parts = ["iwsim experiment policy-eval", f"--preset {preset}"]
+    parts += [f"{flag} {getattr(cfg, f)}" for f, flag in FLAGS.items() if getattr(cfg, f) != getattr(base, f)]
+    return " ".join([*parts, f"--jobs {jobs}", f"--out {out}", f"--work {work}"])
+
+
+def _store_tag(path: Path) -> str:
+    """A directory name for the runs trained on a store: its name and a hash of where it is."""
+    return f"{path.stem}-{hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:8]}"
+
+
+def _demos(cfg: PolicyEvalConfig, work: Path, progress: bool) -> tuple[Path, dict[str, Any]]:
+    """The demonstration store the policies train on, checked (or recorded) before any
+    training starts, and what it holds."""
+    need = cfg.demo_episodes
+    if cfg.demos is not None:
+        path = Path(cfg.demos)
+        store = EpisodeStore.open(path, "r")
+        if store.n_episodes < need:
+            raise InputError(f"{path} holds {store.n_episodes} demonstrations; the study trains on the first {need} "
+                             "(lower --demo-episodes or bring a bigger store).")
+        return path, {"path": str(path), "episodes": store.n_episodes, "policy": store.attrs.get("policy"),
+                      "given": True}
+    # exp-datagen's module; imported here so that a user's own store needs nothing of it
+    from iwsim.experiments.demos import record_demos
+
+    path = work / "demos" / SIM_STORE
+    stats = record_demos("pusht", path, need, cfg.demo_steps, cfg.demo_seed, tail=cfg.demo_tail,
+                         accept_iou=cfg.demo_accept_iou, max_attempts=math.ceil(cfg.demo_attempts * need),
+                         progress=progress)
+    if stats.episodes < need:
+        raise InputError(f"{path} holds {stats.episodes} of the {need} simulator demonstrations the study needs "
+                         f"after {stats.candidates} candidates (acceptance {100 * stats.acceptance_rate:.0f}%).")
+    return path, {"path": str(path), "episodes": stats.episodes, "policy": EpisodeStore.open(path).attrs["policy"],
+                  "given": False, "candidates": stats.candidates, "acceptance_rate": stats.acceptance_rate,
+                  "record_seconds": stats.seconds, "added_now": stats.added}
+
+
+def _training_seconds(run: Path) -> float:
+    """The training time a run logged (over all its resumes), 0 when it logged none."""
+    path = run / "metrics.jsonl"
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+    return max((float(r["elapsed_s"]) for r in rows if "elapsed_s" in r), default=0.0)
+
+
+def mean_interval(values: np.ndarray, level: float = LEVEL, resamples: int = BOOTSTRAP,
+                  seed: int = 0) -> tuple[float, float]:
+    """A percentile bootstrap ``level`` interval of the mean of ``values`` (E,), resampling
+    episodes (seeded: the same scores give the same interval)."""
+    values = np.asarray(values, dtype=np.float64)
+    idx = np.random.default_rng(seed).integers(0, len(values), (resamples, len(values)))
+    lo, hi = np.quantile(values[idx].mean(axis=1), [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def _scores(result: dict[str, Any]) -> dict[str, Any]:
+    """One policy's scores in one environment, for the report."""
+    max_iou = np.array([e["max_iou"] for e in result["episodes"]])
+    return {"mean_max_iou": result["mean_max_iou"], "mean_max_iou_interval": list(mean_interval(max_iou)),
+            "std_max_iou": result["std_max_iou"], "success_rate": result["success_rate"],
+            "successes": int(sum(e["success"] for e in result["episodes"])),
+            "success_clopper_pearson": result["success_clopper_pearson"],
+            "success_beta_posterior": result["success_beta_posterior"], "seconds": result["seconds"],
+            "max_iou": [round(float(m), 4) for m in max_iou]}
+
+
+def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path, preset: str = "default",
+                    jobs: int = 1, progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) the study; write ``results.json``, ``results.md`` and
+    ``scatter.png`` to ``out``. Returns the results."""
+    out, work = Path(out), Path(work)
+    if not isinstance(jobs, int) or jobs < 1:
+        raise InputError(f"--jobs must be a positive integer, got {jobs}.")
+    wm = Path(cfg.world_model)
+    if not (wm / "config.json").is_file():
+        raise InputError(f"world model {wm} is not a checkpoint directory (config.json + model.safetensors); "
+                         "pass --world-model PATH.")
+    t0, timings = time.perf_counter(), {}
+
+    log.info("policy-eval 1/4: demonstrations")
+    demos, demo_info = _demos(cfg, work, progress)
+    timings["demos_s"] = time.perf_counter() - t0
+
+    plan = cfg.runs(str(demos))
+    log.info("policy-eval 2/4: training %d policy runs on %s", len(plan), demos)
+    t = time.perf_counter()
+    run_dirs = train_runs([r for r, _ in plan], work / "policy_eval" / "runs" / _store_tag(demos), jobs=jobs,
+                          progress=progress)
+    timings["training_s"] = time.perf_counter() - t
+    timings["training_measured_s"] = sum(_training_seconds(d) for d in run_dirs.values())
+    zoo: dict[str, dict[str, Any]] = {}
+    sources: dict[str, PolicySource] = {}
+    for run, steps in plan:
+        kept = checkpoints(run_dirs[run.name])
+        for s in steps:
+            if s not in kept:
+                raise InputError(f"{run_dirs[run.name]} kept no checkpoint at step {s} (it has {sorted(kept)}).")
+            name = f"{run.name}-{s}steps"
+            sources[name] = kept[s]
+            zoo[name] = {"kind": run.policy, "source": str(kept[s]), "train_steps": s, "demos": run.data[0][1]}
+    for name, sc in cfg.scripted().items():
+        sources[name] = sc
+        zoo[name] = {"kind": "scripted", "source": to_dict(sc), "train_steps": None, "demos": None}
+
+    seeds = [cfg.seed + i for i in range(cfg.episodes)]
+    results: dict[str, dict[str, dict[str, Any]]] = {}
+    for k, env in enumerate(ENVS):
+        log.info("policy-eval %d/4: evaluating %d policies in %s (%d episodes x %d steps)", 3 + k, len(sources), env,
+                 cfg.episodes, cfg.steps)
+        t = time.perf_counter()
+        results[env] = evaluate_policies(sources, env, seeds=seeds, steps=cfg.steps,
+                                         world_model=cfg.world_model if env == "world-model" else None,
+                                         out=work / "policy_eval" / "eval", jobs=jobs, progress=progress)
+        timings[f"eval_{env.replace('-', '_')}_s"] = time.perf_counter() - t
+        timings[f"eval_{env.replace('-', '_')}_measured_s"] = sum(r["seconds"] for r in results[env].values())
+    timings["total_s"] = time.perf_counter() - t0
+
+    policies = [{"name": name, **info, **{env: _scores(results[env][name]) for env in ENVS}}
+                for name, info in zoo.items()]
+    report = {
+        "study": "policy-eval",
+        "command": command(cfg, preset, out, work, jobs),
+        "preset": preset,
+        "config": to_dict(cfg),
+        "scale": {"policies": len(policies), "episodes": cfg.episodes, "steps": cfg.steps,
+                  "seeds": [seeds[0], seeds[-1]], "world_model": cfg.world_model, "demos": demo_info,
+                  "jobs": jobs},
+        "policies": policies,
+        "agreement": {score: agreement([p["pusht"][score] for p in policies],
+                                       [p["world-model"][score] for p in policies],
+                                       labels=(f"MuJoCo {label}s", f"world-model {label}s"))
+                      for score, label in SCORES.items()},
+        "timings": {k: round(v, 1) for k, v in timings.items()},
+        "note": ("timings are this invocation's, so a rerun that reuses cached work shows less; the *_measured_s "
+                 "entries sum the trainings' and evaluations' own times (one process each), whenever they ran."),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "results.json", report, sort_keys=False)
+    scatter(report, out / "scatter.png")
+    md = out / "results.md"
+    tmp = md.with_name(f".{md.name}.tmp")
+    tmp.write_text(markdown(report))
+    tmp.replace(md)
+    a = report["agreement"]["mean_max_iou"]
+    log.info("policy-eval: mean max IoU Pearson r %s, Spearman rho %s, MMRV %s over %d policies -> %s",
+             _fmt(a["pearson"]), _fmt(a["spearman"]), _fmt(a["mmrv"]), len(policies), out)
+    return report
+
+
+def _fmt(v: float | None, digits: int = 3) -> str:
+    return "undefined" if v is None else f"{v:.{digits}f}"
+
+
+def headline(report: dict[str, Any]) -> str:
+    """One line per score: the three agreement statistics."""
+    lines = []
+    for score, label in SCORES.items():
+        a = report["agreement"][score]
+        lines.append(f"{label}: Pearson r {_fmt(a['pearson'])}, Spearman rho {_fmt(a['spearman'])}, "
+                     f"MMRV {_fmt(a['mmrv'])}")
+    return "; ".join(lines)
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """``results.md``: the command, the scale, the headline figures and a row per policy."""
+    s = report["scale"]
+    lo, hi = s["seeds"]
+    demos = s["demos"]
+    lines = [
+        "# Policy evaluation in the world model: does it rank policies like MuJoCo?",
+        "",
+        f"`{report['command']}`",
+        "",
+        f"{s['policies']} policies, each evaluated from the same {s['episodes']} initial states (MuJoCo seeds "
+        f"{lo}-{hi}) for {s['steps']} steps in MuJoCo and in the world model `{s['world_model']}` (which starts from "
+        "MuJoCo's rendering of the same seed). Score: the maximum IoU an episode reaches; success: IoU >= 0.9. "
+        f"Learned policies trained on `{demos['path']}` ({demos['episodes']} demonstrations, policy "
+        f"`{demos['policy']}`). Intervals: 95%; mean max IoU by a bootstrap over episodes, success by "
+        "Clopper-Pearson.",
+        "",
+        "## Agreement (world model against MuJoCo)",
+        "",
+        "| score | Pearson r | Spearman rho | MMRV |",
+        "|---|---|---|---|",
+    ]
+    notes = []
+    for score, label in SCORES.items():
+        a = report["agreement"][score]
+        lines.append(f"| {label} | {_fmt(a['pearson'])} | {_fmt(a['spearman'])} | {_fmt(a['mmrv'])} |")
+        notes += [f"- {label}, {k}: {why}" for k, why in a["undefined"].items()]
+    if notes:
+        lines += ["", "Undefined statistics:", "", *notes]
+    lines += [
+        "",
+        "MMRV (mean maximum rank violation, SIMPLER): for each policy, the largest MuJoCo-score gap to a policy the "
+        "world model orders the other way, averaged over policies (0 = the same ranking).",
+        "",
+        "## Policies",
+        "",
+        "| policy | kind | train steps | demos | MuJoCo max IoU | world model max IoU | MuJoCo success | "
+        "world model success |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for p in sorted(report["policies"], key=lambda p: -p["pusht"]["mean_max_iou"]):
+        cells = [p["name"], p["kind"], p["train_steps"] or "-", p["demos"] or "-"]
+        for env in ENVS:
+            r = p[env]
+            lo_, hi_ = r["mean_max_iou_interval"]
+            cells.append(f"{r['mean_max_iou']:.3f} ({lo_:.2f}-{hi_:.2f})")
+        for env in ENVS:
+            r = p[env]
+            lo_, hi_ = r["success_clopper_pearson"]
+            cells.append(f"{r['success_rate']:.2f} ({lo_:.2f}-{hi_:.2f})")
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
+    t = report["timings"]
+    lines += ["", "## Time", ""]
+    lines += [f"- {k.removesuffix('_s').replace('_', ' ')}: {v / 60:.1f} min" for k, v in t.items()]
+    lines += ["", f"({report['note']})", "", "Plot: `scatter.png`.", ""]
+    return "\n".join(lines)
+
+
+COLORS = {"dp": "tab:blue", "act": "tab:orange", "scripted": "tab:green"}
+
+
+def scatter(report: dict[str, Any], path: Path) -> None:
+    """World-model score against MuJoCo score per policy, for mean max IoU (bootstrap
+    intervals) and success rate (Clopper-Pearson intervals), with the y = x line and the
+    agreement statistics in each title."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.8))
+    policies = report["policies"]
+    for ax, (score, label) in zip(axes, SCORES.items()):
+        interval = "mean_max_iou_interval" if score == "mean_max_iou" else "success_clopper_pearson"
+        for kind, color in COLORS.items():
+            group = [p for p in policies if p["kind"] == kind]
+            if not group:
+                continue
+            x = np.array([p["pusht"][score] for p in group])
+            y = np.array([p["world-model"][score] for p in group])
+            xe = np.array([[x_ - p["pusht"][interval][0], p["pusht"][interval][1] - x_] for x_, p in zip(x, group)]).T
+            ye = np.array([[y_ - p["world-model"][interval][0], p["world-model"][interval][1] - y_]
+                           for y_, p in zip(y, group)]).T
+            ax.errorbar(x, y, xerr=np.maximum(xe, 0), yerr=np.maximum(ye, 0), fmt="o", color=color, ms=5,
+                        elinewidth=0.8, capsize=2, alpha=0.85, label=kind)
+        placed: list[tuple[float, float]] = []
+        for p in sorted(policies, key=lambda p: (p["pusht"][score], p["world-model"][score])):
+            xy = (p["pusht"][score], p["world-model"][score])
+            # labels of nearby points are stacked upwards instead of drawn over each other
+            near = sum(abs(xy[0] - a) < 0.12 and abs(xy[1] - b) < 0.03 for a, b in placed)
+            placed.append(xy)
+            ax.annotate(p["name"], xy, textcoords="offset points", xytext=(4, 3 + 7 * near), fontsize=6,
+                        color=COLORS.get(p["kind"], "black"))
+        ax.plot([0, 1], [0, 1], color="grey", lw=0.8, ls="--", label="y = x")
+        ax.set_xlim(-0.03, 1.03)
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"MuJoCo {label}")
+        ax.set_ylabel(f"world model {label}")
+        a = report["agreement"][score]
+        ax.set_title(f"{label}: r = {_fmt(a['pearson'], 2)}, rho = {_fmt(a['spearman'], 2)}, "
+                     f"MMRV = {_fmt(a['mmrv'], 3)}", fontsize=10)
+        ax.legend(fontsize=7, loc="upper left")
+    s = report["scale"]
+    fig.suptitle(f"{s['policies']} policies x {s['episodes']} episodes x {s['steps']} steps; 95% intervals "
+                 "(max IoU: bootstrap; success: Clopper-Pearson)", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)

@@ -1,0 +1,142 @@
+"""``iwsim experiment policy-eval`` end to end at the tiny scale: a tiny world model,
+tiny policies trained a few steps, 2 short episodes; the report, its reuse of cached
+evaluations on a rerun, identical first frames, and one-line errors for bad flags."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iwsim.cli import main
+from iwsim.data.collect import collect
+from iwsim.eval.policy import make_vector_env
+from iwsim.eval.ranking import mmrv, pearson, spearman
+from iwsim.experiments.policy_eval import PRESETS, PolicyEvalConfig, mean_interval
+from tests.test_dynamics import tiny_world_model
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A tiny world model and a store of 2 short expert demonstrations."""
+    root = tmp_path_factory.mktemp("policy_eval")
+    tiny_world_model().save(root / "wm")
+    collect("pusht", "expert", 2, out=root / "expert.zarr", steps=12, image_size=64, workers=1, seed=0,
+            progress=False)
+    return {"wm": root / "wm", "demos": root / "expert.zarr"}
+
+
+def _argv(inputs: dict[str, Path], tmp_path: Path, *extra: str) -> list[str]:
+    return ["experiment", "policy-eval", "--preset", "tiny", "--world-model", str(inputs["wm"]), "--demos",
+            str(inputs["demos"]), "--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"), "--no-progress",
+            *extra]
+
+
+def test_tiny_study_end_to_end_and_resumed(inputs, tmp_path, capsys, caplog):
+    caplog.set_level(logging.INFO)
+    assert main(_argv(inputs, tmp_path)) == 0
+    assert "Pearson r" in capsys.readouterr().out
+    out = tmp_path / "out"
+    report = json.loads((out / "results.json").read_text())
+    names = [p["name"] for p in report["policies"]]
+    assert names == PRESETS["tiny"].policy_names() == [
+        "dp-2demos-2steps", "dp-2demos-4steps", "dp-1demos-2steps", "act-2demos-2steps", "expert",
+        "expert-noise0.01", "expert-latency2", "play"]
+    assert report["scale"]["policies"] == 8 and report["scale"]["seeds"] == [100000, 100001]
+    for p in report["policies"]:
+        for env in ("pusht", "world-model"):
+            r = p[env]
+            assert len(r["max_iou"]) == 2 and r["mean_max_iou"] == pytest.approx(np.mean(r["max_iou"]), abs=1e-4)
+            lo, hi = r["mean_max_iou_interval"]
+            assert lo <= r["mean_max_iou"] + 1e-9 and r["mean_max_iou"] <= hi + 1e-9
+            assert r["successes"] / 2 == r["success_rate"]
+    learned = {p["name"]: p for p in report["policies"] if p["kind"] != "scripted"}
+    assert learned["dp-2demos-4steps"]["train_steps"] == 4 and learned["dp-1demos-2steps"]["demos"] == 1
+    assert int(Path(learned["act-2demos-2steps"]["source"]).name) == 2  # the checkpoint of that step
+    # The agreement statistics are those of the per-policy scores in the report (in 6 steps
+    # the block may not move, so every policy can score the same: then r and rho are undefined).
+    for score in ("mean_max_iou", "success_rate"):
+        real = [p["pusht"][score] for p in report["policies"]]
+        proxy = [p["world-model"][score] for p in report["policies"]]
+        a = report["agreement"][score]
+        assert a["mmrv"] == pytest.approx(mmrv(real, proxy))
+        for name, fn in (("pearson", pearson), ("spearman", spearman)):
+            if len(set(real)) > 1 and len(set(proxy)) > 1:
+                assert a[name] == pytest.approx(fn(real, proxy))
+            else:
+                assert a[name] is None and "constant" in a["undefined"][name]
+    # No policy places the T in 6 steps: constant success rates, so no correlation.
+    assert report["agreement"]["success_rate"]["pearson"] is None
+    md = (out / "results.md").read_text()
+    assert report["command"] in md and "iwsim experiment policy-eval --preset tiny" in report["command"]
+    assert all(f"| {n} |" in md for n in names) and "undefined" in md
+    assert (out / "scatter.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    # A rerun trains nothing and evaluates nothing: the cached evaluations are reused.
+    cache = sorted((tmp_path / "work" / "policy_eval" / "eval").rglob("*.json"))
+    assert len(cache) == 16
+    stamps = [p.stat().st_mtime_ns for p in cache]
+    caplog.clear()
+    assert main(_argv(inputs, tmp_path)) == 0
+    assert [p.stat().st_mtime_ns for p in cache] == stamps
+    assert not [r for r in caplog.records if r.getMessage().startswith(("evaluating", "training"))]
+    again = json.loads((out / "results.json").read_text())
+    assert again["agreement"] == report["agreement"] and again["policies"] == report["policies"]
+
+
+def test_first_frames_are_identical_in_both_simulators():
+    seeds = [100000, 100001, 100002]
+    frames = {}
+    for env in ("pusht", "world-model"):
+        venv = make_vector_env(env, len(seeds), 5, world_model=tiny_world_model())
+        try:
+            obs, _ = venv.reset(seed=seeds)
+            frames[env] = obs["pixels"]
+        finally:
+            venv.close()
+    assert frames["pusht"].shape == (3, 64, 64, 3)
+    np.testing.assert_array_equal(frames["pusht"], frames["world-model"])
+    assert not np.array_equal(frames["pusht"][0], frames["pusht"][1])  # the seeds differ
+
+
+def test_the_default_preset_is_the_study_asked_for():
+    cfg = PRESETS["default"]
+    names = cfg.policy_names()
+    assert len(names) >= 8 and cfg.episodes >= 20 and cfg.seed == 100000
+    assert sum(n.startswith("dp-100demos") for n in names) >= 3 and sum(n.startswith("act-") for n in names) >= 2
+    assert {"expert", "play"} <= set(names) and any("noise" in n for n in names) and any("latency" in n for n in names)
+    run, steps = cfg.runs("store.zarr")[0]  # every evaluated step is kept
+    assert all(s % run.checkpoint_every == 0 for s in steps) and run.steps == max(steps)
+
+
+def test_mean_interval_brackets_the_mean():
+    lo, hi = mean_interval(np.array([0.1, 0.9, 0.5, 0.7]))
+    assert 0.1 <= lo < 0.55 < hi <= 0.9
+    assert mean_interval(np.array([0.3, 0.3])) == pytest.approx((0.3, 0.3))
+
+
+@pytest.mark.parametrize(("extra", "match"), [
+    (["--episodes", "0"], "--episodes must be a positive integer"),
+    (["--seed", "-1"], "--seed must be in"),
+    (["--jobs", "0"], "--jobs must be a positive integer"),
+    (["--world-model", "nowhere"], "not a checkpoint directory"),
+    (["--demos", "nowhere.zarr"], "nowhere.zarr"),
+    (["--demo-episodes", "5", "--small-demos", "1"], "holds 2 demonstrations"),
+    (["--small-demos", "2"], "--small-demos"),
+])
+def test_bad_flags_are_one_line_errors(inputs, tmp_path, capsys, extra, match):
+    assert main(_argv(inputs, tmp_path, *extra)) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("iwsim: error:") and match in err and "\n" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_config_refuses_a_study_that_cannot_rank():
+    with pytest.raises(ValueError, match="at least 3 policies"):
+        PolicyEvalConfig(dp_steps=(), dp_small_steps=1, act_steps=(), noise=(), latency=(), play=False,
+                         small_demos=1, demo_episodes=2)
