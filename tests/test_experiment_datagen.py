@@ -1,6 +1,7 @@
 """``iwsim experiment datagen``: demonstrations recorded through the vector envs with the
 acceptance filter (layout, first frames, resume), and a tiny end-to-end study."""
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -12,8 +13,9 @@ from iwsim.cli import main
 from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore
 from iwsim.eval.policy import rollout
-from iwsim.experiments.datagen import PRESETS, DatagenConfig, plan
-from iwsim.experiments.demos import fingerprint, record_demos
+from iwsim.experiments.datagen import PRESETS, DatagenConfig, command, plan
+from iwsim.experiments.demos import SIM_SEED, DemoRecipe, fingerprint, record_demos, simulator_store
+from iwsim.experiments.policy_eval import PolicyEvalConfig
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.scripted import ScriptedBatch
 from tests.test_dynamics import tiny_world_model
@@ -129,14 +131,31 @@ def test_resume_appends_only_what_is_missing(wm_path, tmp_path):
         record("world-model", tmp_path / "o.zarr", other, episodes=2)
 
 
-def test_store_attributes_can_be_updated_by_the_writer_only(tmp_path):
-    with EpisodeStore.create(tmp_path / "s.zarr", {"a": 1}) as store:
-        store.update_attrs({"a": 2, "b": [1.5]})
-        with pytest.raises(ValueError, match="must not set 'seeds'"):
-            store.update_attrs({"seeds": []})
-    assert EpisodeStore.open(tmp_path / "s.zarr").attrs["a"] == 2
-    with pytest.raises(ValueError, match="read-only"):
-        EpisodeStore.open(tmp_path / "s.zarr").update_attrs({"a": 3})
+def test_one_recipe_for_both_studies():
+    """The studies share the simulator store, so they share its recipe, whose defaults are
+    those the recorded ``sim_expert.zarr`` holds (a store refuses another recipe)."""
+    r = DemoRecipe()
+    assert (r.steps, r.tail, r.accept_iou, r.attempts_per_demo, r.batch) == (300, 10, 0.9, 2.0, 16)
+    assert DatagenConfig().recipe == PolicyEvalConfig().recipe == r and SIM_SEED == 0
+    assert simulator_store(Path("w")) == Path("w/demos/sim_expert.zarr")
+    DemoRecipe(tail=None)
+    for kw, match in (({"steps": 0}, "demo_steps must be a positive integer"), ({"tail": 0}, "demo_tail must"),
+                      ({"batch": 1.5}, "demo_batch must"), ({"accept_iou": float("nan")}, "accept_iou must be"),
+                      ({"attempts_per_demo": 0.5}, "attempts_per_demo must be >= 1")):
+        with pytest.raises(ValueError, match=match):
+            DemoRecipe(**kw)
+    tiny = PRESETS["tiny"]
+    cfg = dataclasses.replace(tiny, total=3, recipe=dataclasses.replace(tiny.recipe, steps=9, accept_iou=0.5))
+    assert command(cfg, "tiny", Path("o"), Path("w")) == (
+        "iwsim experiment datagen --preset tiny --total 3 --accept-iou 0.5 --demo-steps 9 --out o --work w")
+
+
+def test_recipe_flags_are_checked_before_any_work(tmp_path, capsys):
+    assert main(["experiment", "datagen", "--preset", "tiny", "--demo-steps", "0", "--out", str(tmp_path / "o"),
+                 "--work", str(tmp_path / "w"), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == "iwsim: error: demo_steps must be a positive integer, got 0."
+    assert not (tmp_path / "w").exists()
 
 
 def test_plan_shares_runs_between_the_sweeps():
@@ -161,6 +180,9 @@ def test_tiny_study_end_to_end(wm_path, tmp_path):
     assert r["command"] in md and "parity ratio" in md
     assert (work / "demos" / "sim_expert.zarr").is_dir()
     assert {k: d["episodes"] for k, d in r["demos"].items()} == {"sim": 2, "wm": 2}
+    assert r["config"]["recipe"] == dataclasses.asdict(PRESETS["tiny"].recipe)
+    assert "reaches 0.0 and ends 4 steps after that (horizon 8 steps)" in md
+    assert (r["demos"]["sim"]["first_seed"], r["demos"]["wm"]["first_seed"]) == (SIM_SEED, 300000)
     names = [run["name"] for run in r["runs"]]
     tag = fingerprint(wm_path)[:8]  # runs on world-model demonstrations name the model
     assert names == ["tiny-dp-wm0-sim2", f"tiny-dp-wm1-sim1-{tag}", f"tiny-dp-wm2-sim0-{tag}", "tiny-dp-wm0-sim1"]

@@ -13,9 +13,10 @@ import pytest
 
 from iwsim.cli import main
 from iwsim.data.collect import collect
+from iwsim.data.store import EpisodeStore
 from iwsim.eval.policy import make_vector_env
 from iwsim.eval.ranking import mmrv, pearson, spearman
-from iwsim.experiments.policy_eval import PRESETS, PolicyEvalConfig, mean_interval
+from iwsim.experiments.policy_eval import PRESETS, PolicyEvalConfig, _demos, mean_interval
 from tests.test_dynamics import tiny_world_model
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -87,6 +88,16 @@ def test_tiny_study_end_to_end_and_resumed(inputs, tmp_path, capsys, caplog):
     assert not [r for r in caplog.records if r.getMessage().startswith(("evaluating", "training"))]
     again = json.loads((out / "results.json").read_text())
     assert again["agreement"] == report["agreement"] and again["policies"] == report["policies"]
+
+
+def test_missing_demonstrations_are_recorded_in_the_shared_simulator_store(tmp_path):
+    cfg = PRESETS["tiny"]
+    path, info = _demos(cfg, tmp_path, progress=False)
+    assert path == tmp_path / "demos" / "sim_expert.zarr"
+    assert (info["episodes"], info["first_seed"], info["given"], info["policy"]) == (2, 0, False, "expert-pixels")
+    attrs = EpisodeStore.open(path).attrs
+    assert (attrs["steps"], attrs["tail_steps"], attrs["accept_iou"]) == (12, None, 0.0)
+    assert _demos(cfg, tmp_path, progress=False)[1]["added_now"] == 0  # a rerun reuses it
 
 
 def test_first_frames_are_identical_in_both_simulators():

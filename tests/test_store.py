@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import zarr
 
-from iwsim.data.store import EpisodeStore, StoreError, chunk_frames
+from iwsim.data.store import EpisodeStore, StoreError, attrs_mismatch, chunk_frames
 
 
 def fake_episode(j: int, size: int = 16) -> dict[str, np.ndarray]:
@@ -203,6 +203,24 @@ def test_append_rejects_mismatched_episodes(store_path: Path) -> None:
     with pytest.raises(StoreError, match="read-only"):
         EpisodeStore.open(store_path, "r").append(fake_episode(1), seed=1)
     assert_episodes(EpisodeStore.open(store_path))
+
+
+def test_attributes_are_set_by_the_writer_only(tmp_path: Path) -> None:
+    for bad, match in (({"seeds": []}, "must not set 'seeds'"), ({"a": {1, 2}}, "JSON-serialisable")):
+        with pytest.raises(ValueError, match=match):
+            EpisodeStore.create(tmp_path / "bad.zarr", bad)
+    assert not (tmp_path / "bad.zarr").exists()
+    with EpisodeStore.create(tmp_path / "s.zarr", {"a": 1}) as store:
+        store.update_attrs({"a": 2, "b": [1.5]})
+        for bad, match in (({"store_version": 2}, "must not set 'seeds'"), ({"b": object()}, "JSON-serialisable")):
+            with pytest.raises(ValueError, match=match):
+                store.update_attrs(bad)
+    store = EpisodeStore.open(tmp_path / "s.zarr")
+    assert (store.attrs["a"], store.attrs["b"]) == (2, [1.5])
+    with pytest.raises(ValueError, match="read-only"):
+        store.update_attrs({"a": 3})
+    assert attrs_mismatch(store, {"a": 2, "b": [1.5], "c": 0}, ("a", "b")) is None
+    assert attrs_mismatch(store, {"a": 3, "b": [1.5], "c": 0}, ("a", "b", "c")) == "a=2, c=None, not a=3, c=0"
 
 
 def test_create_refuses_existing_path(store_path: Path) -> None:

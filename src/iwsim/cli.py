@@ -626,10 +626,12 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
             sizes = tuple(int(n) for n in args.sizes.split(",") if n.strip())
         except ValueError:
             raise InputError(f"--sizes must be comma-separated integers, got {args.sizes!r}.") from None
+    base = PRESETS[args.preset]
+    recipe = {"accept_iou": args.accept_iou, "steps": args.demo_steps}
     overrides = {"world_model": args.world_model, "policy": args.policy, "episodes": args.episodes,
                  "steps": args.steps, "total": args.total, "sim_sizes": sizes, "train_steps": args.train_steps,
-                 "accept_iou": args.accept_iou, "demo_steps": args.demo_steps}
-    cfg = dataclasses.replace(PRESETS[args.preset], **{k: v for k, v in overrides.items() if v is not None})
+                 "recipe": dataclasses.replace(base.recipe, **{k: v for k, v in recipe.items() if v is not None})}
+    cfg = dataclasses.replace(base, **{k: v for k, v in overrides.items() if v is not None})
     run_datagen(cfg, out=args.out, work=args.work, preset=args.preset, jobs=args.jobs, progress=not args.no_progress)
     print(f"{args.out}/results.md")
     return 0

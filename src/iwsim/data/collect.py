@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 import iwsim
-from iwsim.data.store import EpisodeStore
+from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs import POLICIES, check_task
 from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU, TaskSpec
 from iwsim.envs.scripted import record_episode
@@ -175,11 +175,9 @@ def _check_existing(store: EpisodeStore, attrs: dict[str, Any], seed: int) -> No
     """Raise unless this run may append to ``store`` (same command, same seeds)."""
     out = store.path
     stored = store.attrs
-    diffs = [k for k in MATCHING_ATTRS if stored.get(k) != attrs[k]]
-    if diffs:
-        have = ", ".join(f"{k}={stored.get(k)!r}" for k in diffs)
-        want = ", ".join(f"{k}={attrs[k]!r}" for k in diffs)
-        raise InputError(f"{out} holds episodes with {have}, not {want}; choose another --out.")
+    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS)
+    if mismatch:
+        raise InputError(f"{out} holds episodes with {mismatch}; choose another --out.")
     expected = [seed + i for i in range(store.n_episodes)]
     if store.seeds != expected:
         first = next(s for s, e in zip(store.seeds, expected, strict=True) if s != e)

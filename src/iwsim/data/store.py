@@ -27,7 +27,7 @@ import json
 import logging
 import os
 import shutil
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -93,6 +93,32 @@ def _committed_ends(raw: np.ndarray) -> np.ndarray:
     return raw if ok.all() else raw[: int(np.argmin(ok))]
 
 
+def _settable(attrs: Mapping[str, Any]) -> dict[str, Any]:
+    """``attrs`` as a dict, checked to be root attributes a caller may set: JSON-serialisable,
+    without the store's own ``seeds`` and ``store_version``."""
+    attrs = dict(attrs)
+    if "seeds" in attrs or "store_version" in attrs:
+        raise InputError("attrs must not set 'seeds' or 'store_version'; the store manages them.")
+    try:
+        json.dumps(attrs)
+    except TypeError as e:
+        raise InputError(f"store attributes must be JSON-serialisable: {e}.") from None
+    return attrs
+
+
+def attrs_mismatch(store: EpisodeStore, attrs: Mapping[str, Any], keys: Iterable[str]) -> str | None:
+    """How ``store``'s root attributes differ from ``attrs`` on ``keys``, for the message
+    that refuses to append to it (``"policy='a', steps=300, not policy='b', steps=100"``);
+    None when they agree."""
+    stored = store.attrs
+    diffs = [k for k in keys if stored.get(k) != attrs[k]]
+    if not diffs:
+        return None
+    have = ", ".join(f"{k}={stored.get(k)!r}" for k in diffs)
+    want = ", ".join(f"{k}={attrs[k]!r}" for k in diffs)
+    return f"{have}, not {want}"
+
+
 def lock_store(path: str | os.PathLike, wait: bool = False) -> DirLock:
     """The writer's lock of the store at ``path`` (see :mod:`iwsim.data.lock`); raises
     StoreLockedError naming the holder, or waits for it with ``wait``."""
@@ -147,13 +173,7 @@ class EpisodeStore:
         temporary stores that killed runs left next to ``path`` are removed.
         """
         path = Path(path)
-        attrs = dict(attrs or {})
-        if "seeds" in attrs or "store_version" in attrs:
-            raise InputError("attrs must not set 'seeds' or 'store_version'; the store manages them.")
-        try:
-            json.dumps(attrs)
-        except TypeError as e:
-            raise InputError(f"store attributes must be JSON-serialisable: {e}.") from None
+        attrs = _settable(attrs or {})
         if path.exists():
             raise StoreError(f"cannot create an episode store at {path}: it already exists.")
         tmp = temp_sibling(path)
@@ -440,13 +460,7 @@ class EpisodeStore:
         ``seeds`` and ``store_version`` are the store's own and cannot be set."""
         if self.mode != "a":
             raise StoreError(f"{self.path} is open read-only; open it with mode 'a' to set attributes.")
-        attrs = dict(attrs)
-        if "seeds" in attrs or "store_version" in attrs:
-            raise InputError("attrs must not set 'seeds' or 'store_version'; the store manages them.")
-        try:
-            json.dumps(attrs)
-        except TypeError as e:
-            raise InputError(f"store attributes must be JSON-serialisable: {e}.") from None
+        attrs = _settable(attrs)
         self._root.attrs.update(attrs)
         self._attrs.update(attrs)
 

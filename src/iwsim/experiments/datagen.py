@@ -2,8 +2,10 @@
 first robot-learning study: do policies trained on demonstrations recorded inside the
 world model perform, in the real task, like policies trained on real ones?
 
-1. Demonstrations (:func:`iwsim.experiments.demos.record_demos`): the pixel-reading expert
-   drives MuJoCo (simulator demonstrations, seeds from 0) and the world model from
+1. Demonstrations (:func:`iwsim.experiments.demos.record_with` a
+   :class:`~iwsim.experiments.demos.DemoRecipe`): the pixel-reading expert drives MuJoCo
+   (simulator demonstrations, seeds from 0, the store shared with ``iwsim experiment
+   policy-eval``) and the world model from
    MuJoCo's initial frames (seeds from 300000); only successful takes are kept. Seeds of
    both are disjoint from evaluation (100000+) and validation (200000+) seeds.
 2. Policies (Diffusion Policy by default) trained on mixtures at a fixed total (0, 50,
@@ -35,14 +37,17 @@ from iwsim.envs.pusht import SUCCESS_IOU
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
 from iwsim.experiments.common import PolicyRun, checkpoints, evaluate_policies, train_runs
-from iwsim.experiments.demos import DemoStats, fingerprint, record_demos
+from iwsim.experiments.demos import DemoRecipe, DemoStats, fingerprint, record_with, simulator_demos, simulator_store
 from iwsim.policies.scripted import ScriptedConfig
 
 log = logging.getLogger(__name__)
 
 POLICIES = ("dp", "act")
-SIM_STORE = "sim_expert.zarr"  # under work/demos: a stable name, other studies reuse it
 BOOTSTRAP = 2000  # resamples of the evaluation episodes for the parity ratio's interval
+# The config fields the command's flags override, and the recipe fields.
+FLAGS = {"world_model": "--world-model", "policy": "--policy", "total": "--total", "sim_sizes": "--sizes",
+         "train_steps": "--train-steps", "episodes": "--episodes", "steps": "--steps"}
+RECIPE_FLAGS = {"accept_iou": "--accept-iou", "steps": "--demo-steps"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,13 +61,8 @@ class DatagenConfig:
     wm_fractions: tuple[float, ...] = (0.0, 0.5, 1.0)  # world-model share of the mixtures
     sim_sizes: tuple[int, ...] = (25, 50, 100)  # simulator-only datasets of the size sweep
     wm_sizes: tuple[int, ...] = ()  # world-model-only datasets of the size sweep
-    demo_steps: int = 300  # horizon of a demonstration take
-    demo_tail: int | None = 10  # a kept take ends this many steps after success (None: whole)
-    accept_iou: float = SUCCESS_IOU  # a take is kept when its max pixel IoU reaches this
-    attempts_per_demo: float = 2.0  # at most this many candidates per demonstration wanted
-    demo_batch: int = 16  # candidates recorded in lockstep
-    sim_seed: int = 0
-    wm_seed: int = 300000
+    recipe: DemoRecipe = DemoRecipe()  # how demonstrations are recorded, in both envs
+    wm_seed: int = 300000  # the first world-model candidate's seed (the simulator's: demos.SIM_SEED)
     episodes: int = 50  # evaluation episodes per policy
     eval_seed: int = 100000
     steps: int = 300  # evaluation steps per episode
@@ -70,11 +70,11 @@ class DatagenConfig:
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
             raise InputError(f"unknown policy {self.policy!r}; expected one of {', '.join(POLICIES)}.")
-        for name in ("total", "demo_steps", "demo_batch", "episodes", "steps"):
+        for name in ("total", "episodes", "steps"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise InputError(f"{name} must be a positive integer, got {v!r}.")
-        for name in ("train_steps", "checkpoint_every", "demo_tail"):
+        for name in ("train_steps", "checkpoint_every"):
             v = getattr(self, name)
             if v is not None and (not isinstance(v, int) or v < 1):
                 raise InputError(f"{name} must be a positive integer, got {v!r}.")
@@ -82,10 +82,6 @@ class DatagenConfig:
             raise InputError(f"world-model fractions must be in [0, 1], got {self.wm_fractions}.")
         if not all(isinstance(n, int) and n >= 1 for n in (*self.sim_sizes, *self.wm_sizes)):
             raise InputError(f"dataset sizes must be positive integers, got {self.sim_sizes} and {self.wm_sizes}.")
-        if not (math.isfinite(self.accept_iou) and self.accept_iou >= 0):
-            raise InputError(f"accept_iou must be a finite number >= 0, got {self.accept_iou!r}.")
-        if not self.attempts_per_demo >= 1:
-            raise InputError(f"attempts_per_demo must be >= 1, got {self.attempts_per_demo!r}.")
         if not self.wm_fractions and not self.sim_sizes and not self.wm_sizes:
             raise InputError("the study has no runs: give world-model fractions or dataset sizes.")
 
@@ -103,7 +99,7 @@ PRESETS: dict[str, DatagenConfig] = {
     # Seconds, for tests: tiny policies, a few short takes, every take kept (a random tiny
     # world model never places the T).
     "tiny": DatagenConfig(policy_preset="tiny-", train_steps=4, checkpoint_every=2, total=2, sim_sizes=(1, 2),
-                          demo_steps=8, demo_tail=4, accept_iou=0.0, demo_batch=2, episodes=2, steps=6),
+                          recipe=DemoRecipe(steps=8, tail=4, accept_iou=0.0, batch=2), episodes=2, steps=6),
 }
 
 
@@ -145,21 +141,19 @@ def plan(cfg: DatagenConfig) -> list[Run]:
 def demo_paths(cfg: DatagenConfig, work: Path, wm_tag: str) -> dict[str, Path]:
     """The demonstration stores: ``sim`` (stable, shared with other studies) and ``wm``
     (named after the world-model checkpoint and its fingerprint)."""
-    return {"sim": work / "demos" / SIM_STORE,
+    return {"sim": simulator_store(work),
             "wm": work / "demos" / f"wm_teleop_{Path(cfg.world_model).name}_{wm_tag}.zarr"}
 
 
 def command(cfg: DatagenConfig, preset: str, out: Path, work: Path) -> str:
     """The command that reproduces this study (the flags that differ from the preset)."""
     base = PRESETS[preset]
-    flags = {"world_model": "--world-model", "policy": "--policy", "total": "--total", "sim_sizes": "--sizes",
-             "train_steps": "--train-steps", "accept_iou": "--accept-iou", "demo_steps": "--demo-steps",
-             "episodes": "--episodes", "steps": "--steps"}
     parts = ["iwsim experiment datagen", f"--preset {preset}"]
-    for field, flag in flags.items():
-        value = getattr(cfg, field)
-        if value != getattr(base, field):
-            parts.append(f"{flag} {','.join(map(str, value)) if isinstance(value, tuple) else value}")
+    for obj, ref, flags in ((cfg, base, FLAGS), (cfg.recipe, base.recipe, RECIPE_FLAGS)):
+        for field, flag in flags.items():
+            value = getattr(obj, field)
+            if value != getattr(ref, field):
+                parts.append(f"{flag} {','.join(map(str, value)) if isinstance(value, tuple) else value}")
     return " ".join([*parts, f"--out {out}", f"--work {work}"])
 
 
@@ -179,12 +173,11 @@ def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset
     names = {r: r.name(cfg.preset, tag) for r in runs}
     need = {"sim": max((r.n_sim for r in runs), default=0), "wm": max((r.n_wm for r in runs), default=0)}
     demos: dict[str, DemoStats] = {}
-    for key, env, seed in (("sim", "pusht", cfg.sim_seed), ("wm", "world-model", cfg.wm_seed)):
-        if need[key]:
-            demos[key] = record_demos(env, paths[key], need[key], cfg.demo_steps, seed,
-                                      world_model=cfg.world_model if key == "wm" else None,
-                                      accept_iou=cfg.accept_iou, tail=cfg.demo_tail, batch=cfg.demo_batch,
-                                      max_attempts=math.ceil(cfg.attempts_per_demo * need[key]), progress=progress)
+    if need["sim"]:
+        _, demos["sim"] = simulator_demos(work, need["sim"], cfg.recipe, progress)
+    if need["wm"]:
+        demos["wm"] = record_with("world-model", paths["wm"], need["wm"], cfg.wm_seed, cfg.recipe,
+                                  world_model=cfg.world_model, progress=progress)
     trainable, skipped = [], {}
     for r in runs:
         short = _shortfall(r, demos)
@@ -317,6 +310,7 @@ def _interval(iv: list[float] | None) -> str:
 def markdown(r: dict[str, Any]) -> str:
     """The report: scale, demonstrations, the two sweeps and the parity ratio."""
     c, s, t = r["config"], r["scale"], r["time"]
+    recipe = c["recipe"]
     lines = [
         "# Demonstrations generated in the world model",
         "",
@@ -338,7 +332,7 @@ def markdown(r: dict[str, Any]) -> str:
         "## Demonstrations",
         "",
         "The pixel-reading expert; a take is kept when its max pixel IoU reaches "
-        f"{c['accept_iou']} and ends {c['demo_tail']} steps after that (horizon {c['demo_steps']} steps).",
+        f"{recipe['accept_iou']} and ends {recipe['tail']} steps after that (horizon {recipe['steps']} steps).",
         "",
         "| source | kept / wanted | candidates | acceptance | mean max pixel IoU | steps per demo | s per candidate |",
         "|---|---|---|---|---|---|---|",

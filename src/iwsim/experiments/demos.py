@@ -37,6 +37,11 @@ acceptance rule and the candidates tried with their scores.
 
 Resuming: the store is appended to under its lock; a rerun with the same arguments (or
 more ``episodes`` / ``max_attempts``) continues from the first candidate not yet tried.
+
+The studies record with a :class:`DemoRecipe` (:func:`record_with`); the simulator
+expert's demonstrations, which both ``iwsim experiment datagen`` and ``iwsim experiment
+policy-eval`` train on, live in one shared store (:func:`simulator_demos`,
+``work/demos/sim_expert.zarr``, seeds from :data:`SIM_SEED`).
 """
 
 from __future__ import annotations
@@ -54,7 +59,7 @@ import numpy as np
 from tqdm import tqdm
 
 from iwsim.data.collect import store_attrs
-from iwsim.data.store import EpisodeStore
+from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU
 from iwsim.errors import InputError
@@ -71,6 +76,33 @@ SOURCES = {"world-model": "world_model", "pusht": "mujoco"}
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world_model_sha256", "first_seed",
                   "accept_iou", "tail_steps")
 EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
+SIM_STORE = "sim_expert.zarr"  # the simulator expert's demonstrations, under work/demos: shared by the studies
+SIM_SEED = 0  # the first candidate's seed in SIM_STORE (disjoint from evaluation seeds, 100000+)
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoRecipe:
+    """How a study records demonstrations. A store's acceptance rule, horizon and tail are
+    in its attributes, so a store is appended to only with the recipe that started it (the
+    studies' default recipe is that of the shared ``sim_expert.zarr``)."""
+
+    steps: int = 300  # horizon of a take
+    tail: int | None = 10  # a kept take ends this many steps after success (None: whole)
+    accept_iou: float = SUCCESS_IOU  # a take is kept when its max pixel IoU reaches this
+    attempts_per_demo: float = 2.0  # at most this many candidates per demonstration wanted
+    batch: int = 16  # candidates recorded in lockstep
+
+    def __post_init__(self) -> None:
+        positive = {"demo_steps": self.steps, "demo_batch": self.batch}
+        if self.tail is not None:
+            positive["demo_tail"] = self.tail
+        for name, v in positive.items():
+            if not isinstance(v, int) or v < 1:
+                raise InputError(f"{name} must be a positive integer, got {v!r}.")
+        if not (isinstance(self.accept_iou, (int, float)) and math.isfinite(self.accept_iou) and self.accept_iou >= 0):
+            raise InputError(f"accept_iou must be a finite number >= 0, got {self.accept_iou!r}.")
+        if not (isinstance(self.attempts_per_demo, (int, float)) and self.attempts_per_demo >= 1):
+            raise InputError(f"attempts_per_demo must be >= 1, got {self.attempts_per_demo!r}.")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,6 +113,7 @@ class DemoStats:
     env: str
     path: str
     accept_iou: float  # a candidate is kept when its max pixel IoU reaches this
+    first_seed: int  # candidate i starts from seed first_seed + i
     wanted: int  # accepted episodes asked for
     episodes: int  # accepted episodes the store holds
     candidates: int  # candidates tried (all runs)
@@ -151,6 +184,29 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                             progress)
 
 
+def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, recipe: DemoRecipe, *,
+                world_model: str | os.PathLike | None = None, progress: bool = True) -> DemoStats:
+    """:func:`record_demos` with ``recipe``: at most ``ceil(attempts_per_demo * episodes)``
+    candidates."""
+    return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, accept_iou=recipe.accept_iou,
+                        tail=recipe.tail, batch=recipe.batch,
+                        max_attempts=math.ceil(recipe.attempts_per_demo * episodes), progress=progress)
+
+
+def simulator_store(work: str | os.PathLike) -> Path:
+    """The simulator expert's demonstration store of a work directory (shared by the studies)."""
+    return Path(work) / "demos" / SIM_STORE
+
+
+def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
+                    progress: bool = True) -> tuple[Path, DemoStats]:
+    """Record (or resume) the simulator expert's demonstrations in :func:`simulator_store`
+    until it holds ``episodes`` (or the recipe's attempts are spent), candidates from
+    seed :data:`SIM_SEED`. Returns the store's path and its :class:`DemoStats`."""
+    path = simulator_store(work)
+    return path, record_with("pusht", path, episodes, SIM_SEED, recipe, progress=progress)
+
+
 def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episodes: int, steps: int, seed: int,
                  accept_iou: float, tail: int | None, batch: int, max_attempts: int, progress: bool) -> DemoStats:
     a = store.attrs
@@ -191,8 +247,8 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
     bar.close()
     lengths = np.diff(store.episode_ends, prepend=0)
     stats = DemoStats(
-        env=env, path=str(store.path), accept_iou=accept_iou, wanted=episodes, episodes=store.n_episodes,
-        candidates=tried,
+        env=env, path=str(store.path), accept_iou=accept_iou, first_seed=seed, wanted=episodes,
+        episodes=store.n_episodes, candidates=tried,
         acceptance_rate=store.n_episodes / tried if tried else float("nan"),
         mean_candidate_max_iou=float(np.mean(max_ious)) if max_ious else float("nan"),
         frames=store.n_frames, mean_length=float(lengths.mean()) if len(lengths) else float("nan"),
@@ -257,12 +313,9 @@ def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any
 
 def _check_existing(store: EpisodeStore, attrs: dict[str, Any]) -> None:
     """Raise unless this run may append to ``store`` (the same demonstrations)."""
-    stored = store.attrs
-    diffs = [k for k in MATCHING_ATTRS if stored.get(k) != attrs[k]]
-    if diffs:
-        have = ", ".join(f"{k}={stored.get(k)!r}" for k in diffs)
-        want = ", ".join(f"{k}={attrs[k]!r}" for k in diffs)
-        raise InputError(f"{store.path} holds demonstrations with {have}, not {want}; choose another store.")
+    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS)
+    if mismatch:
+        raise InputError(f"{store.path} holds demonstrations with {mismatch}; choose another store.")
     if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
         raise InputError(f"{store.path} holds arrays {store.keys}, not the recorded {sorted(EPISODE_KEYS)}; "
                          "choose another store.")

@@ -15,7 +15,7 @@ as the simulator (our stand-in for the real robot) does?
    MMRV (:mod:`iwsim.eval.ranking`), as in the paper's evaluation figure.
 
 Demonstrations: the simulator expert's (``work/demos/sim_expert.zarr``, recorded by
-:func:`iwsim.experiments.demos.record_demos` with the same recipe as ``iwsim experiment
+:func:`iwsim.experiments.demos.simulator_demos` with the same recipe as ``iwsim experiment
 datagen``, so the two studies share the store), or a store the user brings (``demos``,
 e.g. written by ``iwsim collect --policy expert``). Work files (policy runs, cached
 evaluations) go under ``work``, so rerunning the command resumes; the report
@@ -43,13 +43,13 @@ from iwsim.eval.figures import pyplot, save_figure
 from iwsim.eval.policy import check_args
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import PolicyRun, PolicySource, checkpoints, evaluate_policies, train_runs
+from iwsim.experiments.demos import DemoRecipe, simulator_demos
 from iwsim.policies.scripted import ScriptedConfig
 
 log = logging.getLogger(__name__)
 
 ENVS = ("pusht", "world-model")  # the reference (MuJoCo), then the proxy
 SCORES = {"mean_max_iou": "mean max IoU", "success_rate": "success rate"}
-SIM_STORE = "sim_expert.zarr"  # under work/demos, the name ``iwsim experiment datagen`` records it under
 BOOTSTRAP = 2000  # resamples of the episodes for the interval of a mean max IoU
 LEVEL = 0.95
 # The config fields the command's flags override.
@@ -77,17 +77,13 @@ class PolicyEvalConfig:
     noise: tuple[float, ...] = (0.008, 0.012, 0.016, 0.02)  # the expert with Gaussian action noise (m)
     latency: tuple[int, ...] = (3, 4)  # the expert with latency (steps)
     play: bool = True  # the play policy, a floor
-    # How the simulator demonstrations are recorded when missing: datagen's recipe, so the
-    # store is shared (a store's recipe must match to be appended to).
-    demo_steps: int = 300
-    demo_tail: int | None = 10
-    demo_seed: int = 0
-    demo_accept_iou: float = 0.9  # a take is kept when its max pixel IoU reaches this (success)
-    demo_attempts: float = 2.0  # at most this many candidates per demonstration
+    # How the simulator demonstrations are recorded when missing; the default is datagen's, so
+    # the studies share the store (a store's recipe must match to be appended to).
+    recipe: DemoRecipe = DemoRecipe()
 
     def __post_init__(self) -> None:
         check_args(self.episodes, self.seed, self.steps, 0)
-        for name in ("demo_episodes", "small_demos", "dp_small_steps", "demo_steps"):
+        for name in ("demo_episodes", "small_demos", "dp_small_steps"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise InputError(f"{FLAGS.get(name, name)} must be a positive integer, got {v!r}.")
@@ -131,7 +127,7 @@ PRESETS: dict[str, PolicyEvalConfig] = {
     # Seconds, for tests: tiny policies trained a few steps, 2 short episodes.
     "tiny": PolicyEvalConfig(episodes=2, steps=6, demo_episodes=2, small_demos=1, policy_preset="tiny-",
                              dp_steps=(2, 4), dp_small_steps=2, act_steps=(2,), noise=(0.01,), latency=(2,),
-                             demo_steps=12, demo_tail=None, demo_accept_iou=0.0),
+                             recipe=DemoRecipe(steps=12, tail=None, accept_iou=0.0)),
 }
 
 def command(cfg: PolicyEvalConfig, preset: str, out: Path, work: Path, jobs: int) -> str:
@@ -159,19 +155,13 @@ def _demos(cfg: PolicyEvalConfig, work: Path, progress: bool) -> tuple[Path, dic
                              "(lower --demo-episodes or bring a bigger store).")
         return path, {"path": str(path), "episodes": store.n_episodes, "policy": store.attrs.get("policy"),
                       "given": True}
-    # exp-datagen's module; imported here so that a user's own store needs nothing of it
-    from iwsim.experiments.demos import record_demos
-
-    path = work / "demos" / SIM_STORE
-    stats = record_demos("pusht", path, need, cfg.demo_steps, cfg.demo_seed, tail=cfg.demo_tail,
-                         accept_iou=cfg.demo_accept_iou, max_attempts=math.ceil(cfg.demo_attempts * need),
-                         progress=progress)
+    path, stats = simulator_demos(work, need, cfg.recipe, progress)
     if stats.episodes < need:
         raise InputError(f"{path} holds {stats.episodes} of the {need} simulator demonstrations the study needs "
                          f"after {stats.candidates} candidates (acceptance {100 * stats.acceptance_rate:.0f}%).")
     return path, {"path": str(path), "episodes": stats.episodes, "policy": EpisodeStore.open(path).attrs["policy"],
-                  "given": False, "candidates": stats.candidates, "acceptance_rate": stats.acceptance_rate,
-                  "record_seconds": stats.seconds, "added_now": stats.added}
+                  "given": False, "first_seed": stats.first_seed, "candidates": stats.candidates,
+                  "acceptance_rate": stats.acceptance_rate, "record_seconds": stats.seconds, "added_now": stats.added}
 
 
 def _training_seconds(run: Path) -> float:
