@@ -69,6 +69,11 @@ def test_acceptance_filter(wm_path, tmp_path, caplog):
     assert (none.episodes, none.candidates, none.acceptance_rate, none.complete) == (0, 3, 0.0, False)
     assert "holds 0 of the 2 demonstrations asked for: 3 candidates tried" in caplog.text
     assert EpisodeStore.open(tmp_path / "none.zarr").n_episodes == 0
+    # with nothing kept after give_up_after candidates, the teleoperator stops early
+    with caplog.at_level(logging.WARNING):
+        early = record("world-model", tmp_path / "early.zarr", wm_path, episodes=2, max_attempts=8, give_up_after=2,
+                       accept_iou=1.5)
+    assert (early.episodes, early.candidates) == (0, 2) and "none of 2 candidates" in caplog.text
     with pytest.raises(ValueError, match="accept_iou must be a finite number"):
         record("pusht", tmp_path / "bad.zarr", wm_path, accept_iou=float("nan"))
     with pytest.raises(ValueError, match="needs? a world-model checkpoint"):

@@ -91,11 +91,13 @@ class DemoRecipe:
     accept_iou: float = SUCCESS_IOU  # a take is kept when its max pixel IoU reaches this
     attempts_per_demo: float = 2.0  # at most this many candidates per demonstration wanted
     batch: int = 16  # candidates recorded in lockstep
+    give_up_after: int | None = 32  # stop when this many candidates were tried and none was kept (None: never)
 
     def __post_init__(self) -> None:
         positive = {"demo_steps": self.steps, "demo_batch": self.batch}
-        if self.tail is not None:
-            positive["demo_tail"] = self.tail
+        for name, v in (("demo_tail", self.tail), ("give_up_after", self.give_up_after)):
+            if v is not None:
+                positive[name] = v
         for name, v in positive.items():
             if not isinstance(v, int) or v < 1:
                 raise InputError(f"{name} must be a positive integer, got {v!r}.")
@@ -164,12 +166,15 @@ def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, s
 
 def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, seed: int, *,
                  world_model: str | os.PathLike | None = None, accept_iou: float = SUCCESS_IOU, tail: int | None = 10,
-                 batch: int = 16, max_attempts: int | None = None, image_size: int = 64, progress: bool = True,
-                 wait_for_lock: bool = False) -> DemoStats:
+                 batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
+                 image_size: int = 64, progress: bool = True, wait_for_lock: bool = False) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
     accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried
-    (see the module docstring). ``env``: "pusht" (MuJoCo) or "world-model" (needs the
-    checkpoint ``world_model``). Returns the store's :class:`DemoStats`."""
+    (see the module docstring), or, with ``give_up_after``, until the store holds nothing
+    after that many candidates: a teleoperator who has kept none of 32 takes concludes
+    that the task cannot be done in this model (the acceptance rate's 95% Clopper-Pearson
+    upper bound is then 11%) instead of spending the rest of the budget. ``env``: "pusht"
+    (MuJoCo) or "world-model" (needs the checkpoint ``world_model``). Returns the store's :class:`DemoStats`."""
     max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
     _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, image_size)
     model = None
@@ -181,7 +186,7 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs),
                                      wait=wait_for_lock) as store:
         return _record_into(store, env, model, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
-                            progress)
+                            give_up_after, progress)
 
 
 def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, recipe: DemoRecipe, *,
@@ -190,7 +195,7 @@ def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, reci
     candidates."""
     return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, accept_iou=recipe.accept_iou,
                         tail=recipe.tail, batch=recipe.batch,
-                        max_attempts=math.ceil(recipe.attempts_per_demo * episodes), progress=progress)
+                        max_attempts=math.ceil(recipe.attempts_per_demo * episodes), give_up_after=recipe.give_up_after, progress=progress)
 
 
 def simulator_store(work: str | os.PathLike) -> Path:
@@ -208,7 +213,8 @@ def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
 
 
 def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episodes: int, steps: int, seed: int,
-                 accept_iou: float, tail: int | None, batch: int, max_attempts: int, progress: bool) -> DemoStats:
+                 accept_iou: float, tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
+                 progress: bool) -> DemoStats:
     a = store.attrs
     # the candidates tried; a run killed between an append and the attribute update below
     # re-tries the rejected candidates after the last kept one (deterministic, so harmless)
@@ -223,6 +229,9 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
     bar = tqdm(total=episodes, initial=min(store.n_episodes, episodes), unit="ep", desc=f"demos {store.path.name}",
                disable=not progress)
     while store.n_episodes < episodes and tried < max_attempts:
+        if give_up_after is not None and store.n_episodes == 0 and tried >= give_up_after:
+            log.warning("%s: none of %d candidates reached pixel IoU %g; giving up", store.path, tried, accept_iou)
+            break
         # enough candidates for the episodes still missing at the rate so far (Laplace's rule)
         rate = (store.n_episodes + 1) / (tried + 2)
         n = min(batch, max_attempts - tried, math.ceil((episodes - store.n_episodes) / rate))
