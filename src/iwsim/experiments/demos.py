@@ -195,7 +195,8 @@ def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, reci
     candidates."""
     return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, accept_iou=recipe.accept_iou,
                         tail=recipe.tail, batch=recipe.batch,
-                        max_attempts=math.ceil(recipe.attempts_per_demo * episodes), give_up_after=recipe.give_up_after, progress=progress)
+                        max_attempts=math.ceil(recipe.attempts_per_demo * episodes),
+                        give_up_after=recipe.give_up_after, progress=progress)
 
 
 def simulator_store(work: str | os.PathLike) -> Path:
