@@ -200,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--steps", type=int, help="steps per evaluation episode (default: the preset's, 300)")
     q.add_argument("--total", type=int, help="demonstrations per mixture run (default: the preset's)")
     q.add_argument("--sizes", help="simulator dataset sizes, comma-separated (default: the preset's)")
-    q.add_argument("--train-steps", type=int, help="training steps per policy (default: the preset's, 3000)")
+    q.add_argument("--train-steps", type=int, help="training steps per policy (default: the preset's, 5000)")
     q.add_argument("--accept-iou", type=float,
                    help="keep takes whose max pixel IoU reaches this (default: the preset's, 0.9)")
     q.add_argument("--demo-steps", type=int, help="horizon of a demonstration take (default: the preset's)")

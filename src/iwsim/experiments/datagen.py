@@ -92,10 +92,11 @@ class DatagenConfig:
 
 
 PRESETS: dict[str, DatagenConfig] = {
-    # Sized for <= 2.5 h on a 2-core CPU with two jobs, all included (estimated, not yet
-    # measured end to end: demonstrations ~30 min, five trainings of 3000 steps two at a time
-    # ~100 min, six evaluations of 50 x 300 steps ~15 min).
-    "default": DatagenConfig(train_steps=3000, checkpoint_every=1000),
+    # Sized for <= 2.5 h on a 2-core CPU with two jobs, all included: simulator
+    # demonstrations ~5 min (2.6 s per 300-step candidate), world-model takes ~14 s per
+    # candidate, five Diffusion Policy trainings of 5000 steps (~0.35 s per step on one
+    # thread) two at a time ~75 min, six evaluations of 50 x 300 steps ~10 min.
+    "default": DatagenConfig(train_steps=5000, checkpoint_every=1000),
     # Seconds, for tests: tiny policies, a few short takes, every take kept (a random tiny
     # world model never places the T).
     "tiny": DatagenConfig(policy_preset="tiny-", train_steps=4, checkpoint_every=2, total=2, sim_sizes=(1, 2),
