@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from iwsim.envs.pusht import BimanualPushTEnv
-from iwsim.envs.scripted import ExpertPolicy, make_policy, record_episode
+from iwsim.envs.scripted import ExpertPolicy, make_policy, record_episode, run_scripted
+from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
 
 
 @pytest.mark.slow
@@ -31,3 +32,56 @@ def test_play_touches_the_block_and_is_deterministic():
 def test_unknown_policy():
     with pytest.raises(ValueError, match="unknown policy"):
         make_policy("dance", 0)
+
+
+def _batch_obs(frames: list[dict]) -> dict:
+    return {"image": np.stack([f["pixels"] for f in frames])[:, None],
+            "agent_pos": np.stack([f["agent_pos"] for f in frames])[:, None]}
+
+
+def test_scripted_batch_acts_as_the_pixel_expert_in_mujoco():
+    """Behind the learned policies' interface, the expert takes the same actions as
+    ExpertPolicy(pose_source="pixels") driving MuJoCo itself."""
+    steps = list(run_scripted(ExpertPolicy(pose_source="pixels"), 100001, 12))
+    batch = ScriptedBatch("expert")
+    for tr in steps:
+        action = batch.predict_action(_batch_obs([tr.obs]))
+        assert action.shape == (1, 1, 4) and action.dtype == np.float32
+        np.testing.assert_array_equal(action[0, 0], tr.action)
+
+
+def test_scripted_batch_degradations():
+    env = BimanualPushTEnv(64)
+    frames = [env.reset(seed=s)[0] for s in (100000, 100001, 100002)]
+    env.close()
+    obs = _batch_obs(frames)
+    clean = ScriptedBatch("expert").predict_action(obs)
+    # latency k: the pushers' first positions for k calls, then the commands of k calls ago
+    late = ScriptedBatch("expert", latency=2)
+    held = [late.predict_action(obs) for _ in range(3)]
+    np.testing.assert_array_equal(held[0][:, 0], obs["agent_pos"][:, 0])
+    np.testing.assert_array_equal(held[1][:, 0], obs["agent_pos"][:, 0])
+    np.testing.assert_array_equal(held[2], clean)
+    # noise: seeded by the episode's index, so an episode's noise does not depend on the batch
+    noisy3 = ScriptedBatch(ScriptedConfig("expert", noise=0.01, seed=7)).predict_action(obs)
+    noisy2 = ScriptedBatch(ScriptedConfig("expert", noise=0.01, seed=7)).predict_action(
+        {k: v[:2] for k, v in obs.items()})
+    np.testing.assert_array_equal(noisy3[:2], noisy2)
+    assert 0.002 < np.abs(noisy3 - clean).mean() < 0.02
+    assert ScriptedConfig("expert", noise=0.01, latency=2).name == "expert-noise0.01-latency2"
+
+
+@pytest.mark.parametrize("kwargs, match", [({"kind": "random"}, "unknown scripted policy"),
+                                           ({"noise": -1.0}, "noise must be"), ({"latency": -1}, "latency must")])
+def test_scripted_config_refuses_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ScriptedConfig(**kwargs)
+
+
+def test_scripted_batch_refuses_bad_observations():
+    batch = ScriptedBatch("expert")
+    with pytest.raises(ValueError, match="scripted policies take image"):
+        batch.predict_action({"image": np.zeros((1, 1, 64, 64, 3), np.float32), "agent_pos": np.zeros((1, 1, 4))})
+    batch.predict_action({"image": np.zeros((2, 1, 64, 64, 3), np.uint8), "agent_pos": np.zeros((2, 1, 4))})
+    with pytest.raises(ValueError, match="reset"):
+        batch.predict_action({"image": np.zeros((3, 1, 64, 64, 3), np.uint8), "agent_pos": np.zeros((3, 1, 4))})
