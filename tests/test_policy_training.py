@@ -124,6 +124,12 @@ def test_train_resume_save_load_and_checkpoints_kept(play_store, tmp_path, capsy
     obs = {"image": np.zeros((2, 2, 64, 64, 3), np.uint8), "agent_pos": np.zeros((2, 2, 4), np.float32)}
     first = a.predict_action(obs, torch.Generator().manual_seed(0))
     np.testing.assert_array_equal(first, b.predict_action(obs, torch.Generator().manual_seed(0)))
+    # executing fewer actions per query changes execution only: the same chunk, cut shorter
+    short = load_policy(out, n_action_steps=2)
+    assert short.cfg.n_action_steps == 2 and first.shape[1] == a.cfg.n_action_steps > 2
+    np.testing.assert_array_equal(short.predict_action(obs, torch.Generator().manual_seed(0)), first[:, :2])
+    with pytest.raises(ValueError, match="n_action_steps must be in"):
+        load_policy(out, n_action_steps=99)
     capsys.readouterr()
     act = ["train", "policy", "--policy", "act", "--preset", "tiny-act", *args[6:]]
     assert main([*act, "--steps", "10"]) == 1  # another policy into the dp run
@@ -131,9 +137,10 @@ def test_train_resume_save_load_and_checkpoints_kept(play_store, tmp_path, capsy
     with pytest.raises(CheckpointError, match="not a policy checkpoint"):
         load_policy(tmp_path)
     assert main(["eval", "policy", "--checkpoint", str(out), "--episodes", "2", "--steps", "4", "--videos", "1",
-                 "--out", str(tmp_path / "eval"), "--no-progress"]) == 0
+                 "--action-steps", "1", "--out", str(tmp_path / "eval"), "--no-progress"]) == 0
     result = json.loads((tmp_path / "eval" / "results.json").read_text())
     assert len(result["episodes"]) == 2 and result["env"] == "pusht" and (tmp_path / "eval/episode_100000.mp4").exists()
+    assert result["n_action_steps"] == 1
     assert "mean max IoU" in capsys.readouterr().out
 
     assert main([*act, "--out", str(tmp_path / "act"), "--steps", "10"]) == 0

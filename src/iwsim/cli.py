@@ -119,6 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--seed", type=int, default=100000, help="first MuJoCo seed (default: %(default)s)")
     q.add_argument("--steps", type=int, default=600, help="steps per episode (default: %(default)s)")
     q.add_argument("--videos", type=int, default=4, help="episodes recorded as videos (default: %(default)s)")
+    q.add_argument("--action-steps", type=int,
+                   help="actions executed per query, overriding the checkpoint's (Diffusion Policy's Ta)")
     q.add_argument("--out", required=True, help="output directory for results.json and videos")
     q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -490,7 +492,7 @@ def _eval_policy(args: argparse.Namespace) -> int:
     _check_frames_memory(f"--steps {args.steps} with --videos {args.videos}",
                          args.steps * min(args.videos, args.episodes))
     device = resolve_device(args.device)
-    policy = load_policy(args.checkpoint, device)
+    policy = load_policy(args.checkpoint, device, n_action_steps=args.action_steps)
     wm = None
     if args.env == "world-model":
         from iwsim.world_model import WorldModel
@@ -498,7 +500,7 @@ def _eval_policy(args: argparse.Namespace) -> int:
         wm = WorldModel.load(args.world_model, device)
     result = evaluate(policy, args.env, episodes=args.episodes, seed=args.seed, steps=args.steps, world_model=wm,
                       image_size=policy.image_size, out=args.out, videos=args.videos, progress=not args.no_progress,
-                      meta={"checkpoint": str(args.checkpoint),
+                      meta={"checkpoint": str(args.checkpoint), "n_action_steps": policy.cfg.n_action_steps,
                             "world_model": args.world_model if args.env == "world-model" else None})
     post = result["success_beta_posterior"]
     lo, hi = result["success_clopper_pearson"]

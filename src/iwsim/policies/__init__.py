@@ -79,8 +79,12 @@ def describe(policy: nn.Module) -> dict[str, Any]:
             "action_dim": policy.action_dim, "state_dim": policy.state_dim}
 
 
-def load_policy(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
-    """A trained policy from a checkpoint directory, or from a run (its last checkpoint)."""
+def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_steps: int | None = None) -> nn.Module:
+    """A trained policy from a checkpoint directory, or from a run (its last checkpoint).
+
+    ``n_action_steps`` overrides how many actions of each predicted chunk are executed
+    before the policy is queried again (Diffusion Policy's Ta; None: as trained). It only
+    changes execution: the chunk the network predicts is the same."""
     path = Path(path)
     if (path / "checkpoints" / "last").exists():
         path = (path / "checkpoints" / "last").resolve()
@@ -88,6 +92,9 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu") -> nn.Modu
         raise CheckpointError(f"{path} is not a policy checkpoint (model.safetensors + config.json) or a run of "
                               "iwsim train policy.")
     config, tensors = load_model_dir(path, KIND)
+    if n_action_steps is not None:
+        config["model"] = {**config.get("model", {}), "n_action_steps": n_action_steps}
+        from_dict(config_class(config.get("policy", "")), config["model"])  # a bad value: its one-line InputError
     try:
         a, s = int(config["action_dim"]), int(config["state_dim"])
         policy = make_policy(config["policy"], config["model"], Normalizer(torch.zeros(a), torch.ones(a)),
