@@ -301,7 +301,7 @@ def headline(r: dict[str, Any]) -> str:
 
 
 def _num(x: float | None, digits: int = 2) -> str:
-    return "n/a" if x is None else f"{x:.{digits}f}"
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
 
 def _interval(iv: list[float] | None) -> str:
@@ -341,7 +341,7 @@ def markdown(r: dict[str, Any]) -> str:
     for k, d in r["demos"].items():
         lines.append(f"| {'world model' if k == 'wm' else 'simulator'} | {d['episodes']} / {d['wanted']} | "
                      f"{d['candidates']} | {100 * d['acceptance_rate']:.1f}% | {d['mean_candidate_max_iou']:.3f} | "
-                     f"{d['mean_length']:.0f} | {d['seconds_per_candidate']:.1f} |")
+                     f"{_num(d['mean_length'], 0)} | {d['seconds_per_candidate']:.1f} |")
     e = r["expert"]
     lines += [
         "",
@@ -407,10 +407,12 @@ def figure(r: dict[str, Any], path: Path) -> None:
         ax.set_xlabel(xlabel)
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
+    axes[0].set_xlim(-0.05, 1.05)  # the whole range of shares, also when runs of it were not trained
+    axes[0].set_xticks([0, 0.25, 0.5, 0.75, 1])
     axes[0].set_title(f"mixtures of {r['config']['total']} demonstrations")
     axes[1].set_title("dataset size")
     axes[0].set_ylabel("score in MuJoCo (95% intervals)")
-    axes[1].legend(fontsize=7, loc="lower right")
+    axes[1].legend(fontsize=7, loc="center right")
     fig.tight_layout()
     save_figure(fig, path)
 
