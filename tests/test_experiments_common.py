@@ -1,6 +1,7 @@
 """What the two studies share: policy trainings side by side (resumed, never redone) and
 closed-loop evaluations cached by what they evaluated."""
 
+import dataclasses
 import json
 
 import pytest
@@ -22,6 +23,10 @@ def test_runs_train_side_by_side_and_are_not_redone(play_store, tmp_path):
     stamp = (dirs["a"] / "metrics.jsonl").stat().st_mtime_ns
     train_runs(runs[:1], tmp_path, progress=False)  # finished: nothing is trained again
     assert (dirs["a"] / "metrics.jsonl").stat().st_mtime_ns == stamp
+    # another training under the same name is not taken for the finished one
+    other = dataclasses.replace(runs[0], seed=1)
+    with pytest.raises(InputError, match="different config"):
+        train_runs([other], tmp_path, progress=False)
 
 
 def test_bad_runs_are_refused_before_training(tmp_path):

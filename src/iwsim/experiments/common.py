@@ -9,6 +9,7 @@ other with two threads each (small convolutions do not split well over threads).
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import multiprocessing as mp
 import time
@@ -21,9 +22,10 @@ import torch
 from tqdm import tqdm
 
 from iwsim.checkpoint import load_json, write_json_atomic
+from iwsim.config import from_dict, to_dict
 from iwsim.errors import InputError
 from iwsim.eval.policy import rollout, summarize
-from iwsim.policies import PRESETS, PolicyStageConfig, load_policy
+from iwsim.policies import PRESETS, PolicyStageConfig, config_class, load_policy
 from iwsim.policies.data import Source
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
 from iwsim.training.policy import train_policy
@@ -71,8 +73,20 @@ def checkpoints(run: Path) -> dict[int, Path]:
 
 
 def _finished(run: PolicyRun, root: Path) -> bool:
+    """Whether ``root / run.name`` holds this very training, trained to its steps. A run
+    directory with another config is not finished: training it then stops with the
+    trainer's "different config" error instead of a stale run being reused."""
+    cfg = run.stage_config()
     done = checkpoints(root / run.name)
-    return bool(done) and max(done) >= run.stage_config().train.steps
+    if not done or max(done) < cfg.train.steps:
+        return False
+    saved = load_json(root / run.name / "config.json")
+    expected = {"policy": cfg.policy, "model": to_dict(from_dict(config_class(cfg.policy), cfg.model)),
+                "train": {k: v for k, v in to_dict(cfg.train).items() if k != "steps"}, "shift": cfg.shift,
+                "data": [{"path": str(s.path), "episodes": s.episodes} for s in run.sources()]}
+    saved = {k: saved.get(k) for k in expected}
+    saved["train"] = {k: v for k, v in (saved["train"] or {}).items() if k != "steps"}
+    return json.loads(json.dumps(expected)) == saved  # tuples as lists, as read back
 
 
 def _train(run: PolicyRun, root: Path, progress: bool) -> str:
