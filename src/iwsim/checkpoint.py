@@ -37,10 +37,15 @@ class CheckpointError(IwsimError, ValueError):
     """A checkpoint that is missing, incomplete or corrupt (a ValueError too, as it always was)."""
 
 
-def write_json_atomic(path: Path, obj: Any, sort_keys: bool = True) -> None:
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to a temporary name next to ``path``, then rename it into place."""
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=sort_keys) + "\n")
+    tmp.write_text(text)
     os.replace(tmp, path)
+
+
+def write_json_atomic(path: Path, obj: Any, sort_keys: bool = True) -> None:
+    write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=sort_keys) + "\n")
 
 
 def load_tensors(path: Path) -> dict[str, torch.Tensor]:

@@ -72,6 +72,15 @@ def checkpoints(run: Path) -> dict[int, Path]:
     return {int(d.name): d for d in sorted(found) if (d / "model.safetensors").is_file()}
 
 
+def training_time(run: Path) -> dict[str, Any]:
+    """Training steps and seconds (over all resumes) of a policy run's last checkpoint."""
+    kept = checkpoints(run)
+    if not kept:
+        return {"steps": 0, "seconds": 0.0}
+    state = load_json(kept[max(kept)] / "training_state" / "state.json")
+    return {"steps": int(state["step"]), "seconds": float(state["elapsed_s"])}
+
+
 def _finished(run: PolicyRun, root: Path) -> bool:
     """Whether ``root / run.name`` holds this very training, trained to its steps. A run
     directory with another config is not finished: training it then stops with the

@@ -32,11 +32,11 @@ from typing import Any
 
 import numpy as np
 
-from iwsim.checkpoint import load_json, write_json_atomic
+from iwsim.checkpoint import write_json_atomic, write_text_atomic
 from iwsim.envs.pusht import SUCCESS_IOU
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
-from iwsim.experiments.common import PolicyRun, checkpoints, evaluate_policies, train_runs
+from iwsim.experiments.common import PolicyRun, evaluate_policies, train_runs, training_time
 from iwsim.experiments.demos import DemoRecipe, DemoStats, fingerprint, record_with, simulator_demos, simulator_store
 from iwsim.policies.scripted import ScriptedConfig
 
@@ -214,7 +214,7 @@ def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset
     }
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "results.json", results, sort_keys=False)
-    _write_atomic(out / "results.md", markdown(results))
+    write_text_atomic(out / "results.md", markdown(results))
     figure(results, out / "datagen.png")
     log.info("%s", headline(results))
     return results
@@ -242,15 +242,6 @@ def _score(result: dict[str, Any]) -> dict[str, Any]:
     return {k: result[k] for k in keep if k in result}
 
 
-def _training(run_dir: Path) -> dict[str, Any]:
-    """Steps and seconds of a policy run's last checkpoint."""
-    kept = checkpoints(run_dir)
-    if not kept:
-        return {"steps": 0, "seconds": 0.0}
-    state = load_json(kept[max(kept)] / "training_state" / "state.json")
-    return {"steps": int(state["step"]), "seconds": float(state["elapsed_s"])}
-
-
 def _run_result(r: Run, name: str, paths: dict[str, Path], run_dirs: dict[str, Path], scores: dict[str, dict],
                 skipped: dict[str, str]) -> dict[str, Any]:
     row: dict[str, Any] = {"name": name, "sweeps": list(r.sweeps), "n_wm": r.n_wm, "n_sim": r.n_sim,
@@ -258,7 +249,7 @@ def _run_result(r: Run, name: str, paths: dict[str, Path], run_dirs: dict[str, P
                            "data": [{"store": s, "episodes": n} for s, n in _data(r, paths)]}
     if name in skipped:
         return {**row, "skipped": skipped[name]}
-    return {**row, "run": str(run_dirs[name]), "training": _training(run_dirs[name]), **_score(scores[name])}
+    return {**row, "run": str(run_dirs[name]), "training": training_time(run_dirs[name]), **_score(scores[name])}
 
 
 def parity(cfg: DatagenConfig, names: dict[Run, str], scores: dict[str, dict]) -> dict[str, Any]:
@@ -415,9 +406,3 @@ def figure(r: dict[str, Any], path: Path) -> None:
     axes[1].legend(fontsize=7, loc="center right")
     fig.tight_layout()
     save_figure(fig, path)
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)

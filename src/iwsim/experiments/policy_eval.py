@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import logging
 import math
 import time
@@ -35,14 +34,21 @@ from typing import Any
 
 import numpy as np
 
-from iwsim.checkpoint import write_json_atomic
+from iwsim.checkpoint import write_json_atomic, write_text_atomic
 from iwsim.config import to_dict
 from iwsim.data.store import EpisodeStore
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
 from iwsim.eval.policy import check_args
 from iwsim.eval.ranking import agreement
-from iwsim.experiments.common import PolicyRun, PolicySource, checkpoints, evaluate_policies, train_runs
+from iwsim.experiments.common import (
+    PolicyRun,
+    PolicySource,
+    checkpoints,
+    evaluate_policies,
+    train_runs,
+    training_time,
+)
 from iwsim.experiments.demos import DemoRecipe, simulator_demos
 from iwsim.policies.scripted import ScriptedConfig
 
@@ -164,13 +170,6 @@ def _demos(cfg: PolicyEvalConfig, work: Path, progress: bool) -> tuple[Path, dic
                   "acceptance_rate": stats.acceptance_rate, "record_seconds": stats.seconds, "added_now": stats.added}
 
 
-def _training_seconds(run: Path) -> float:
-    """The training time a run logged (over all its resumes), 0 when it logged none."""
-    path = run / "metrics.jsonl"
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
-    return max((float(r["elapsed_s"]) for r in rows if "elapsed_s" in r), default=0.0)
-
-
 def mean_interval(values: np.ndarray, level: float = LEVEL, resamples: int = BOOTSTRAP,
                   seed: int = 0) -> tuple[float, float]:
     """A percentile bootstrap ``level`` interval of the mean of ``values`` (E,), resampling
@@ -215,7 +214,7 @@ def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path,
     run_dirs = train_runs([r for r, _ in plan], work / "policy_eval" / "runs" / _store_tag(demos), jobs=jobs,
                           progress=progress)
     timings["training_s"] = time.perf_counter() - t
-    timings["training_measured_s"] = sum(_training_seconds(d) for d in run_dirs.values())
+    timings["training_measured_s"] = sum(training_time(d)["seconds"] for d in run_dirs.values())
     zoo: dict[str, dict[str, Any]] = {}
     sources: dict[str, PolicySource] = {}
     for run, steps in plan:
@@ -265,10 +264,7 @@ def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path,
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "results.json", report, sort_keys=False)
     scatter(report, out / "scatter.png")
-    md = out / "results.md"
-    tmp = md.with_name(f".{md.name}.tmp")
-    tmp.write_text(markdown(report))
-    tmp.replace(md)
+    write_text_atomic(out / "results.md", markdown(report))
     a = report["agreement"]["mean_max_iou"]
     log.info("policy-eval: mean max IoU Pearson r %s, Spearman rho %s, MMRV %s over %d policies -> %s",
              _fmt(a["pearson"]), _fmt(a["spearman"]), _fmt(a["mmrv"]), len(policies), out)
