@@ -85,3 +85,14 @@ def test_scripted_batch_refuses_bad_observations():
     batch.predict_action({"image": np.zeros((2, 1, 64, 64, 3), np.uint8), "agent_pos": np.zeros((2, 1, 4))})
     with pytest.raises(ValueError, match="reset"):
         batch.predict_action({"image": np.zeros((3, 1, 64, 64, 3), np.uint8), "agent_pos": np.zeros((3, 1, 4))})
+
+
+def test_noisy_expert_is_seeded_and_stays_near_the_expert():
+    a = record_episode("pusht", "expert-noisy", seed=2, steps=40)
+    b = record_episode("pusht", "expert-noisy", seed=2, steps=40)
+    c = record_episode("pusht", "expert-noisy", seed=3, steps=40)
+    clean = record_episode("pusht", "expert", seed=2, steps=40)
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+    assert not np.array_equal(a["action"], c["action"])
+    first = np.abs(a["action"][0] - clean["action"][0])  # same state: the difference is the noise
+    assert 0 < first.max() < 0.06

@@ -252,3 +252,27 @@ def test_open_not_a_store(tmp_path: Path, kind: str, mode: str) -> None:
         EpisodeStore.open(path, mode)
     msg = str(e.value)
     assert str(path) in msg and "episode store" in msg and "\n" not in msg
+
+
+def test_merge_concatenates_stores_and_refuses_mismatches(tmp_path: Path) -> None:
+    from iwsim.data.formats import merge
+    from iwsim.errors import InputError
+
+    def make(name: str, episodes: range, **attrs) -> Path:
+        store = EpisodeStore.create(tmp_path / name, {"task": "pusht", "fps": 10, "image_size": 16, **attrs})
+        for j in episodes:
+            store.append(fake_episode(j), seed=j)
+        store.close()
+        return tmp_path / name
+
+    a, b = make("a.zarr", range(2), policy="play"), make("b.zarr", range(2, 5), policy="expert")
+    merged = merge([a, b], tmp_path / "ab.zarr", progress=False)
+    assert merged.n_episodes == 5 and merged.attrs["policy"] == "play+expert"
+    assert merged.attrs["sources"] == [str(a), str(b)]
+    assert_episodes(merged)
+    with pytest.raises(FileExistsError, match="already exists"):
+        merge([a, b], tmp_path / "ab.zarr", progress=False)
+    assert_episodes(EpisodeStore.open(tmp_path / "ab.zarr"))  # untouched
+    with pytest.raises(InputError, match="fps 20 differs"):
+        merge([a, make("c.zarr", range(1), fps=20)], tmp_path / "ac.zarr", progress=False)
+    assert not (tmp_path / "ac.zarr").exists()

@@ -214,3 +214,45 @@ def test_resume_falls_back_past_a_truncated_newest_checkpoint(play_store, tmp_pa
         (b / "checkpoints" / f"{step:08d}" / "model.safetensors").write_bytes(b"")
     with pytest.raises(CheckpointError, match="no checkpoint in .* is whole \\(damaged: 00000006, 00000003\\)"):
         train_autoencoder(tiny(6), play_store, b, device=cpu, progress=False)
+
+
+def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_weights(play_store, tmp_path,
+                                                                                     one_thread):
+    """``train dynamics --init``: the world model's autoencoder, action and latent
+    normalisation and network are kept (even on data with other action ranges), training
+    starts from its weights and at its longest unroll."""
+    from iwsim.data.formats import merge
+    from iwsim.world_model import WorldModel
+
+    flags = ["--preset", "tiny", "--no-progress"]
+    assert main(["train", "ae", "--data", str(play_store), "--out", str(tmp_path / "ae"), *flags]) == 0
+    assert main(["train", "dynamics", "--data", str(play_store), "--ae", str(tmp_path / "ae"),
+                 "--out", str(tmp_path / "dyn"), *flags]) == 0
+    expert = tmp_path / "expert.zarr"
+    collect("pusht", "expert-noisy", 2, out=expert, steps=12, image_size=64, workers=1, seed=5, progress=False)
+    mixed = merge([play_store, expert], tmp_path / "mixed.zarr", progress=False)
+    last = tmp_path / "dyn" / "checkpoints" / "last"
+    init = WorldModel.load(last)
+    tuned = tmp_path / "tuned"
+    assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last),
+                 "--out", str(tuned), "--steps", "1", "--lr", "1e-12", *flags]) == 0
+    wm = WorldModel.load(tuned / "checkpoints" / "last")
+    for name in ("action_low", "action_high", "latent_mean"):
+        assert torch.equal(getattr(wm, name), getattr(init, name)), name
+    assert wm.latent_scale == init.latent_scale
+    assert_same(wm.ae.state_dict(), init.ae.state_dict())
+    assert_same(wm.dynamics.state_dict(), init.dynamics.state_dict(), atol=1e-6, rtol=0)
+    config = json.loads((tuned / "config.json").read_text())
+    assert config["init"].endswith("last") and config["stage2"]["unroll"] == [[0, 2]]
+
+
+def test_dynamics_takes_either_an_autoencoder_or_a_model_to_fine_tune(play_store, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["train", "dynamics", "--data", str(play_store), "--out", str(tmp_path / "x"), "--preset", "tiny"])
+    assert "one of the arguments --ae --init is required" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["train", "dynamics", "--data", str(play_store), "--ae", "a", "--init", "b", "--out", str(tmp_path)])
+    assert "not allowed with argument" in capsys.readouterr().err
+    assert main(["train", "dynamics", "--data", str(play_store), "--ae", "a", "--out", str(tmp_path),
+                 "--lr", "0", "--preset", "tiny"]) != 0
+    assert "--lr must be a positive number" in capsys.readouterr().err

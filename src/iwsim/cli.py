@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import sys
 from collections.abc import Sequence
@@ -71,6 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frame size after a centred square crop; 0 keeps the source's (default: %(default)s)")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     q.set_defaults(func=_data_import)
+    q = data_sub.add_parser("merge", help="episode stores of one task into a new store (e.g. play + expert data)")
+    q.add_argument("sources", nargs="+", help="episode stores, in order")
+    q.add_argument("--out", required=True, help="episode store to create (must not exist)")
+    q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    q.set_defaults(func=_data_merge)
     q = data_sub.add_parser("validate", help="check a store or an export against its format; list what is wrong")
     q.add_argument("path", help="episode store, LeRobot dataset directory or HDF5 file/directory")
     q.set_defaults(func=_data_validate)
@@ -81,7 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
     _train_flags(q, "tiny, pusht-64, pusht-128")
     q.set_defaults(func=_train_ae)
     q = train_sub.add_parser("dynamics", help="stage 2: latent consistency dynamics on a frozen stage 1")
-    q.add_argument("--ae", required=True, help="stage-1 run directory or checkpoint (e.g. runs/ae)")
+    init = q.add_mutually_exclusive_group(required=True)
+    init.add_argument("--ae", help="stage-1 run directory or checkpoint (e.g. runs/ae): train from scratch")
+    init.add_argument("--init", help="world-model checkpoint to fine-tune (e.g. checkpoints/pusht-64): its "
+                                     "autoencoder, normalisation and network are kept")
     q.add_argument("--variant", default="ours",
                    help="ours, or a benchmark baseline or ablation: deterministic, diffusion, no-context-noise, "
                         "film-actions, no-points, no-unroll, no-delta (default: %(default)s)")
@@ -335,6 +344,14 @@ def _data_import(args: argparse.Namespace) -> int:
     return 0
 
 
+def _data_merge(args: argparse.Namespace) -> int:
+    from iwsim.data.formats import merge
+
+    store = merge(args.sources, args.out, progress=not args.no_progress)
+    print(f"{store.path}: {store.n_episodes} episodes, {store.n_frames} frames ({store.attrs['policy']})")
+    return 0
+
+
 def _data_validate(args: argparse.Namespace) -> int:
     from iwsim.data.formats import validate
 
@@ -354,6 +371,7 @@ def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
     q.add_argument("--out", required=True, help="run directory; rerunning the same command resumes it")
     q.add_argument("--steps", type=int, help="override the preset's training steps")
     q.add_argument("--batch-size", type=int, help="override the preset's global batch size")
+    q.add_argument("--lr", type=float, help="override the preset's peak learning rate")
     q.add_argument("--seed", type=int, help="override the preset's seed")
     q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
     q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
@@ -388,9 +406,11 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
     if args.preset not in presets:
         raise InputError(f"unknown preset {args.preset!r}; expected one of {sorted(presets)}.")
     cfg = presets[args.preset]
-    overrides = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed))
-                 if v is not None}
+    overrides = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed),
+                                   ("lr", args.lr)) if v is not None}
     _check_positive(args, "steps", "batch_size")
+    if args.lr is not None and not (math.isfinite(args.lr) and args.lr > 0):
+        raise InputError(f"--lr must be a positive number, got {args.lr}.")
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **overrides))
     if getattr(args, "variant", None) is not None:
         from iwsim.config import variant
@@ -461,7 +481,8 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     from iwsim.training.trainer import resolve_device
 
     _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
-                                  force=args.force, progress=not args.no_progress, latent_cache=args.latent_cache))
+                                  force=args.force, progress=not args.no_progress, latent_cache=args.latent_cache,
+                                  init=args.init))
     return 0
 
 

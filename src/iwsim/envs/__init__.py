@@ -24,7 +24,7 @@ if "iwsim/WorldModel-v0" not in registry:
     )
 
 TASKS = {"pusht": "iwsim/BimanualPushT-v0"}
-POLICIES = ("play", "expert")
+POLICIES = ("play", "expert", "expert-noisy")
 
 
 def check_task(task: str) -> str:

@@ -327,12 +327,39 @@ class PlayPolicy:
         return np.clip(targets, -WORKSPACE, WORKSPACE).astype(np.float32)
 
 
+class NoisyExpertPolicy(ExpertPolicy):
+    """The expert (block pose from state) with smooth command noise, for world-model data
+    around goal-directed contact: each episode draws a noise level of 0-12 mm and adds
+    an AR(1) drift of that std (correlated over ~5 steps) to every command. The expert
+    corrects its own errors, so episodes stay in the pinch-and-carry regime while covering
+    nearby actions."""
+
+    MAX_NOISE = 0.012
+
+    def __init__(self, seed: int) -> None:
+        super().__init__()
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, obs: dict, info: dict) -> None:
+        super().reset(obs, info)
+        self.level = float(self.rng.uniform(0.0, self.MAX_NOISE))
+        self._drift = self.rng.normal(0.0, self.level, 4)
+
+    def __call__(self, obs: dict, info: dict) -> np.ndarray:
+        targets = super().__call__(obs, info)
+        self._drift = 0.8 * self._drift + self.rng.normal(0.0, 0.6 * self.level, 4)  # stationary std: level
+        return np.clip(targets + self._drift, -WORKSPACE, WORKSPACE).astype(np.float32)
+
+
 def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
-    """A scripted policy by name: ``play`` (randomised by ``seed``) or ``expert``
-    (deterministic, block pose from state)."""
+    """A scripted policy by name: ``play`` (randomised by ``seed``), ``expert``
+    (deterministic, block pose from state) or ``expert-noisy`` (the expert with command
+    noise drawn from ``seed``)."""
     if name not in POLICIES:
         raise InputError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
-    return ExpertPolicy() if name == "expert" else PlayPolicy(seed)
+    if name == "expert":
+        return ExpertPolicy()
+    return NoisyExpertPolicy(seed) if name == "expert-noisy" else PlayPolicy(seed)
 
 
 class ScriptedPolicy(Protocol):

@@ -24,6 +24,7 @@ action normalisation + config), loadable with :meth:`iwsim.WorldModel.load`.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -138,16 +139,29 @@ def write_rollout_strip(path: Path, truth: torch.Tensor, frames: torch.Tensor) -
 
 class DynamicsTask:
     """Stage 2 for the generic training loop: the data (:class:`DynamicsData`), the loss
-    module, open-loop evaluation of held-out episodes, and the world model it exports."""
+    module, open-loop evaluation of held-out episodes, and the world model it exports.
 
-    def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path,
+    With ``init`` (a world-model checkpoint) training fine-tunes it: its autoencoder,
+    normalisation, network config and weights are the start (``ae_path`` is ignored), and
+    the unroll curriculum, which the model has been through, starts at its longest."""
+
+    def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path | None,
                  device: torch.device = torch.device("cpu"), progress: bool = True,
-                 latent_cache: Path | None = None) -> None:
-        self.data = DynamicsData(cfg, data, ae_path, device, progress, latent_cache)
+                 latent_cache: Path | None = None, init: str | Path | None = None) -> None:
+        wm = None
+        if init is not None:
+            wm = WorldModel.load(init, device)
+            longest = max(n for _, n in cfg.unroll) if cfg.unroll else 1
+            cfg = replace(cfg, unroll=((0, longest),))
+            ae_path = init
+        self.data = DynamicsData(cfg, data, ae_path, device, progress, latent_cache, init=wm)
         self.cfg = cfg = self.data.cfg
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
             self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule), cfg)
+        if wm is not None:
+            self.module.dynamics.load_state_dict(wm.dynamics.state_dict())
+        self.init = None if init is None else str(init)
 
     def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device) -> DynBatch:
         return self.data.batch(step, generator, part, device)
@@ -169,20 +183,24 @@ class DynamicsTask:
         """The run's config.json: a complete world-model description plus where it came from."""
         wm = self.world_model(self.module.dynamics)
         return {**wm.describe(), "data": str(data), "ae_checkpoint": str(self.data.ae_path),
-                "split": self.data.split()}
+                "init": self.init, "split": self.data.split()}
 
     def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
         return self.world_model(module.dynamics).export()
 
 
-def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path, out: str | Path, *,
+def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | None, out: str | Path, *,
                    device: torch.device, force: bool = False, progress: bool = True,
-                   latent_cache: str | Path | None = None) -> dict[str, float]:
-    """Train (or resume) stage 2 into the run directory ``out``. The frozen encoder's
-    latents are cached in ``latent_cache`` (default: the run directory), which runs on the
-    same store and encoder can share; a cache of other frames or weights is rewritten."""
+                   latent_cache: str | Path | None = None, init: str | Path | None = None) -> dict[str, float]:
+    """Train (or resume) stage 2 into the run directory ``out``, from scratch on the
+    stage-1 checkpoint ``ae`` or, with ``init``, fine-tuning that world model (see
+    :class:`DynamicsTask`). The frozen encoder's latents are cached in ``latent_cache``
+    (default: the run directory), which runs on the same store and encoder can share; a
+    cache of other frames or weights is rewritten."""
+    if (ae is None) == (init is None):
+        raise InputError("train dynamics takes either --ae (train from scratch) or --init (fine-tune), not both.")
     cache = Path(latent_cache) if latent_cache is not None else Path(out) / "latents.safetensors"
-    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache)
+    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache, init=init)
     config = task.config(data)
     assert config["kind"] == KIND
     return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress)

@@ -28,6 +28,7 @@ from iwsim.diffusion.consistency import sample_levels
 from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
 from iwsim.normalize import scale, widen
+from iwsim.world_model import WorldModel
 
 
 @dataclass
@@ -57,17 +58,21 @@ class DynamicsData:
     """Latents of every frame of the store (encoded once), normalised actions, the
     train/held-out split, and sequences from the training episodes (``batch``). ``cfg``
     is the given config with the sizes the data decides (action size, latent shape,
-    positional actions)."""
+    positional actions).
+
+    With ``init`` (a world model to fine-tune) its autoencoder, action and latent
+    normalisation and network config are kept, so its weights stay meaningful; the data
+    must have its action size."""
 
     def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path,
                  device: torch.device = torch.device("cpu"), progress: bool = True,
-                 latent_cache: Path | None = None) -> None:
+                 latent_cache: Path | None = None, init: WorldModel | None = None) -> None:
         store = EpisodeStore.open(data, "r")
         for key in ("img", "action"):
             if key not in store.keys:
                 raise StoreError(f"{data} has no data/{key} to train the dynamics on.")
-        self.ae_path = resolve_checkpoint(ae_path)
-        self.ae = Autoencoder.load(self.ae_path, device)
+        self.ae_path = resolve_checkpoint(ae_path)  # with init: the world model's checkpoint
+        self.ae = Autoencoder.load(self.ae_path, device) if init is None else init.ae
         size = store.array("img").shape[1]
         if size != self.ae.image_size:
             raise InputError(f"{data} holds {size}x{size} frames but the autoencoder {self.ae_path} expects "
@@ -90,8 +95,14 @@ class DynamicsData:
         self.ep_starts = torch.from_numpy(starts[train_long])
         self.ep_lengths = torch.from_numpy(ends[train_long] - starts[train_long])
         train_idx = np.concatenate([np.arange(starts[e], ends[e]) for e in self.train_episodes])
-        train_actions = torch.from_numpy(actions[train_idx])
-        low, high = widen(train_actions.amin(0), train_actions.amax(0), 1e-3)
+        if init is None:
+            train_actions = torch.from_numpy(actions[train_idx])
+            low, high = widen(train_actions.amin(0), train_actions.amax(0), 1e-3)
+        else:
+            if actions.shape[1] != init.cfg.dynamics.action_dim:
+                raise InputError(f"{data} has {actions.shape[1]}-d actions; the world model {self.ae_path} takes "
+                                 f"{init.cfg.dynamics.action_dim}-d ones.")
+            low, high = init.action_low.cpu(), init.action_high.cpu()
         self.action_low, self.action_high = low.numpy(), high.numpy()
         self.actions = scale(torch.from_numpy(actions), low, high)
         self.latents = encode_store(self.ae, store, device, progress, latent_cache)
@@ -101,12 +112,15 @@ class DynamicsData:
                                             latent_channels=self.latents.shape[1],
                                             latent_size=self.latents.shape[-1],
                                             **self.points(store.attrs, cfg)))
-        self.cfg = cfg
+        self.cfg = cfg if init is None else replace(cfg, dynamics=init.cfg.dynamics)
         # Standardisation of the latents for the dynamics (see WorldModel): per-element
         # mean over the training frames, and the RMS of the per-element standard deviation.
-        train_z = self.latents[torch.from_numpy(train_idx)]
-        self.latent_mean = train_z.mean(0)
-        self.latent_scale = float(train_z.var(0).mean().sqrt().clamp_min(1e-6))
+        if init is None:
+            train_z = self.latents[torch.from_numpy(train_idx)]
+            self.latent_mean = train_z.mean(0)
+            self.latent_scale = float(train_z.var(0).mean().sqrt().clamp_min(1e-6))
+        else:
+            self.latent_mean, self.latent_scale = init.latent_mean.cpu(), float(init.latent_scale)
         self.store, self.starts, self.ends = store, starts, ends
     def points(self, attrs: dict, cfg: DynamicsStageConfig) -> dict:
         """The positional-action fields of the network's config: which action entries are

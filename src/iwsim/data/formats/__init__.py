@@ -3,6 +3,7 @@
     export:   lerobot-v3, lerobot-v2.1, hdf5-aloha
     import:   lerobot-v3, lerobot-v2.1, hdf5-aloha, robomimic, zarr (Diffusion Policy)
     validate: an episode store, a LeRobot dataset (v3 or v2.1) or ALOHA/robomimic HDF5
+    merge:    episode stores of one task into a new one
 
 Every format module offers some of:
 
@@ -29,7 +30,10 @@ log = logging.getLogger(__name__)
 EXPORT_FORMATS = ("lerobot-v3", "lerobot-v2.1", "hdf5-aloha")
 IMPORT_FORMATS = ("lerobot-v3", "lerobot-v2.1", "hdf5-aloha", "robomimic", "zarr")
 
-__all__ = ["EXPORT_FORMATS", "IMPORT_FORMATS", "FormatError", "export", "import_", "validate"]
+__all__ = ["EXPORT_FORMATS", "IMPORT_FORMATS", "FormatError", "export", "import_", "merge", "validate"]
+
+# Attributes every store of a merge must share (the rest may differ: policy, steps, ...).
+MERGE_MATCHING = ("task", "image_size", "fps")
 
 
 def export(fmt: str, store: str | os.PathLike, out: str | os.PathLike, *, fps: int | None = None,
@@ -118,3 +122,31 @@ def validate(path: str | os.PathLike) -> tuple[str, list[str]]:
         return validate_hdf5(path)
     raise FormatError(f"{path} is none of: an episode store, a LeRobot dataset (meta/info.json), "
                       "ALOHA or robomimic HDF5.")
+
+
+def merge(sources: list[str | os.PathLike], out: str | os.PathLike, *, progress: bool = True) -> EpisodeStore:
+    """A new episode store at ``out`` holding every episode of ``sources`` in order (with
+    their seeds). The sources must share the task, image size, fps and arrays; the merged
+    store's ``policy`` joins theirs with ``+`` and ``sources`` lists them."""
+    if len(sources) < 2:
+        raise InputError(f"merge takes at least 2 stores, got {len(sources)}.")
+    stores = [EpisodeStore.open(src, "r") for src in sources]
+    first = stores[0]
+    for s in stores[1:]:
+        for key in MERGE_MATCHING:
+            if s.attrs.get(key) != first.attrs.get(key):
+                raise InputError(f"cannot merge {s.path} into {first.path}: {key} {s.attrs.get(key)!r} differs "
+                                 f"from {first.attrs.get(key)!r}.")
+        if sorted(s.keys) != sorted(first.keys):
+            raise InputError(f"cannot merge {s.path} into {first.path}: arrays {sorted(s.keys)} differ from "
+                             f"{sorted(first.keys)}.")
+    policies = list(dict.fromkeys(str(s.attrs.get("policy")) for s in stores))
+    attrs = {k: v for k, v in first.attrs.items() if k not in ("seeds", "store_version", "steps")}
+    attrs.update(policy="+".join(policies), sources=[str(s.path) for s in stores])
+
+    def episodes():
+        for s in stores:
+            for i, seed in enumerate(s.seeds[:s.n_episodes]):
+                yield s.episode(i), seed
+
+    return write_store(out, episodes(), attrs, progress=progress, total=sum(s.n_episodes for s in stores))
