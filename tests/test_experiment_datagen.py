@@ -13,8 +13,9 @@ from iwsim.cli import main
 from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore
 from iwsim.eval.policy import rollout
+from iwsim.experiments.common import fingerprint
 from iwsim.experiments.datagen import PRESETS, DatagenConfig, command, plan
-from iwsim.experiments.demos import SIM_SEED, DemoRecipe, fingerprint, record_demos, simulator_store
+from iwsim.experiments.demos import SIM_SEED, DemoRecipe, record_demos, simulator_store
 from iwsim.experiments.policy_eval import PolicyEvalConfig
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.scripted import ScriptedBatch

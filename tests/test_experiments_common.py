@@ -3,6 +3,7 @@ closed-loop evaluations cached by what they evaluated."""
 
 import dataclasses
 import json
+import shutil
 
 import pytest
 
@@ -54,3 +55,18 @@ def test_evaluations_are_cached_by_what_they_evaluated(tmp_path):
     assert changed["key"]["policy"]["noise"] == 0.01 and path.stat().st_mtime_ns != stamp
     with pytest.raises(InputError, match="world-model checkpoint"):
         evaluate_policies({"expert": expert}, "world-model", seeds=[5], steps=3, world_model=None, out=tmp_path)
+
+
+def test_evaluations_in_a_model_retrained_at_the_same_path_are_redone(tmp_path, one_thread):
+    from tests.test_dynamics import tiny_world_model
+
+    expert = {"expert": ScriptedConfig("expert")}
+    tiny_world_model(0).save(tmp_path / "wm")
+    first = evaluate_policies(expert, "world-model", seeds=[5], steps=2, world_model=tmp_path / "wm",
+                              out=tmp_path / "eval", progress=False)["expert"]
+    shutil.rmtree(tmp_path / "wm")
+    tiny_world_model(1).save(tmp_path / "wm")
+    second = evaluate_policies(expert, "world-model", seeds=[5], steps=2, world_model=tmp_path / "wm",
+                               out=tmp_path / "eval", progress=False)["expert"]
+    assert first["key"]["world_model"] == second["key"]["world_model"]
+    assert first["key"]["world_model_sha256"] != second["key"]["world_model_sha256"]

@@ -9,9 +9,11 @@ other with two threads each (small convolutions do not split well over threads).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import multiprocessing as mp
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -63,6 +65,20 @@ class PolicyRun:
         if not self.data:
             raise InputError(f"policy run {self.name!r} has no data.")
         return [Source(Path(path), n) for path, n in self.data]
+
+
+def fingerprint(world_model: str | os.PathLike) -> str:
+    """A short content hash of a world-model checkpoint (its weights and config), so that
+    demonstrations and evaluations of a retrained model at the same path are told apart."""
+    h = hashlib.sha256()
+    for name in ("config.json", "model.safetensors"):
+        path = Path(world_model) / name
+        if not path.is_file():
+            raise InputError(f"{world_model} is not a world-model checkpoint: it has no {name}.")
+        with path.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()[:16]
 
 
 def checkpoints(run: Path) -> dict[int, Path]:
@@ -183,7 +199,7 @@ def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: 
 
     Cached: ``out / env / f"{name}.json"`` holds :func:`iwsim.eval.policy.summarize`'s
     dict, ``iou_per_step`` (E, steps + 1), ``seconds`` and a ``key`` (the policy, seeds,
-    steps and world model); a cached result with the same key is reused. Up to ``jobs``
+    steps, world model and its weights); a cached result with the same key is reused. Up to ``jobs``
     policies at once in spawned processes with one torch thread each. Returns name -> result.
     """
     if env == "world-model" and world_model is None:
@@ -194,7 +210,8 @@ def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: 
     calls = []
     for name, source in policies.items():
         path = Path(out) / env / f"{name}.json"
-        key = {"policy": _describe(source), "env": env, "seeds": seeds, "steps": steps, "world_model": wm}
+        key = {"policy": _describe(source), "env": env, "seeds": seeds, "steps": steps, "world_model": wm,
+               "world_model_sha256": wm and fingerprint(wm)}  # a retrained model at the same path is another
         if path.is_file() and load_json(path).get("key") == key:
             results[name] = load_json(path)
         else:

@@ -36,8 +36,8 @@ from iwsim.checkpoint import write_json_atomic, write_text_atomic
 from iwsim.envs.pusht import SUCCESS_IOU
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
-from iwsim.experiments.common import PolicyRun, evaluate_policies, train_runs, training_time
-from iwsim.experiments.demos import DemoRecipe, DemoStats, fingerprint, record_with, simulator_demos, simulator_store
+from iwsim.experiments.common import PolicyRun, evaluate_policies, fingerprint, train_runs, training_time
+from iwsim.experiments.demos import DemoRecipe, DemoStats, record_with, simulator_demos, simulator_store
 from iwsim.policies.scripted import ScriptedConfig
 
 log = logging.getLogger(__name__)

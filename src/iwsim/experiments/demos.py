@@ -47,7 +47,6 @@ policy-eval`` train on, live in one shared store (:func:`simulator_demos`,
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 import math
 import os
@@ -64,6 +63,7 @@ from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU
 from iwsim.errors import InputError
 from iwsim.eval.policy import ENVS, MAX_SEED, rollout
+from iwsim.experiments.common import fingerprint
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.world_model import WorldModel
@@ -137,20 +137,6 @@ class DemoStats:
                 f"(acceptance {100 * self.acceptance_rate:.1f}%, mean max pixel IoU "
                 f"{self.mean_candidate_max_iou:.3f}, {self.mean_length:.0f} steps per episode, "
                 f"{self.seconds_per_candidate:.1f} s per candidate); this run added {self.added} of {self.tried} tried")
-
-
-def fingerprint(world_model: str | os.PathLike) -> str:
-    """A short content hash of a world-model checkpoint (its weights and config), so that
-    demonstrations of a retrained model at the same path are told apart."""
-    h = hashlib.sha256()
-    for name in ("config.json", "model.safetensors"):
-        path = Path(world_model) / name
-        if not path.is_file():
-            raise InputError(f"{world_model} is not a world-model checkpoint: it has no {name}.")
-        with path.open("rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-    return h.hexdigest()[:16]
 
 
 def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, seed: int, accept_iou: float,

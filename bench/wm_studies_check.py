@@ -1,0 +1,123 @@
+"""Can a world model carry issue 16's studies? Two quick checks on trained checkpoints.
+
+1. Teleoperation: the pixel-reading expert drives the model from MuJoCo first frames (the
+   datagen study's candidates, seeds from 300000); how many takes reach pixel IoU 0.9
+   (the acceptance rate) and the mean max pixel IoU. MuJoCo gives the reference.
+2. Ranking: the policy-eval study's scripted policies (the expert, its noise and latency
+   degradations, the play policy) from the same seeds in MuJoCo and in each model:
+   mean max IoU per policy and Pearson r / Spearman rho / MMRV against MuJoCo.
+
+    MUJOCO_GL=egl python bench/wm_studies_check.py --models shipped=checkpoints/pusht-64 \\
+        tuned=runs/ft/checkpoints/last --out bench/results/wm_studies_check
+
+Evaluations are cached under --work (keyed by policy, seeds, steps and model), so adding a
+model re-runs only its own. Writes results.json and results.md to --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from iwsim.eval.ranking import agreement
+from iwsim.experiments.common import evaluate_policies, fingerprint
+from iwsim.experiments.demos import record_demos
+from iwsim.experiments.policy_eval import PolicyEvalConfig
+from iwsim.resources import set_threads
+
+
+def teleop(name: str, model: str | None, work: Path, candidates: int, seed: int, steps: int) -> dict:
+    """The datagen study's teleoperation of ``model`` (MuJoCo when None), cached by its key."""
+    env = "pusht" if model is None else "world-model"
+    key = {"model": model and fingerprint(model), "candidates": candidates, "seed": seed, "steps": steps}
+    cached = work / "teleop" / f"{name}.json"
+    if cached.is_file() and json.loads(cached.read_text())["key"] == key:
+        return json.loads(cached.read_text())["result"]
+    store = work / "teleop" / f"{name}.zarr"
+    shutil.rmtree(store, ignore_errors=True)  # a fresh count: the candidates decide, not an old store
+    stats = record_demos(env, store, candidates, steps, seed, world_model=model, max_attempts=candidates,
+                         batch=16, progress=False)
+    result = {"candidates": stats.candidates, "kept": stats.episodes, "acceptance_rate": stats.acceptance_rate,
+              "mean_candidate_max_iou": stats.mean_candidate_max_iou, "seconds": stats.seconds}
+    cached.write_text(json.dumps({"key": key, "result": result}))
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--models", nargs="+", required=True, help="NAME=CHECKPOINT world models")
+    p.add_argument("--episodes", type=int, default=20, help="ranking episodes per policy (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=300, help="steps per episode (default: %(default)s)")
+    p.add_argument("--candidates", type=int, default=32, help="teleoperation takes per model (default: %(default)s)")
+    p.add_argument("--skip-teleop", action="store_true", help="only the ranking check")
+    p.add_argument("--work", default="runs/wm_studies_check", help="cache (default: %(default)s)")
+    p.add_argument("--out", default="bench/results/wm_studies_check", help="report (default: %(default)s)")
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args(argv)
+    set_threads(args.threads)
+    models = dict(m.split("=", 1) for m in args.models)
+    work, out = Path(args.work), Path(args.out)
+    seeds = list(range(100000, 100000 + args.episodes))
+    policies = PolicyEvalConfig().scripted()
+    t0 = time.perf_counter()
+    real = evaluate_policies(policies, "pusht", seeds=seeds, steps=args.steps, world_model=None,
+                             out=work / "eval", progress=False)
+    names = sorted(policies, key=lambda n: -real[n]["mean_max_iou"])
+    report: dict = {"seeds": [seeds[0], seeds[-1]], "steps": args.steps,
+                    "mujoco": {n: real[n]["mean_max_iou"] for n in names}, "models": {}}
+    if not args.skip_teleop:
+        report["mujoco_teleop"] = teleop("mujoco", None, work, args.candidates, 300000, args.steps)
+    for name, ckpt in models.items():
+        res = evaluate_policies(policies, "world-model", seeds=seeds, steps=args.steps, world_model=ckpt,
+                                out=work / "eval" / name, progress=False)
+        wm = [res[n]["mean_max_iou"] for n in names]
+        entry = {"checkpoint": ckpt, "scores": dict(zip(names, wm)),
+                 "agreement": agreement([real[n]["mean_max_iou"] for n in names], wm, ("MuJoCo", name))}
+        if not args.skip_teleop:
+            entry["teleop"] = teleop(name, ckpt, work, args.candidates, 300000, args.steps)
+        report["models"][name] = entry
+        print(name, json.dumps({k: v for k, v in entry.items() if k != "scores"}), flush=True)
+    report["seconds"] = time.perf_counter() - t0
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(report, indent=2))
+    (out / "results.md").write_text(markdown(report, " ".join(["python", *sys.argv])))
+    print((out / "results.md").read_text())
+    return 0
+
+
+def markdown(r: dict, command: str) -> str:
+    ms = list(r["models"])
+    lines = ["# Can the world model carry the studies? (`bench/wm_studies_check.py`)", "", f"`{command}`", "",
+             f"Scripted policies from MuJoCo seeds {r['seeds'][0]}-{r['seeds'][1]}, {r['steps']} steps; "
+             "mean max IoU (pixel IoU in the model).", "",
+             "| policy | MuJoCo | " + " | ".join(ms) + " |", "|---|---|" + "---|" * len(ms)]
+    for n, v in r["mujoco"].items():
+        lines.append(f"| {n} | {v:.3f} | " + " | ".join(f"{r['models'][m]['scores'][n]:.3f}" for m in ms) + " |")
+    lines += ["", "| model | Pearson r | Spearman rho | MMRV | spread (max - min) | teleop kept | "
+                  "teleop mean max IoU |", "|---|---|---|---|---|---|---|"]
+
+    def f(v):
+        return "undefined" if v is None else f"{v:.3f}"
+
+    if "mujoco_teleop" in r:
+        t = r["mujoco_teleop"]
+        spread = np.ptp(list(r["mujoco"].values()))
+        lines.append(f"| MuJoCo | 1 | 1 | 0 | {spread:.3f} | {t['kept']}/{t['candidates']} | "
+                     f"{t['mean_candidate_max_iou']:.3f} |")
+    for m in ms:
+        e = r["models"][m]
+        a, t = e["agreement"], e.get("teleop")
+        tele = f"{t['kept']}/{t['candidates']} | {t['mean_candidate_max_iou']:.3f}" if t else "- | -"
+        lines.append(f"| {m} | {f(a['pearson'])} | {f(a['spearman'])} | {f(a['mmrv'])} | "
+                     f"{np.ptp(list(e['scores'].values())):.3f} | {tele} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
