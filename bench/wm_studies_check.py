@@ -10,8 +10,9 @@
     MUJOCO_GL=egl python bench/wm_studies_check.py --models shipped=checkpoints/pusht-64 \\
         tuned=runs/ft/checkpoints/last --out bench/results/wm_studies_check
 
-Evaluations are cached under --work (keyed by policy, seeds, steps and model), so adding a
-model re-runs only its own. Writes results.json and results.md to --out.
+Evaluations are cached under --work (keyed by policy, seeds, steps and model weights), so
+adding a model re-runs only its own. Writes results.json, results.md and expert_strip.png
+(the expert's first 100 steps from --strip-seed: one row per model, then MuJoCo) to --out.
 """
 
 from __future__ import annotations
@@ -23,13 +24,17 @@ import sys
 import time
 from pathlib import Path
 
+import imageio.v2 as imageio
 import numpy as np
 
+from iwsim.eval.policy import rollout
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.demos import record_demos
 from iwsim.experiments.policy_eval import PolicyEvalConfig
+from iwsim.policies.scripted import ScriptedBatch
 from iwsim.resources import set_threads
+from iwsim.world_model import WorldModel
 
 
 def teleop(name: str, model: str | None, work: Path, candidates: int, seed: int, steps: int) -> dict:
@@ -49,6 +54,18 @@ def teleop(name: str, model: str | None, work: Path, candidates: int, seed: int,
     return result
 
 
+def strip(path: Path, models: list[str | None], seed: int, steps: int = 100, every: int = 10) -> None:
+    """One row per model (None: MuJoCo): the pixel expert's episode from ``seed``, a frame
+    every ``every`` steps."""
+    rows = []
+    for model in models:
+        wm = None if model is None else WorldModel.load(model)
+        run = rollout(ScriptedBatch("expert"), "pusht" if model is None else "world-model", [seed], steps,
+                      world_model=wm, image_size=64, record=1, progress=False)
+        rows.append(np.concatenate(list(run["frames"][0, :steps:every]), axis=1))
+    imageio.imwrite(path, np.concatenate(rows, axis=0))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--models", nargs="+", required=True, help="NAME=CHECKPOINT world models")
@@ -58,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-teleop", action="store_true", help="only the ranking check")
     p.add_argument("--work", default="runs/wm_studies_check", help="cache (default: %(default)s)")
     p.add_argument("--out", default="bench/results/wm_studies_check", help="report (default: %(default)s)")
+    p.add_argument("--strip-seed", type=int, default=100000,
+                   help="the expert's episode pictured in each model and MuJoCo (default: %(default)s)")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
     set_threads(args.threads)
@@ -85,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         print(name, json.dumps({k: v for k, v in entry.items() if k != "scores"}), flush=True)
     report["seconds"] = time.perf_counter() - t0
     out.mkdir(parents=True, exist_ok=True)
+    strip(out / "expert_strip.png", [*models.values(), None], args.strip_seed)
     (out / "results.json").write_text(json.dumps(report, indent=2))
     (out / "results.md").write_text(markdown(report, " ".join(["python", *sys.argv])))
     print((out / "results.md").read_text())
