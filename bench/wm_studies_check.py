@@ -96,7 +96,9 @@ def main(argv: list[str] | None = None) -> int:
         res = evaluate_policies(policies, "world-model", seeds=seeds, steps=args.steps, world_model=ckpt,
                                 out=work / "eval" / name, progress=False)
         wm = [res[n]["mean_max_iou"] for n in names]
-        entry = {"checkpoint": ckpt, "scores": dict(zip(names, wm)),
+        # the trivial baseline: every policy scored on the model's first frame (repeat it)
+        first = float(np.mean([np.asarray(res[n]["iou_per_step"])[:, 0].mean() for n in names]))
+        entry = {"checkpoint": ckpt, "scores": dict(zip(names, wm)), "repeat_first_frame": first,
                  "agreement": agreement([real[n]["mean_max_iou"] for n in names], wm, ("MuJoCo", name))}
         if not args.skip_teleop:
             entry["teleop"] = teleop(name, ckpt, work, args.candidates, 300000, args.steps)
@@ -119,8 +121,8 @@ def markdown(r: dict, command: str) -> str:
              "| policy | MuJoCo | " + " | ".join(ms) + " |", "|---|---|" + "---|" * len(ms)]
     for n, v in r["mujoco"].items():
         lines.append(f"| {n} | {v:.3f} | " + " | ".join(f"{r['models'][m]['scores'][n]:.3f}" for m in ms) + " |")
-    lines += ["", "| model | Pearson r | Spearman rho | MMRV | spread (max - min) | teleop kept | "
-                  "teleop mean max IoU |", "|---|---|---|---|---|---|---|"]
+    lines += ["", "| model | Pearson r | Spearman rho | MMRV | spread (max - min) | repeat first frame | "
+                  "teleop kept | teleop mean max IoU |", "|---|---|---|---|---|---|---|---|"]
 
     def f(v):
         return "undefined" if v is None else f"{v:.3f}"
@@ -128,14 +130,14 @@ def markdown(r: dict, command: str) -> str:
     if "mujoco_teleop" in r:
         t = r["mujoco_teleop"]
         spread = np.ptp(list(r["mujoco"].values()))
-        lines.append(f"| MuJoCo | 1 | 1 | 0 | {spread:.3f} | {t['kept']}/{t['candidates']} | "
+        lines.append(f"| MuJoCo | 1 | 1 | 0 | {spread:.3f} | - | {t['kept']}/{t['candidates']} | "
                      f"{t['mean_candidate_max_iou']:.3f} |")
     for m in ms:
         e = r["models"][m]
         a, t = e["agreement"], e.get("teleop")
         tele = f"{t['kept']}/{t['candidates']} | {t['mean_candidate_max_iou']:.3f}" if t else "- | -"
         lines.append(f"| {m} | {f(a['pearson'])} | {f(a['spearman'])} | {f(a['mmrv'])} | "
-                     f"{np.ptp(list(e['scores'].values())):.3f} | {tele} |")
+                     f"{np.ptp(list(e['scores'].values())):.3f} | {e['repeat_first_frame']:.3f} | {tele} |")
     return "\n".join(lines) + "\n"
 
 
