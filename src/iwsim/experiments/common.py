@@ -199,19 +199,21 @@ def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: 
 
     Cached: ``out / env / f"{name}.json"`` holds :func:`iwsim.eval.policy.summarize`'s
     dict, ``iou_per_step`` (E, steps + 1), ``seconds`` and a ``key`` (the policy, seeds,
-    steps, world model and its weights); a cached result with the same key is reused. Up to ``jobs``
-    policies at once in spawned processes with one torch thread each. Returns name -> result.
+    steps, world model and its weights); a cached result with the same key is reused. Up to
+    ``jobs`` policies at once in spawned processes with one torch thread each. Returns
+    name -> result.
     """
     if env == "world-model" and world_model is None:
         raise InputError("evaluating inside the world model needs a world-model checkpoint.")
     seeds = [int(s) for s in seeds]
     wm = str(world_model) if env == "world-model" else None
+    wm_sha256 = wm and fingerprint(wm)  # a retrained model at the same path is another model
     results: dict[str, dict[str, Any]] = {}
     calls = []
     for name, source in policies.items():
         path = Path(out) / env / f"{name}.json"
         key = {"policy": _describe(source), "env": env, "seeds": seeds, "steps": steps, "world_model": wm,
-               "world_model_sha256": wm and fingerprint(wm)}  # a retrained model at the same path is another
+               "world_model_sha256": wm_sha256}
         if path.is_file() and load_json(path).get("key") == key:
             results[name] = load_json(path)
         else:
