@@ -256,3 +256,6 @@ def test_dynamics_takes_either_an_autoencoder_or_a_model_to_fine_tune(play_store
     assert main(["train", "dynamics", "--data", str(play_store), "--ae", "a", "--out", str(tmp_path),
                  "--lr", "0", "--preset", "tiny"]) != 0
     assert "--lr must be a positive number" in capsys.readouterr().err
+    assert main(["train", "dynamics", "--data", str(play_store), "--init", "a", "--out", str(tmp_path),
+                 "--variant", "diffusion"]) != 0
+    assert "--variant applies to training from scratch" in capsys.readouterr().err

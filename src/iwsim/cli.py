@@ -474,6 +474,9 @@ def _train_ae(args: argparse.Namespace) -> int:
 def _train_dynamics(args: argparse.Namespace) -> int:
     from iwsim.config import DYNAMICS_PRESETS
 
+    if args.init is not None and args.variant != "ours":
+        raise InputError("--variant applies to training from scratch; --init keeps the model's own objective "
+                         "and network.")
     cfg = _resolve_preset(args, DYNAMICS_PRESETS)
     if cfg is None:
         return 0

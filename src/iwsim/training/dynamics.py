@@ -142,8 +142,9 @@ class DynamicsTask:
     module, open-loop evaluation of held-out episodes, and the world model it exports.
 
     With ``init`` (a world-model checkpoint) training fine-tunes it: its autoencoder,
-    normalisation, network config and weights are the start (``ae_path`` is ignored), and
-    the unroll curriculum, which the model has been through, starts at its longest."""
+    normalisation, stage-2 config (network, objective, context noise) and weights are the
+    start, only ``cfg.train`` is taken from ``cfg`` (``ae_path`` is ignored), and the
+    unroll curriculum, which the model has been through, starts at its longest."""
 
     def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path | None,
                  device: torch.device = torch.device("cpu"), progress: bool = True,
@@ -151,8 +152,8 @@ class DynamicsTask:
         wm = None
         if init is not None:
             wm = WorldModel.load(init, device)
-            longest = max(n for _, n in cfg.unroll) if cfg.unroll else 1
-            cfg = replace(cfg, unroll=((0, longest),))
+            longest = max(n for _, n in wm.cfg.unroll) if wm.cfg.unroll else 1
+            cfg = replace(wm.cfg, train=cfg.train, unroll=((0, longest),))  # its objective, noise, ...
             ae_path = init
         self.data = DynamicsData(cfg, data, ae_path, device, progress, latent_cache, init=wm)
         self.cfg = cfg = self.data.cfg
