@@ -27,14 +27,18 @@ from pathlib import Path
 import imageio.v2 as imageio
 import numpy as np
 
+from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.eval.policy import rollout
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import evaluate_policies, fingerprint
+from iwsim.experiments.datagen import DatagenConfig
 from iwsim.experiments.demos import record_demos
 from iwsim.experiments.policy_eval import PolicyEvalConfig
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.resources import set_threads
 from iwsim.world_model import WorldModel
+
+TELEOP_SEED = DatagenConfig().wm_seed  # the datagen study's first candidate in the model
 
 
 def teleop(name: str, model: str | None, work: Path, candidates: int, seed: int, steps: int) -> dict:
@@ -42,15 +46,15 @@ def teleop(name: str, model: str | None, work: Path, candidates: int, seed: int,
     env = "pusht" if model is None else "world-model"
     key = {"model": model and fingerprint(model), "candidates": candidates, "seed": seed, "steps": steps}
     cached = work / "teleop" / f"{name}.json"
-    if cached.is_file() and json.loads(cached.read_text())["key"] == key:
-        return json.loads(cached.read_text())["result"]
+    if cached.is_file() and (saved := load_json(cached))["key"] == key:
+        return saved["result"]
     store = work / "teleop" / f"{name}.zarr"
     shutil.rmtree(store, ignore_errors=True)  # a fresh count: the candidates decide, not an old store
     stats = record_demos(env, store, candidates, steps, seed, world_model=model, max_attempts=candidates,
                          batch=16, progress=False)
     result = {"candidates": stats.candidates, "kept": stats.episodes, "acceptance_rate": stats.acceptance_rate,
               "mean_candidate_max_iou": stats.mean_candidate_max_iou, "seconds": stats.seconds}
-    cached.write_text(json.dumps({"key": key, "result": result}))
+    write_json_atomic(cached, {"key": key, "result": result})
     return result
 
 
@@ -91,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict = {"seeds": [seeds[0], seeds[-1]], "steps": args.steps,
                     "mujoco": {n: real[n]["mean_max_iou"] for n in names}, "models": {}}
     if not args.skip_teleop:
-        report["mujoco_teleop"] = teleop("mujoco", None, work, args.candidates, 300000, args.steps)
+        report["mujoco_teleop"] = teleop("mujoco", None, work, args.candidates, TELEOP_SEED, args.steps)
     for name, ckpt in models.items():
         res = evaluate_policies(policies, "world-model", seeds=seeds, steps=args.steps, world_model=ckpt,
                                 out=work / "eval" / name, progress=False)
@@ -101,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         entry = {"checkpoint": ckpt, "scores": dict(zip(names, wm)), "repeat_first_frame": first,
                  "agreement": agreement([real[n]["mean_max_iou"] for n in names], wm, ("MuJoCo", name))}
         if not args.skip_teleop:
-            entry["teleop"] = teleop(name, ckpt, work, args.candidates, 300000, args.steps)
+            entry["teleop"] = teleop(name, ckpt, work, args.candidates, TELEOP_SEED, args.steps)
         report["models"][name] = entry
         print(name, json.dumps({k: v for k, v in entry.items() if k != "scores"}), flush=True)
     report["seconds"] = time.perf_counter() - t0
