@@ -31,13 +31,13 @@ import torch
 
 from iwsim import WorldModel
 from iwsim.checkpoint import resolve_checkpoint
-from iwsim.config import DYNAMICS_PRESETS, variant
 from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
 from iwsim.envs import pixels
 from iwsim.envs.pusht import VIEW_HALF
 from iwsim.metrics import psnr
-from iwsim.training.dynamics import train_dynamics
+from iwsim.world_model.presets import DYNAMICS_PRESETS, variant
+from iwsim.world_model.train_dynamics import train_dynamics
 
 STEPS = (1, 5, 10, 20, 32)
 POSE_STEPS = (10, 20, 32)

@@ -20,22 +20,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from iwsim.autoencoder import Autoencoder
 from iwsim.checkpoint import resolve_checkpoint
 from iwsim.data.frames import FrameSource, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
 from iwsim.eval.profiling import latency_ms
 from iwsim.metrics import psnr, ssim
+from iwsim.world_model.codec import Codec, reconstruct
+from iwsim.world_model.codecs import load_codec
 
 RESULTS = Path(__file__).parent / "results"
 
 
-def quality(ae: Autoencoder, frames: np.ndarray, jumps: tuple[int, ...]) -> tuple[dict, dict]:
+def quality(ae: Codec, frames: np.ndarray, jumps: tuple[int, ...]) -> tuple[dict, dict]:
     x = to_model(frames)
     out, recon = {}, {}
     with torch.inference_mode():
         for k in jumps:
-            recon[k] = ae.reconstruct_tensor(x, k, chunk=100)
+            recon[k] = reconstruct(ae, x, k, chunk=100)
             a, b = (x + 1) / 2, (recon[k] + 1) / 2
             p, s = psnr(a, b), ssim(a, b)
             out[k] = {"psnr": p.mean().item(), "psnr_p5": p.quantile(0.05).item(), "ssim": s.mean().item()}
@@ -74,7 +75,7 @@ def main() -> None:
 
     config = json.loads((args.run / "config.json").read_text())
     ckpt = resolve_checkpoint(args.run)
-    ae = Autoencoder.load(ckpt)
+    ae = load_codec(ckpt)
     store = EpisodeStore.open(config["data"])
     held = FrameSource(store, config["split"]["heldout_episodes"])
     pick = np.linspace(0, len(held) - 1, min(args.frames, len(held))).round().astype(int)
@@ -87,10 +88,10 @@ def main() -> None:
         if mode == "frozen":
             ae.freeze_for_inference()
         with torch.inference_mode():
-            z1 = ae.encode_tensor(x1)
+            z1 = ae.encode(x1)
             g = torch.Generator().manual_seed(0)
-            speed[mode] = {"encode_ms": latency_ms(lambda: ae.encode_tensor(x1)),  # noqa: B023  (timed right here)
-                           "decode_1jump_ms": latency_ms(lambda: ae.decode_tensor(z1, 1, g.manual_seed(0)))}  # noqa: B023
+            speed[mode] = {"encode_ms": latency_ms(lambda: ae.encode(x1)),  # noqa: B023  (timed right here)
+                           "decode_1jump_ms": latency_ms(lambda: ae.decode(z1, None, 1, g.manual_seed(0)))}  # noqa: B023
     enc_ms, dec_ms = speed["eager"]["encode_ms"], speed["eager"]["decode_1jump_ms"]
     rows = [json.loads(line) for line in (args.run / "metrics.jsonl").read_text().splitlines()]
     train_rows = [r for r in rows if "images_per_s" in r]

@@ -8,9 +8,10 @@ from pathlib import Path
 import torch.distributed as dist
 from safetensors.torch import save_file
 
-from iwsim.config import AE_PRESETS, to_dict
+from iwsim.config import to_dict
 from iwsim.training import trainer
-from iwsim.training.autoencoder import AETask
+from iwsim.world_model.presets import AE_PRESETS
+from iwsim.world_model.train_codec import AETask
 
 
 def main(data: str, run_dir: str, out: str, steps: int) -> None:

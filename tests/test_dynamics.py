@@ -8,14 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from iwsim.autoencoder import Autoencoder
-from iwsim.config import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant
 from iwsim.diffusion.edm import training_sigmas
-from iwsim.diffusion.schedule import Schedule
-from iwsim.models.dynamics import Dynamics, DynamicsConfig, blobs
-from iwsim.training.dynamics import DynamicsTrainModule
-from iwsim.training.dynamics_data import DynBatch
 from iwsim.world_model import WorldModel
+from iwsim.world_model.autoencoder import Autoencoder
+from iwsim.world_model.dynamics import Dynamics, DynamicsConfig, blobs
+from iwsim.world_model.dynamics_data import DynBatch
+from iwsim.world_model.presets import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant
+from iwsim.world_model.train_dynamics import DynamicsTrainModule
 
 LOW, HIGH = [-0.22] * 4, [0.22] * 4
 POINTS = {"point_index": ((0, 1), (2, 3)), "point_scale": (0.22 / 0.26,) * 4, "point_offset": (0.0,) * 4}
@@ -90,7 +89,7 @@ def test_every_variant_trains(name):
     steps on one batch lower it."""
     cfg = tiny_cfg(name)
     torch.manual_seed(0)
-    module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule), cfg)
+    module = DynamicsTrainModule(Dynamics(cfg.dynamics), cfg)
     g = torch.Generator().manual_seed(0)
     b, n, k = 2, 3, cfg.dynamics.context
     batch = batch_for(cfg, torch.randn(b, k + n, 4, 16, 16, generator=g), torch.rand(b, n + 1, 4, generator=g) * 2 - 1,
@@ -117,7 +116,7 @@ def test_the_gradient_reaches_the_first_unrolled_step(through):
     predictions, on what the first one saw (its context noise); detached, it does not."""
     cfg = dataclasses.replace(tiny_cfg(), unroll_grad=through)
     torch.manual_seed(0)
-    module = DynamicsTrainModule(randomise(Dynamics(cfg.dynamics)), Schedule(cfg.schedule), cfg)
+    module = DynamicsTrainModule(randomise(Dynamics(cfg.dynamics)), cfg)
     g = torch.Generator().manual_seed(0)
     b, n, k = 2, 3, cfg.dynamics.context
     batch = batch_for(cfg, torch.randn(b, k + n, 4, 16, 16, generator=g), torch.rand(b, n + 1, 4, generator=g) * 2 - 1,
@@ -162,7 +161,7 @@ def test_a_short_training_run_learns_to_follow_the_action(positional):
     cfg = dataclasses.replace(cfg, dynamics=dataclasses.replace(cfg.dynamics, channels=16, blocks=2,
                                                                 action_channels=4), changed_weight=0.0)
     torch.manual_seed(0)
-    module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule), cfg)
+    module = DynamicsTrainModule(Dynamics(cfg.dynamics), cfg)
     opt = torch.optim.Adam(module.parameters(), lr=3e-3)
     g = torch.Generator().manual_seed(0)
     k = cfg.dynamics.context

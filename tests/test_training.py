@@ -8,14 +8,15 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from iwsim.autoencoder import Autoencoder
 from iwsim.checkpoint import CheckpointError, last_checkpoint
 from iwsim.cli import main
-from iwsim.config import AE_PRESETS, TrainConfig, to_dict
+from iwsim.config import TrainConfig, to_dict
 from iwsim.data.collect import collect
 from iwsim.data.store import StoreError
 from iwsim.training import trainer
-from iwsim.training.autoencoder import AETask, train_autoencoder
+from iwsim.world_model.codecs import load_codec
+from iwsim.world_model.presets import AE_PRESETS
+from iwsim.world_model.train_codec import AETask, train_autoencoder
 
 TINY = AE_PRESETS["tiny"]
 
@@ -50,9 +51,9 @@ def test_run_directory_layout(play_store, tmp_path):
     split = json.loads((run / "config.json").read_text())["split"]
     assert split["heldout_episodes"] == [3] and split["train_episodes"] == [0, 1, 2]
     # The exported checkpoint loads as an Autoencoder with the EMA weights.
-    ae = Autoencoder.load(run / "checkpoints" / "last")
+    ae = load_codec(run / "checkpoints" / "last")
     ema = state(run, 6, "ema")
-    assert_same({k: v for k, v in ae.state_dict().items()}, {k.removeprefix("ae."): v for k, v in ema.items()})
+    assert_same({k: v for k, v in ae.state_dict().items()}, {k.removeprefix("codec."): v for k, v in ema.items()})
 
 
 def test_resume_equals_uninterrupted(play_store, tmp_path):
@@ -176,12 +177,12 @@ def test_truncated_or_incomplete_checkpoint(play_store, tmp_path):
     weights = ckpt / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
     with pytest.raises(CheckpointError, match="truncated or corrupt"):
-        Autoencoder.load(ckpt)
+        load_codec(ckpt)
     (ckpt / "config.json").unlink()
     with pytest.raises(CheckpointError, match="config.json is missing"):
-        Autoencoder.load(ckpt)
+        load_codec(ckpt)
     with pytest.raises(CheckpointError, match="not a checkpoint directory"):
-        Autoencoder.load(tmp_path / "nowhere")
+        load_codec(tmp_path / "nowhere")
 
 
 def test_store_without_frames_is_refused(tmp_path):
@@ -240,7 +241,7 @@ def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_w
     for name in ("action_low", "action_high", "latent_mean"):
         assert torch.equal(getattr(wm, name), getattr(init, name)), name
     assert wm.latent_scale == init.latent_scale
-    assert_same(wm.ae.state_dict(), init.ae.state_dict())
+    assert_same(wm.codec.state_dict(), init.codec.state_dict())
     assert_same(wm.dynamics.state_dict(), init.dynamics.state_dict(), atol=1e-6, rtol=0)
     config = json.loads((tuned / "config.json").read_text())
     assert config["init"].endswith("last") and config["stage2"]["unroll"] == [[0, 2]]

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from iwsim.checkpoint import CheckpointError, load_tensors, save_model_dir
-from iwsim.config import VARIANTS
 from iwsim.world_model import StreamState, WorldModel
+from iwsim.world_model.presets import VARIANTS
 from tests.test_dynamics import tiny_world_model
 
 
@@ -96,7 +96,7 @@ def test_checkpoint_missing_a_part(tmp_path):
     wm.save(tmp_path / "wm")
     tensors = load_tensors(tmp_path / "wm" / "model.safetensors")
     config = WorldModel.load(tmp_path / "wm").describe()
-    save_model_dir(tmp_path / "no_dyn", {k: v for k, v in tensors.items() if k.startswith("ae.")}, config)
+    save_model_dir(tmp_path / "no_dyn", {k: v for k, v in tensors.items() if k.startswith("codec.")}, config)
     with pytest.raises(CheckpointError, match="no dynamics weights"):
         WorldModel.load(tmp_path / "no_dyn")
     save_model_dir(tmp_path / "no_norm", tensors, {k: v for k, v in config.items() if k != "action_norm"})

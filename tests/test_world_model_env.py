@@ -101,7 +101,7 @@ def test_stage2_cli_end_to_end(play_store, tmp_path, capsys):
     before, after = WorldModel.load(wm_dir).state_dict(), WorldModel.load(tmp_path / "wm_ft").state_dict()
     assert before.keys() == after.keys()
     changed = {k.split(".")[0] + "." + k.split(".")[1] for k in before if not torch.equal(before[k], after[k])}
-    assert changed == {"ae.decoder"}
+    assert changed == {"codec.decoder"}
     video = tmp_path / "r.mp4"
     capsys.readouterr()
     assert main(["rollout", "--checkpoint", str(wm_dir), "--data", str(play_store), "--episode", "3",

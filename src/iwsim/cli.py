@@ -83,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="train a stage of the world model")
     train_sub = p.add_subparsers(dest="train_command", required=True, metavar="STAGE")
-    q = train_sub.add_parser("ae", help="stage 1: CNN encoder + consistency decoder")
+    q = train_sub.add_parser("ae", help="stage 1: a codec (the preset says which: consistency-ae or conv-ae)")
     _train_flags(q, "tiny, pusht-64, pusht-128")
     q.set_defaults(func=_train_ae)
     q = train_sub.add_parser("dynamics", help="stage 2: latent consistency dynamics on a frozen stage 1")
@@ -113,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--lr", type=float, default=1e-4, help="learning rate (default: %(default)s)")
     q.add_argument("--batch-size", type=int, help="global batch size (default: the autoencoder's)")
     q.add_argument("--seed", type=int, help="seed (default: the autoencoder's)")
+    q.add_argument("--latent-noise", metavar="LO,HI",
+                   help="std range of the noise on the latents the decoder learns to render, in the dynamics' "
+                        "standardised units (default: the model's stage-2 context noise)")
     q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
     q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -413,7 +416,7 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
         raise InputError(f"--lr must be a positive number, got {args.lr}.")
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **overrides))
     if getattr(args, "variant", None) is not None:
-        from iwsim.config import variant
+        from iwsim.world_model.presets import variant
 
         cfg = variant(cfg, args.variant)
     if args.dry_run:
@@ -458,13 +461,13 @@ def _print_metrics(metrics: dict[str, float]) -> None:
 
 
 def _train_ae(args: argparse.Namespace) -> int:
-    from iwsim.config import AE_PRESETS
+    from iwsim.world_model.presets import AE_PRESETS
 
     cfg = _resolve_preset(args, AE_PRESETS)
     if cfg is None:
         return 0
-    from iwsim.training.autoencoder import train_autoencoder
     from iwsim.training.trainer import resolve_device
+    from iwsim.world_model.train_codec import train_autoencoder
 
     _print_metrics(train_autoencoder(cfg, args.data, args.out, device=resolve_device(args.device),
                                      force=args.force, progress=not args.no_progress))
@@ -472,7 +475,7 @@ def _train_ae(args: argparse.Namespace) -> int:
 
 
 def _train_dynamics(args: argparse.Namespace) -> int:
-    from iwsim.config import DYNAMICS_PRESETS
+    from iwsim.world_model.presets import DYNAMICS_PRESETS
 
     if args.init is not None and args.variant != "ours":
         raise InputError("--variant applies to training from scratch; --init keeps the model's own objective "
@@ -480,8 +483,8 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     cfg = _resolve_preset(args, DYNAMICS_PRESETS)
     if cfg is None:
         return 0
-    from iwsim.training.dynamics import train_dynamics
     from iwsim.training.trainer import resolve_device
+    from iwsim.world_model.train_dynamics import train_dynamics
 
     _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
                                   force=args.force, progress=not args.no_progress, latent_cache=args.latent_cache,
@@ -535,17 +538,25 @@ def _eval_policy(args: argparse.Namespace) -> int:
 
 
 def _train_decoder_finetune(args: argparse.Namespace) -> int:
-    from iwsim.training.autoencoder import finetune_decoder
     from iwsim.training.trainer import resolve_device
+    from iwsim.world_model.train_codec import finetune_decoder
 
     _check_positive(args, "steps", "batch_size")
     if not args.lr > 0:
         raise InputError(f"--lr must be positive, got {args.lr}.")
     if args.batch_size is not None:
         _check_batch_memory("decoder-finetune", args.batch_size, args.data)
+    noise = None
+    if args.latent_noise is not None:
+        try:
+            noise = tuple(float(v) for v in args.latent_noise.split(","))
+        except ValueError:
+            noise = ()
+        if len(noise) != 2 or not all(math.isfinite(v) for v in noise) or not 0 <= noise[0] <= noise[1]:
+            raise InputError(f"--latent-noise takes LO,HI with 0 <= LO <= HI, got {args.latent_noise!r}.")
     _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
                                     steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-                                    force=args.force, progress=not args.no_progress))
+                                    latent_noise=noise, force=args.force, progress=not args.no_progress))
     return 0
 
 

@@ -7,17 +7,18 @@ ids, ``__version__`` and a lazy ``iwsim.WorldModel``) is outside the layers.
 """
 
 LAYERS: list[tuple[str, ...]] = [
-    # 1. foundations: networks, noise and samplers, checkpoint I/O, metrics, errors, configs
+    # 1. foundations: network blocks, noise and samplers, checkpoint I/O, metrics, errors,
+    #    configs, the generic training loop
     ("iwsim.errors", "iwsim.resources", "iwsim.models", "iwsim.diffusion", "iwsim.checkpoint", "iwsim.metrics",
-     "iwsim.normalize", "iwsim.config", "iwsim.layers"),
+     "iwsim.normalize", "iwsim.config", "iwsim.layers", "iwsim.training.trainer", "iwsim.training.distributed"),
     # 2. the ground truth: MuJoCo tasks, their scripted policies, pixel scorers
     ("iwsim.envs",),
-    # 3. data, then the models as objects
+    # 3. data, then the models as objects (the world model with its codecs and its training)
     ("iwsim.data",),
-    ("iwsim.autoencoder", "iwsim.world_model", "iwsim.policies"),
+    ("iwsim.world_model", "iwsim.policies"),
     # 4. Gymnasium envs over a world model
     ("iwsim.world_model_env",),
-    # 5. what uses all of it, the studies built on that, then the command line
+    # 5. what uses all of it (policy training, evaluation, play), the studies, then the command line
     ("iwsim.training", "iwsim.eval", "iwsim.play", "iwsim.demo"),
     ("iwsim.experiments",),
     ("iwsim.cli",),

@@ -79,7 +79,7 @@ class SpatialAttention(nn.Module):
 
 class Dynamics(nn.Module):
     """F(x, context, levels, actions) -> the network output for the new latent (a v- or
-    x-prediction, depending on the objective; see :mod:`iwsim.diffusion.objectives`)."""
+    x-prediction, depending on the objective; see :mod:`iwsim.world_model.objectives`)."""
 
     def __init__(self, cfg: DynamicsConfig = DynamicsConfig()) -> None:
         super().__init__()

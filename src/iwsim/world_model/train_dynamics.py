@@ -32,17 +32,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.config import OBJECTIVES, DynamicsStageConfig
 from iwsim.data.frames import to_model, to_uint8
-from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
-from iwsim.diffusion.objectives import Levels
-from iwsim.diffusion.schedule import Schedule
 from iwsim.errors import InputError
 from iwsim.metrics import psnr
-from iwsim.models.dynamics import Dynamics
 from iwsim.training import trainer
-from iwsim.training.dynamics_data import DynamicsData, DynBatch
-from iwsim.world_model import KIND, WorldModel, label
+from iwsim.world_model.denoiser import Denoiser
+from iwsim.world_model.dynamics import Dynamics
+from iwsim.world_model.dynamics_data import DynamicsData, DynBatch
+from iwsim.world_model.model import KIND, WorldModel
+from iwsim.world_model.objectives import Levels
+from iwsim.world_model.presets import OBJECTIVES, DynamicsStageConfig
 
 log = logging.getLogger(__name__)
 
@@ -51,12 +50,12 @@ class DynamicsTrainModule(nn.Module):
     """forward(batch) -> the loss of the n unrolled predictions of each sequence under the
     config's objective (see the module docstring)."""
 
-    def __init__(self, dynamics: Dynamics, schedule: Schedule, cfg: DynamicsStageConfig) -> None:
+    def __init__(self, dynamics: Dynamics, cfg: DynamicsStageConfig) -> None:
         super().__init__()
         if cfg.objective not in OBJECTIVES:
             raise InputError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
-        self.dynamics, self.schedule, self.cfg = dynamics, schedule, cfg
-        self.objective = OBJECTIVE_TABLE[cfg.objective]
+        self.dynamics, self.cfg = dynamics, cfg
+        self.denoiser = Denoiser(dynamics, cfg)
         # Whether the loss's one-pass estimate is exactly what inference generates (then it
         # is fed back with its gradient); otherwise a real sample is fed back.
         one_jump = cfg.jumps == 1 and cfg.top_fraction == 1 and cfg.zero_fraction == 1
@@ -78,24 +77,16 @@ class DynamicsTrainModule(nn.Module):
             sig = batch.ctx_sigma[:, u]
             ctx_in = ctx + sig.view(-1, 1, 1, 1, 1) * batch.ctx_eps[:, u]
             acts = batch.actions[:, u:u + 2]
-            ctx_label = label(sig)
-
-            def net(x: torch.Tensor, t: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-                return self.dynamics(x, ctx_in, t, s, ctx_label, acts)  # noqa: B023  (called in this iteration)
-
             target = batch.z[:, k + u]
-            base = ctx_in[:, -1] if cfg.predict_delta else torch.zeros_like(target)
             levels = Levels(batch.t[:, u], batch.s[:, u], batch.sigma[:, u])
-            err, estimate = self.objective.loss(net, self.schedule, target - base, levels, batch.eps[:, u])
+            err, pred = self.denoiser.loss(target, ctx_in, sig, acts, levels, batch.eps[:, u])
             changed = (target - batch.z[:, k + u - 1]).abs().amax(1, keepdim=True) > cfg.changed_threshold
             losses.append((err * (1 + cfg.changed_weight * changed)).mean((1, 2, 3)))
             if u == n - 1:
                 break
             if not self.feeds_estimate:
                 with torch.no_grad():
-                    steps = cfg.euler_steps if cfg.objective == "edm" else cfg.jumps
-                    estimate = self.objective.sample(net, self.schedule, batch.feed_eps[:, u], steps)
-            pred = base + estimate
+                    pred = self.denoiser.sample(ctx_in, sig, acts, batch.feed_eps[:, u])
             ctx = torch.cat([ctx[:, 1:], (pred if cfg.unroll_grad else pred.detach())[:, None]], 1)
         return torch.stack(losses, 1)
 
@@ -159,7 +150,7 @@ class DynamicsTask:
         self.cfg = cfg = self.data.cfg
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
-            self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), Schedule(cfg.schedule), cfg)
+            self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), cfg)
         if wm is not None:
             self.module.dynamics.load_state_dict(wm.dynamics.state_dict())
         self.init = None if init is None else str(init)
@@ -169,7 +160,7 @@ class DynamicsTask:
 
     def world_model(self, dynamics: Dynamics) -> WorldModel:
         d = self.data
-        return WorldModel(d.ae, dynamics, self.cfg, d.action_low.tolist(), d.action_high.tolist(), d.latent_mean,
+        return WorldModel(d.codec, dynamics, self.cfg, d.action_low.tolist(), d.action_high.tolist(), d.latent_mean,
                           d.latent_scale)
 
     def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:

@@ -1,6 +1,7 @@
 """Stage 1 networks: the CNN encoder and the consistency decoder's UNet.
 
-Encoder: image (B, 3, H, W) in [-1, 1] -> latent (B, C, H/4, W/4). Each latent pixel's
+Encoder: image (B, 3, H, W) in [-1, 1] -> latent (B, C, H/d, W/d), d = 2^(levels - 1)
+(three levels of channels: d = 4, 16 x 16 latents at 64 px; two: d = 2). Each latent pixel's
 C-vector is L2-normalised and scaled by sqrt(C) (as in the public code), so every element
 has unit scale on average and stage 2 sees a fixed range.
 
@@ -29,6 +30,11 @@ class EncoderConfig:
     channels: tuple[int, ...] = (16, 32, 64)  # at H, H/2, H/4: three levels = two halvings
     blocks_per_level: int = 1
 
+    @property
+    def downsampling(self) -> int:
+        """H / h: the latent's cells are this many pixels wide."""
+        return 2 ** (len(self.channels) - 1)
+
 
 @dataclass(frozen=True)
 class DecoderConfig:
@@ -43,8 +49,8 @@ class DecoderConfig:
 class Encoder(nn.Module):
     def __init__(self, cfg: EncoderConfig = EncoderConfig()) -> None:
         super().__init__()
-        if len(cfg.channels) != 3:
-            raise InputError(f"the encoder downsamples by 4: give 3 levels of channels, got {cfg.channels}.")
+        if not cfg.channels:
+            raise InputError("the encoder needs at least one level of channels.")
         self.cfg = cfg
         self.conv_in = nn.Conv2d(cfg.image_channels, cfg.channels[0], 3, padding=1)
         layers: list[nn.Module] = []
@@ -60,7 +66,7 @@ class Encoder(nn.Module):
         self.conv_out = nn.Conv2d(c, cfg.latent_channels, 3, padding=1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) in [-1, 1] -> (B, C, H/4, W/4), each pixel's C-vector of norm sqrt(C)."""
+        """(B, 3, H, W) in [-1, 1] -> (B, C, H/d, W/d), each pixel's C-vector of norm sqrt(C)."""
         assert x.ndim == 4, f"expected (B, 3, H, W), got {tuple(x.shape)}"
         h = self.conv_in(x)
         for layer in self.blocks:
@@ -103,7 +109,7 @@ class DecoderUNet(nn.Module):
         nn.init.zeros_(self.conv_out.bias)
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """x_t (B, 3, H, W), levels t and s (B,), latent z (B, C, H/4, W/4) -> v (B, 3, H, W)."""
+        """x_t (B, 3, H, W), levels t and s (B,), latent z (B, C, h, w) (any h | H) -> v (B, 3, H, W)."""
         assert x.ndim == 4 and z.ndim == 4, f"expected 4-D x and z, got {tuple(x.shape)}, {tuple(z.shape)}"
         scale = 1000.0 / self.cfg.num_levels
         emb = self.emb(torch.cat([sinusoidal(t * scale, self.cfg.emb_dim), sinusoidal(s * scale, self.cfg.emb_dim)], 1))

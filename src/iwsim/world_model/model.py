@@ -1,4 +1,4 @@
-"""The world model: stage-1 autoencoder + stage-2 dynamics behind reset / step / rollout.
+"""The world model: a codec (stage 1) + the latent dynamics (stage 2) behind reset / step / rollout.
 
     wm = WorldModel.load("checkpoints/pusht-64")
     wm.reset(frames)                    # uint8 (B, H, W, 3), or (B, K, H, W, 3) with actions (B, K-1, A)
@@ -18,9 +18,12 @@ flat. The actions are the motion the robot executes: for a task with a speed lim
 the rate-limited targets (``iwsim.envs.pusht.limit_targets``), which the task-aware
 callers (``iwsim/WorldModel-v0``, ``iwsim play``) compute from commands.
 
-Objectives: a new latent comes from one consistency jump from noise (ours), or, for the
-benchmark's baselines, Euler steps of an EDM denoiser or one pass of a regressor
-(``cfg.objective``, :mod:`iwsim.diffusion.objectives`).
+The codec is any :class:`~iwsim.world_model.codec.Codec` (frames <-> latents of its
+``latent_shape``); the dynamics network is called through a
+:class:`~iwsim.world_model.denoiser.Denoiser`. Objectives: a new latent comes from one
+consistency jump from noise (ours), or, for the benchmark's baselines, Euler steps of an
+EDM denoiser or one pass of a regressor (``cfg.objective``,
+:mod:`iwsim.world_model.objectives`).
 
 Randomness: the noise of batch item i comes from its own generator, seeded by
 ``seed + i`` (or ``seeds[i]``) at reset, so a batched rollout equals per-item rollouts.
@@ -40,22 +43,19 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.autoencoder import Autoencoder
 from iwsim.checkpoint import CheckpointError, load_json, load_model_dir, resolve_checkpoint, save_model_dir
-from iwsim.config import OBJECTIVES, AEConfig, DynamicsStageConfig, from_dict, to_dict
+from iwsim.config import from_dict, to_dict
 from iwsim.data.frames import to_model, to_uint8
-from iwsim.diffusion.objectives import OBJECTIVES as OBJECTIVE_TABLE
-from iwsim.diffusion.schedule import Schedule, gaussian
+from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
-from iwsim.models.dynamics import Dynamics
 from iwsim.normalize import scale
+from iwsim.world_model.codec import DEFAULT_KIND, Codec
+from iwsim.world_model.codecs import build_codec
+from iwsim.world_model.denoiser import Denoiser
+from iwsim.world_model.dynamics import Dynamics
+from iwsim.world_model.presets import OBJECTIVES, DynamicsStageConfig
 
 KIND = "world_model"
-
-
-def label(sigma: float | torch.Tensor) -> float | torch.Tensor:
-    """The context-noise std (standardised latent units) in the network's level units."""
-    return sigma * 1000.0
 
 
 @dataclass
@@ -92,7 +92,7 @@ class StreamState:
 
 
 class WorldModel(nn.Module):
-    """Encoder, consistency decoder and latent dynamics, with action and latent normalisation.
+    """Codec and latent dynamics, with action and latent normalisation.
 
     The dynamics works on standardised latents ``(z - latent_mean) / latent_scale``: the
     per-element mean over the training frames and one scale, the root-mean-square of the
@@ -101,15 +101,18 @@ class WorldModel(nn.Module):
     (levels up to 100, noise std up to 0.14) would drown the differences that matter.
     """
 
-    def __init__(self, ae: Autoencoder, dynamics: Dynamics, cfg: DynamicsStageConfig,
+    def __init__(self, codec: Codec, dynamics: Dynamics, cfg: DynamicsStageConfig,
                  action_low: Sequence[float], action_high: Sequence[float],
                  latent_mean: torch.Tensor | None = None, latent_scale: float = 1.0) -> None:
         super().__init__()
         if cfg.objective not in OBJECTIVES:
             raise InputError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
-        self.ae, self.dynamics, self.cfg = ae, dynamics, cfg
-        ae.decoder.to(memory_format=torch.channels_last)  # see decode_latents
-        self.schedule = Schedule(cfg.schedule)
+        if tuple(codec.latent_shape) != self.latent_shape_of(cfg):
+            raise InputError(f"the codec's latents are {tuple(codec.latent_shape)} but the dynamics takes "
+                             f"{self.latent_shape_of(cfg)}.")
+        self.codec, self.dynamics, self.cfg = codec, dynamics, cfg
+        codec.to(memory_format=torch.channels_last)  # see decode_latents
+        self.denoiser = Denoiser(dynamics, cfg)
         low = torch.as_tensor(action_low, dtype=torch.float32)
         high = torch.as_tensor(action_high, dtype=torch.float32)
         if low.shape != (cfg.dynamics.action_dim,) or high.shape != low.shape or not bool((high > low).all()):
@@ -143,9 +146,19 @@ class WorldModel(nn.Module):
         self._context_label = float(value)
 
     # -- properties -------------------------------------------------------------------------
+    @staticmethod
+    def latent_shape_of(cfg: DynamicsStageConfig) -> tuple[int, int, int]:
+        d = cfg.dynamics
+        return (d.latent_channels, d.latent_size, d.latent_size)
+
     @property
     def image_size(self) -> int:
-        return self.ae.image_size
+        return self.codec.image_size
+
+    @property
+    def latent_shape(self) -> tuple[int, int, int]:
+        """(C, h, w) of one frame's latent."""
+        return tuple(self.codec.latent_shape)
 
     @property
     def action_dim(self) -> int:
@@ -198,20 +211,20 @@ class WorldModel(nn.Module):
 
     @torch.inference_mode()
     def encode(self, frames: np.ndarray | torch.Tensor) -> torch.Tensor:
-        """uint8 frames (B, H, W, 3) -> latents (B, C, H/4, W/4)."""
+        """uint8 frames (B, H, W, 3) -> latents (B, *latent_shape)."""
         x = self.check_frames(frames, 4)
-        return self.ae.encode_tensor(to_model(x).to(self.device))
+        return self.codec.encode(to_model(x).to(self.device))
 
     @torch.inference_mode()
     def decode(self, latents: np.ndarray | torch.Tensor, seed: int = 0) -> np.ndarray:
         """Latents (B, C, h, w) (as ``encode`` returns them, numpy or tensor) -> uint8 frames
-        (B, 4h, 4w, 3) by one consistency jump."""
+        (B, H, W, 3) (a stochastic codec's noise drawn from ``seed``)."""
         z = torch.as_tensor(latents, dtype=torch.float32, device=self.device)
-        c, h = self.cfg.dynamics.latent_channels, self.image_size // 4
-        if z.ndim != 4 or tuple(z.shape[1:]) != (c, h, h):
-            raise InputError(f"expected latents (B, {c}, {h}, {h}), got shape {tuple(z.shape)}.")
+        if z.ndim != 4 or tuple(z.shape[1:]) != self.latent_shape:
+            raise InputError(f"expected latents (B, {', '.join(map(str, self.latent_shape))}), "
+                             f"got shape {tuple(z.shape)}.")
         g = torch.Generator(self.device).manual_seed(seed)
-        return to_uint8(self.ae.decode_tensor(z, 1, g))
+        return to_uint8(self.codec.decode(z, None, 1, g))
 
     # -- streaming rollout on latents ---------------------------------------------------------
     def standardize(self, z: torch.Tensor) -> torch.Tensor:
@@ -268,7 +281,7 @@ class WorldModel(nn.Module):
         state, z = self.step_state_latent(state, actions)
         images = self.decode_latents(z, state.generators)
         if self.reencode:
-            state.context[:, -1] = self.standardize(self.ae.encode_tensor(images.clamp(-1, 1)))
+            state.context[:, -1] = self.standardize(self.codec.encode(images.clamp(-1, 1)))
         return state, images
 
     def reset_state(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
@@ -298,29 +311,26 @@ class WorldModel(nn.Module):
         previous and current normalised actions (B, 2, A) and the noise (B, C, h, w): what
         the objective generates, plus the newest context latent when it generates the
         change (``predict_delta``)."""
-        b = context.shape[0]
-        ctx_label = torch.full((b,), float(label(self.context_label)), device=context.device)
-
-        def net(x: torch.Tensor, t: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-            return self.dynamics(x, context, t, s, ctx_label, actions)
-
+        sigma = torch.full((context.shape[0],), self.context_label, device=context.device)
         steps = self.euler_steps if self.cfg.objective == "edm" else self.jumps
-        y = OBJECTIVE_TABLE[self.cfg.objective].sample(net, self.schedule, noise, steps)
-        return y + context[:, -1] if self.cfg.predict_delta else y
+        return self.denoiser.sample(context, sigma, actions, noise, steps)
 
     @torch.inference_mode()
     def decode_latents(self, z: torch.Tensor, generators: Sequence[torch.Generator] | None = None) -> torch.Tensor:
         """Latents (B, ..., C, h, w) -> images (B, ..., 3, H, W) in [-1, 1], item i's
-        noise from ``generators[i]`` (default: the current rollouts' generators)."""
+        noise (for a stochastic codec) from ``generators[i]`` (default: the current
+        rollouts' generators)."""
         lead = tuple(z.shape[1:-3])
         size = self.image_size
-        gens = self.state.generators if generators is None else generators
-        noise = self._noise(gens, (*lead, self.ae.cfg.decoder.image_channels, size, size)).flatten(0, len(lead))
+        shape = (3, size, size)
+        noise = None
+        if self.codec.stochastic:
+            gens = self.state.generators if generators is None else generators
+            noise = self._noise(gens, (*lead, *shape)).flatten(0, len(lead))
+            noise = noise.contiguous(memory_format=torch.channels_last)
         # channels-last activations: ~25% faster decoder convolutions on CPU (measured at batch 4)
-        cl = torch.channels_last
-        images = self.ae.decode_tensor(z.flatten(0, len(lead)).contiguous(memory_format=cl), 1,
-                                       noise=noise.contiguous(memory_format=cl))
-        return images.contiguous().view(*z.shape[:-3], *noise.shape[1:])
+        images = self.codec.decode(z.flatten(0, len(lead)).contiguous(memory_format=torch.channels_last), noise)
+        return images.contiguous().view(*z.shape[:-3], *shape)
 
     def rollout(self, context_frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor,
                 context_actions: np.ndarray | torch.Tensor | None = None, seed: int | Sequence[int] = 0,
@@ -375,13 +385,14 @@ class WorldModel(nn.Module):
     # -- checkpoints ----------------------------------------------------------------------------
     def export(self) -> dict[str, torch.Tensor]:
         """The tensors of a world-model ``model.safetensors``."""
-        return {**{f"ae.{k}": v for k, v in self.ae.state_dict().items()},
+        return {**{f"codec.{k}": v for k, v in self.codec.state_dict().items()},
                 **{f"dynamics.{k}": v for k, v in self.dynamics.state_dict().items()},
                 "latent_mean": self.latent_mean}
 
     def describe(self) -> dict:
         """The parts of ``config.json`` that ``load`` reads."""
-        return {"kind": KIND, "ae": to_dict(self.ae.cfg), "stage2": to_dict(self.cfg),
+        return {"kind": KIND, "codec": {"kind": self.codec.kind, "config": to_dict(self.codec.cfg)},
+                "stage2": to_dict(self.cfg),
                 "action_norm": {"low": self.action_low.tolist(), "high": self.action_high.tolist()},
                 "latent_norm": {"scale": self.latent_scale}}
 
@@ -393,33 +404,40 @@ class WorldModel(nn.Module):
     @classmethod
     def load(cls, path: str | Path, device: str | torch.device = "cpu") -> WorldModel:
         """From a checkpoint directory (``model.safetensors`` + ``config.json``), e.g. one
-        written by ``iwsim train dynamics`` or ``iwsim export-model``."""
+        written by ``iwsim train dynamics`` or ``iwsim export-model``. Checkpoints from
+        before the codec seam (an ``ae`` config and ``ae.*`` weights: the consistency
+        autoencoder) load as they are."""
         path = Path(path)
         config, tensors = load_model_dir(path, KIND)
-        for part in ("ae", "stage2", "action_norm", "latent_norm"):
-            if part not in config:
+        if "codec" in config:
+            prefix, codec_kind, codec_cfg = "codec", config["codec"].get("kind"), config["codec"].get("config")
+        else:  # the layout before codecs had names
+            prefix, codec_kind, codec_cfg = "ae", DEFAULT_KIND, config.get("ae")
+        for part, value in (("codec", codec_cfg), *((p, config.get(p)) for p in ("stage2", "action_norm",
+                                                                                   "latent_norm"))):
+            if value is None:
                 raise CheckpointError(f"{path / 'config.json'} is missing the {part!r} part of the world model.")
         try:
-            ae_cfg = from_dict(AEConfig, config["ae"])
+            codec = build_codec(codec_kind, codec_cfg)
             cfg = from_dict(DynamicsStageConfig, config["stage2"])
-        except (TypeError, ValueError, KeyError) as e:
+        except (TypeError, ValueError, KeyError, AttributeError) as e:
             raise CheckpointError(f"{path / 'config.json'} does not describe a world model: {e}") from None
         parts = {}
-        for part in ("ae", "dynamics"):
-            parts[part] = {k[len(part) + 1:]: v for k, v in tensors.items() if k.startswith(part + ".")}
-            if not parts[part]:
-                raise CheckpointError(f"{path / 'model.safetensors'} has no {part} weights ({part}.*).")
+        for part, name in ((prefix, "codec"), ("dynamics", "dynamics")):
+            parts[name] = {k[len(part) + 1:]: v for k, v in tensors.items() if k.startswith(part + ".")}
+            if not parts[name]:
+                raise CheckpointError(f"{path / 'model.safetensors'} has no {name} weights ({part}.*).")
         if "latent_mean" not in tensors:
             raise CheckpointError(f"{path / 'model.safetensors'} has no latent normalisation (latent_mean).")
-        ae, dyn = Autoencoder(ae_cfg), Dynamics(cfg.dynamics)
+        dyn = Dynamics(cfg.dynamics)
         try:
-            ae.load_state_dict(parts["ae"])
+            codec.load_state_dict(parts["codec"])
             dyn.load_state_dict(parts["dynamics"])
         except RuntimeError as e:
             raise CheckpointError(f"{path / 'model.safetensors'} does not match its config: "
                                   f"{' '.join(str(e).split())[:200]}") from None
         norm = config["action_norm"]
-        return cls(ae, dyn, cfg, norm["low"], norm["high"], tensors["latent_mean"],
+        return cls(codec, dyn, cfg, norm["low"], norm["high"], tensors["latent_mean"],
                    config["latent_norm"]["scale"]).to(device).eval()
 
 

@@ -18,9 +18,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 from tqdm import tqdm
 
-from iwsim.autoencoder import Autoencoder
 from iwsim.checkpoint import resolve_checkpoint
-from iwsim.config import DynamicsStageConfig
 from iwsim.data.frames import split_episodes, to_model
 from iwsim.data.store import EpisodeStore, StoreError, conditioning_key
 from iwsim.diffusion import edm
@@ -28,7 +26,10 @@ from iwsim.diffusion.consistency import sample_levels
 from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
 from iwsim.normalize import scale, widen
-from iwsim.world_model import WorldModel
+from iwsim.world_model.codec import Codec
+from iwsim.world_model.codecs import load_codec
+from iwsim.world_model.model import WorldModel
+from iwsim.world_model.presets import DynamicsStageConfig
 
 
 @dataclass
@@ -72,11 +73,11 @@ class DynamicsData:
             if key not in store.keys:
                 raise StoreError(f"{data} has no data/{key} to train the dynamics on.")
         self.ae_path = resolve_checkpoint(ae_path)  # with init: the world model's checkpoint
-        self.ae = Autoencoder.load(self.ae_path, device) if init is None else init.ae
+        self.codec = load_codec(self.ae_path, device) if init is None else init.codec
         size = store.array("img").shape[1]
-        if size != self.ae.image_size:
+        if size != self.codec.image_size:
             raise InputError(f"{data} holds {size}x{size} frames but the autoencoder {self.ae_path} expects "
-                             f"{self.ae.image_size}x{self.ae.image_size}.")
+                             f"{self.codec.image_size}x{self.codec.image_size}.")
         self.action_key = conditioning_key(store.keys)
         actions = np.asarray(store.array(self.action_key)[:], dtype=np.float32)
         if actions.ndim != 2:
@@ -105,9 +106,9 @@ class DynamicsData:
             low, high = init.action_low.cpu(), init.action_high.cpu()
         self.action_low, self.action_high = low.numpy(), high.numpy()
         self.actions = scale(torch.from_numpy(actions), low, high)
-        self.latents = encode_store(self.ae, store, device, progress, latent_cache)
+        self.latents = encode_store(self.codec, store, device, progress, latent_cache)
         # The action size and latent shape follow the data; positional actions where the
-        # task declares them (see iwsim.models.dynamics).
+        # task declares them (see iwsim.world_model.dynamics).
         cfg = replace(cfg, dynamics=replace(cfg.dynamics, action_dim=actions.shape[1],
                                             latent_channels=self.latents.shape[1],
                                             latent_size=self.latents.shape[-1],
@@ -168,20 +169,20 @@ class DynamicsData:
 
 
 @torch.no_grad()
-def encode_store(ae: Autoencoder, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
+def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
              chunk: int = 512) -> torch.Tensor:
     """Latents of every frame of the store, reused from ``cache`` when it was written
     for the same frames and the same encoder weights."""
     img = store.array("img")
     key = f"{store.path}|{img.shape[0]}|" + ",".join(
-        f"{v.double().sum().item():.10e}" for v in ae.encoder.state_dict().values())
+        f"{v.double().sum().item():.10e}" for v in codec.encoder_parameters())
     if cache is not None and cache.is_file():
         with safe_open(cache, "pt") as f:
             if (f.metadata() or {}).get("key") == key:
                 return f.get_tensor("latents")
     out = []
     for i in tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress):
-        out.append(ae.encode_tensor(to_model(img[i:i + chunk]).to(device)).cpu())
+        out.append(codec.encode(to_model(img[i:i + chunk]).to(device)).cpu())
     latents = torch.cat(out)
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)

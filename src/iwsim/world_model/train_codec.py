@@ -1,10 +1,12 @@
-"""Stage 1 training: the autoencoder task for the generic loop (``iwsim train ae``)."""
+"""Stage 1 training: any codec (``iwsim train ae``) and stage 3, a world model's decoder
+fine-tuned on noised latents (``iwsim train decoder-finetune``), for the generic loop.
+The codec supplies its own loss and per-step randomness (:mod:`iwsim.world_model.codec`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -12,57 +14,57 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.autoencoder import KIND, Autoencoder
 from iwsim.checkpoint import resolve_checkpoint
-from iwsim.config import AEConfig, to_dict
+from iwsim.config import to_dict
 from iwsim.data.frames import FrameSource, split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore, StoreError
-from iwsim.diffusion.consistency import sample_levels, two_jump_loss
 from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
 from iwsim.metrics import psnr, ssim
 from iwsim.training import trainer
-from iwsim.world_model import WorldModel
+from iwsim.world_model.codec import KIND, Codec, reconstruct
+from iwsim.world_model.codecs import build_codec, kind_of
+from iwsim.world_model.model import WorldModel
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class AEBatch:
-    """x0 (B, 3, H, W) in [-1, 1]; levels t, s (B,); eps like x0; for stage 3, the latent
-    noise: its std (B,) and its draw (B, C, h, w)."""
+    """x0 (B, 3, H, W) in [-1, 1]; the codec's per-sample training noise; for stage 3, the
+    latent noise: its std (B,) and its draw (B, C, h, w)."""
 
     x0: torch.Tensor
-    t: torch.Tensor
-    s: torch.Tensor
-    eps: torch.Tensor
+    noise: dict[str, torch.Tensor] = field(default_factory=dict)
     z_std: torch.Tensor | None = None
     z_eps: torch.Tensor | None = None
 
     def to(self, device: torch.device) -> AEBatch:
-        return AEBatch(*(None if v is None else v.to(device) for v in vars(self).values()))
+        return AEBatch(self.x0.to(device), {k: v.to(device) for k, v in self.noise.items()},
+                       *(None if v is None else v.to(device) for v in (self.z_std, self.z_eps)))
 
 
 class AETrainModule(nn.Module):
-    """forward(batch) -> the two-jump loss of the decoder on the encoder's latents."""
+    """forward(batch) -> the codec's decoder loss on its encoder's latents."""
 
-    def __init__(self, ae: Autoencoder) -> None:
+    def __init__(self, codec: Codec) -> None:
         super().__init__()
-        self.ae = ae
+        self.codec = codec
 
     def forward(self, batch: AEBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.ae.cfg.freeze_encoder):
-            z = self.ae.encoder(batch.x0)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.codec.cfg.freeze_encoder):
+            z = self.codec.encode(batch.x0)
         if batch.z_eps is not None:  # stage 3: render imperfect (noised) latents cleanly
             z = z + batch.z_std.view(-1, 1, 1, 1) * batch.z_eps
-        return two_jump_loss(self.ae.decoder, self.ae.schedule, batch.x0, z, batch.t, batch.s, batch.eps)
+        return self.codec.loss(batch.x0, z, batch.noise)
 
 
 class AETask:
     """Frames from the store's training episodes; held-out episodes for evaluation."""
 
-    def __init__(self, cfg: AEConfig, data: str | Path, init: dict[str, torch.Tensor] | None = None) -> None:
-        """``init``: start from these weights (stage 3) instead of fresh ones."""
+    def __init__(self, cfg, data: str | Path, init: dict[str, torch.Tensor] | None = None) -> None:
+        """``cfg``: the config of the codec to train (an ``AE_PRESETS`` entry); ``init``:
+        start from these weights (stage 3) instead of fresh ones."""
         store = EpisodeStore.open(data, "r")
         if "img" not in store.keys:
             raise StoreError(f"{data} has no data/img frames to train on.")
@@ -73,7 +75,7 @@ class AETask:
         if store.n_episodes < 2:
             raise InputError(f"{data} holds {store.n_episodes} episode(s); training needs at least 2 "
                              "(one is held out for evaluation).")
-        self.cfg = cfg
+        self.cfg, self.kind = cfg, kind_of(cfg)
         self.train_episodes, self.heldout_episodes = split_episodes(store.n_episodes, cfg.holdout_every)
         self.train_frames = FrameSource(store, self.train_episodes)
         held = FrameSource(store, self.heldout_episodes)
@@ -81,39 +83,40 @@ class AETask:
         self.eval_frames = held.frames(pick)
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
-            self.module = AETrainModule(Autoencoder(cfg))
+            self.module = AETrainModule(build_codec(self.kind, to_dict(cfg)))
         if init is not None:
-            self.module.ae.load_state_dict(init)
+            self.module.codec.load_state_dict(init)
         if cfg.freeze_encoder:
-            self.module.ae.encoder.requires_grad_(False)
+            for p in self.module.codec.encoder_parameters():
+                p.requires_grad_(False)
 
     def split(self) -> dict[str, list[int]]:
         return {"train_episodes": self.train_episodes, "heldout_episodes": self.heldout_episodes}
 
     def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device) -> AEBatch:
-        b, size = self.cfg.train.batch_size, self.cfg.image_size
+        b = self.cfg.train.batch_size
+        codec = self.module.codec
         idx = torch.randint(0, len(self.train_frames), (b,), generator=generator)
-        t, s = sample_levels(b, self.cfg.schedule.num_levels, generator, self.cfg.top_fraction)
-        eps = gaussian((b, 3, size, size), generator)
+        noise = {k: v[part] for k, v in codec.training_noise(b, generator).items()}
         x0 = to_model(self.train_frames.frames(idx[part].numpy()))
         lo, hi = self.cfg.latent_noise
         if hi <= 0:
-            return AEBatch(x0, t[part], s[part], eps[part]).to(device)
+            return AEBatch(x0, noise).to(device)
         # stage 3: latent noise of the dynamics' context noise, a std uniform in [lo, hi)
         # in the dynamics' standardised units
         z_std = (lo + (hi - lo) * torch.rand(b, generator=generator)) * self.cfg.latent_noise_scale
-        z_eps = gaussian((b, self.cfg.encoder.latent_channels, size // 4, size // 4), generator)
-        return AEBatch(x0, t[part], s[part], eps[part], z_std[part], z_eps[part]).to(device)
+        z_eps = gaussian((b, *codec.latent_shape), generator)
+        return AEBatch(x0, noise, z_std[part], z_eps[part]).to(device)
 
     @torch.no_grad()
     def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
-        ae: Autoencoder = module.ae
-        device = next(ae.parameters()).device
+        codec: Codec = module.codec
+        device = next(codec.parameters()).device
         out: dict[str, float] = {}
         x = to_model(self.eval_frames).to(device)
         recon = {}
         for k in self.cfg.eval_jumps:
-            recon[k] = ae.reconstruct_tensor(x, k, chunk=64)
+            recon[k] = reconstruct(codec, x, k, chunk=64)
             a, b = (x + 1) / 2, (recon[k] + 1) / 2
             out[f"psnr_{k}jump"] = psnr(a, b).mean().item()
             out[f"ssim_{k}jump"] = ssim(a, b).mean().item()
@@ -126,14 +129,15 @@ class AETask:
         return out
 
     def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
-        return module.ae.state_dict()
+        return module.codec.state_dict()
 
 
-def train_autoencoder(cfg: AEConfig, data: str | Path, out: str | Path, *, device: torch.device,
-                      force: bool = False, progress: bool = True) -> dict[str, float]:
-    """Train (or resume) stage 1 into the run directory ``out``."""
+def train_autoencoder(cfg, data: str | Path, out: str | Path, *, device: torch.device, force: bool = False,
+                      progress: bool = True) -> dict[str, float]:
+    """Train (or resume) stage 1, the codec that the config ``cfg`` is for (an
+    ``AE_PRESETS`` entry), into the run directory ``out``."""
     task = AETask(cfg, data)
-    config = {"kind": KIND, "model": to_dict(cfg), "data": str(data), "split": task.split()}
+    config = {"kind": KIND, "codec": task.kind, "model": to_dict(cfg), "data": str(data), "split": task.split()}
     return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress)
 
 
@@ -141,16 +145,17 @@ class DecoderFinetuneTask(AETask):
     """Stage 3 on a world model: its decoder learns to render noised latents; every
     checkpoint is the world model with the fine-tuned decoder."""
 
-    def __init__(self, wm: WorldModel, cfg: AEConfig, data: str | Path) -> None:
-        super().__init__(cfg, data, init=wm.ae.state_dict())
+    def __init__(self, wm: WorldModel, cfg, data: str | Path) -> None:
+        super().__init__(cfg, data, init=wm.codec.state_dict())
         self.wm = wm
 
-    def world_model(self, ae: Autoencoder) -> WorldModel:
+    def world_model(self, codec: Codec) -> WorldModel:
         wm = self.wm
-        return WorldModel(ae, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean, wm.latent_scale)
+        return WorldModel(codec, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean,
+                          wm.latent_scale)
 
     def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
-        return self.world_model(module.ae).export()
+        return self.world_model(module.codec).export()
 
 
 def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path, *, device: torch.device,
@@ -164,7 +169,7 @@ def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path,
     imperfect as predicted ones."""
     src = resolve_checkpoint(world_model)
     wm = WorldModel.load(src, device)
-    base = wm.ae.cfg
+    base = wm.codec.cfg
     train = dataclasses.replace(base.train, steps=steps, lr=lr, warmup_steps=min(50, steps), lr_decay="cosine",
                                 batch_size=batch_size or base.train.batch_size,
                                 seed=base.train.seed if seed is None else seed,
@@ -173,6 +178,6 @@ def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path,
     cfg = dataclasses.replace(base, train=train, freeze_encoder=True, latent_noise=tuple(noise),
                               latent_noise_scale=wm.latent_scale)
     task = DecoderFinetuneTask(wm, cfg, data)
-    config = {**task.world_model(task.module.ae).describe(), "data": str(data), "finetuned_from": str(src),
+    config = {**task.world_model(task.module.codec).describe(), "data": str(data), "finetuned_from": str(src),
               "split": task.split()}
     return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress)

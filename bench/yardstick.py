@@ -1,0 +1,196 @@
+"""The world model's fixed yardstick (issue 23): what users do with a model, one table row per model.
+
+    MUJOCO_GL=egl python bench/yardstick.py --models shipped=checkpoints/pusht-64 \\
+        scale750=runs/scale/checkpoints/00000750
+
+For each model, on one thread by default (about 20 minutes a model on this CPU):
+
+1. Held-out play episodes (``--data``, never trained on), open loop from their first
+   frame for 192 steps under the recorded actions (``ablate_dynamics.score``): a T fits
+   the block (share of frames), pushers visible and their median error at step 32, the
+   action gap at step 5 (another episode's actions over the true ones: 1 means ignored),
+   PSNR over steps 1-192 beside repeating the first frame.
+2. Teleoperation: the pixel expert drives the model from 32 MuJoCo first frames (the
+   datagen study's candidates); takes kept at pixel IoU 0.9 and the mean max IoU, beside
+   MuJoCo's.
+3. Ranking: the policy-eval study's 8 scripted policies from the same seeds in MuJoCo and
+   in the model; Pearson r, Spearman rho, MMRV and the spread of the model's scores.
+4. Stability: a 2000-step play run under MuJoCo's executed targets; share of decoded
+   frames (every 10th) in which a T is detected.
+5. Speed: single-stream steps/s and frames/s at batch 64, at the run's thread count (the
+   targets are stated at 2 threads; never time beside a training run).
+
+Results are cached per model under ``--work`` (keyed by the model's weights), so adding a
+model evaluates only that one; ``--out`` gets results.json and results.md with every
+model evaluated so far, the targets and the trivial baselines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from ablate_dynamics import Episodes, score
+from wm_studies_check import TELEOP_SEED, teleop
+
+from iwsim.checkpoint import load_json, resolve_checkpoint, write_json_atomic, write_text_atomic
+from iwsim.eval.profiling import speed, stability
+from iwsim.eval.ranking import agreement
+from iwsim.experiments.common import evaluate_policies, fingerprint
+from iwsim.experiments.policy_eval import PolicyEvalConfig
+from iwsim.resources import set_threads
+from iwsim.world_model import WorldModel
+
+RANK_SEED = 100000
+STABILITY_EVERY = 10
+# (column, key, format, target as text)
+COLUMNS = [
+    ("T kept (play, 192)", "t_found", "{:.0%}", ">= 95%"),
+    ("pushers visible", "pusher_visible", "{:.0%}", ">= 95%"),
+    ("pusher err px @32", "pusher_err_32", "{:.1f}", "<= 2"),
+    ("action gap @5", "action_gap_5", "{:.2f}", "> 1"),
+    ("PSNR 1-192 (repeat first)", "psnr_play", "{:.2f}", "first + 4"),
+    ("teleop kept", "teleop_kept", "{}", ">= 26/32"),
+    ("teleop mean max IoU", "teleop_iou", "{:.3f}", "-"),
+    ("rank r", "pearson", "{:.2f}", ">= 0.9"),
+    ("rank rho", "spearman", "{:.2f}", "-"),
+    ("MMRV", "mmrv", "{:.3f}", "<= 0.05"),
+    ("spread", "spread", "{:.2f}", ">= 0.5"),
+    ("T kept (2000 steps)", "stable_t", "{:.0%}", ">= 90%"),
+    ("steps/s (1 stream)", "steps_per_s", "{:.0f}", ">= 50 @2 threads"),
+    ("frames/s (batch 64)", "frames_per_s_batch64", "{:.0f}", ">= 100 @2 threads"),
+]
+
+
+def ranking(name: str, ckpt: str | None, work: Path, episodes: int, steps: int) -> dict[str, float]:
+    """Mean max IoU of each scripted policy in the model (MuJoCo when ``ckpt`` is None)."""
+    seeds = list(range(RANK_SEED, RANK_SEED + episodes))
+    res = evaluate_policies(PolicyEvalConfig().scripted(), "pusht" if ckpt is None else "world-model", seeds=seeds,
+                            steps=steps, world_model=ckpt, out=work / "eval" / name, progress=False)
+    return {n: r["mean_max_iou"] for n, r in res.items()}
+
+
+def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco: dict) -> dict:
+    """Every yardstick measure of one model (cached under ``work`` by its weights)."""
+    key = {"model": fingerprint(ckpt), "data": args.data, "episodes": args.episodes, "steps": args.steps,
+           "horizon": args.horizon, "speed_calls": args.speed_calls,
+           "candidates": args.candidates, "stability": args.stability_steps, "threads": args.threads}
+    cached = work / "models" / f"{name}.json"
+    if cached.is_file() and (saved := load_json(cached))["key"] == key:
+        return saved["result"]
+    t0 = time.perf_counter()
+    wm = WorldModel.load(ckpt)
+    play = Episodes(args.data, args.episodes)
+    h = min(args.horizon, play.length - 1)
+    held, _, _ = score(wm, play, h)
+    held["psnr_play"], held["psnr_play_first"] = held[f"psnr_1_{h}"], held[f"psnr_first_1_{h}"]
+    t_play = time.perf_counter() - t0
+    tele = teleop(name, ckpt, work, args.candidates, TELEOP_SEED, args.steps)
+    scores = ranking(name, ckpt, work, args.episodes, args.steps)
+    names = sorted(mujoco["ranking"], key=lambda n: -mujoco["ranking"][n])
+    agree = agreement([mujoco["ranking"][n] for n in names], [scores[n] for n in names], ("MuJoCo", name))
+    t_studies = time.perf_counter() - t0 - t_play
+    runs = stability({name: wm}, args.stability_steps, every=STABILITY_EVERY, progress=False)
+    fast = speed(wm, play.img[0, 0], n=args.speed_calls)
+    result = {
+        "checkpoint": str(ckpt), **held, "teleop_kept": f"{tele['kept']}/{tele['candidates']}",
+        "teleop_rate": tele["acceptance_rate"], "teleop_iou": tele["mean_candidate_max_iou"],
+        "ranking": scores, "pearson": agree["pearson"], "spearman": agree["spearman"], "mmrv": agree["mmrv"],
+        "spread": float(np.ptp(list(scores.values()))), "stable_t": float(runs[name]["detected"].mean()),
+        "stable_t_mujoco": float(runs["mujoco"]["detected"].mean()), **fast, "threads": args.threads,
+        "minutes": {"play": t_play / 60, "studies": t_studies / 60,
+                    "total": (time.perf_counter() - t0) / 60}}
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(cached, {"key": key, "result": result})
+    return result
+
+
+def cell(r: dict, key: str, fmt: str) -> str:
+    v = r.get(key)
+    if v is None:
+        return "undefined"
+    text = fmt.format(v)
+    if key == "psnr_play":
+        text += f" ({r['psnr_play_first']:.2f})"
+    return text
+
+
+def markdown(report: dict, command: str) -> str:
+    m = report["mujoco"]
+    lines = ["# The world model's yardstick (`bench/yardstick.py`)", "", f"`{command}`", "",
+             f"Held-out play: {report['episodes']} episodes of `{report['data']}`, {report['horizon']} steps "
+             "open loop. "
+             f"Teleoperation: the pixel expert from {report['candidates']} MuJoCo first frames (seeds from "
+             f"{TELEOP_SEED}), kept at pixel IoU 0.9. Ranking: 8 scripted policies x {report['episodes']} "
+             f"episodes x {report['steps']} steps from seed {RANK_SEED}. Stability: {report['stability_steps']} "
+             f"play steps, every {STABILITY_EVERY}th frame decoded. Speed at the thread count in brackets.", "",
+             "| model | " + " | ".join(c for c, *_ in COLUMNS) + " | minutes |",
+             "|---" * (len(COLUMNS) + 2) + "|",
+             "| target | " + " | ".join(t for *_, t in COLUMNS) + " | ~20 |"]
+    mj = {"t_found": 1.0, "teleop_kept": m["teleop"]["kept_text"], "teleop_iou": m["teleop"]["mean_candidate_max_iou"],
+          "pearson": 1.0, "spearman": 1.0, "mmrv": 0.0, "spread": float(np.ptp(list(m["ranking"].values()))),
+          "stable_t": m.get("stable_t")}
+    lines.append("| MuJoCo | " + " | ".join("-" if mj.get(k) is None else cell(mj, k, f) for _, k, f, _ in COLUMNS)
+                 + " | - |")
+    for name, r in report["models"].items():
+        speed_cells = {"steps_per_s", "frames_per_s_batch64"}
+        row = [cell(r, k, f) + (f" ({r['threads']})" if k in speed_cells else "") for _, k, f, _ in COLUMNS]
+        lines.append(f"| {name} | " + " | ".join(row) + f" | {r['minutes']['total']:.0f} |")
+    lines += ["", "Scripted policies' mean max IoU (MuJoCo, then each model):", "",
+              "| policy | MuJoCo | " + " | ".join(report["models"]) + " |", "|---" * (len(report["models"]) + 2) + "|"]
+    for n in sorted(m["ranking"], key=lambda n: -m["ranking"][n]):
+        lines.append(f"| {n} | {m['ranking'][n]:.3f} | "
+                     + " | ".join(f"{r['ranking'][n]:.3f}" for r in report["models"].values()) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--models", nargs="+", required=True, help="NAME=CHECKPOINT_OR_RUN world models")
+    p.add_argument("--data", default="data/play_eval.zarr", help="held-out play store (default: %(default)s)")
+    p.add_argument("--episodes", type=int, default=20,
+                   help="held-out episodes, and ranking episodes per policy (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=300, help="steps of a teleop take / ranking episode "
+                   "(default: %(default)s)")
+    p.add_argument("--candidates", type=int, default=32, help="teleoperation takes (default: %(default)s)")
+    p.add_argument("--stability-steps", type=int, default=2000, help="(default: %(default)s)")
+    p.add_argument("--horizon", type=int, default=192, help="open-loop steps on held-out play (default: %(default)s)")
+    p.add_argument("--speed-calls", type=int, default=100, help="timed steps per speed test (default: %(default)s)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
+    p.add_argument("--work", default="runs/yardstick", help="cache (default: %(default)s)")
+    p.add_argument("--out", default="bench/results/yardstick", help="report directory (default: %(default)s)")
+    args = p.parse_args(argv)
+    set_threads(args.threads)
+    torch.manual_seed(0)
+    work, out = Path(args.work), Path(args.out)
+    models = {}
+    for item in args.models:
+        name, sep, path = item.partition("=")
+        if not sep or not name:
+            p.error(f"--models takes NAME=CHECKPOINT, got {item!r}")
+        models[name] = str(resolve_checkpoint(path))
+    mujoco = {"ranking": ranking("mujoco", None, work, args.episodes, args.steps),
+              "teleop": teleop("mujoco", None, work, args.candidates, TELEOP_SEED, args.steps)}
+    mujoco["teleop"]["kept_text"] = f"{mujoco['teleop']['kept']}/{mujoco['teleop']['candidates']}"
+    out.mkdir(parents=True, exist_ok=True)
+    report_path = out / "results.json"
+    report = load_json(report_path) if report_path.is_file() else {"models": {}}
+    report.update(data=args.data, horizon=args.horizon, episodes=args.episodes, steps=args.steps,
+                  candidates=args.candidates, stability_steps=args.stability_steps, mujoco=mujoco)
+    for name, ckpt in models.items():
+        r = evaluate(name, ckpt, args, work, mujoco)
+        report["mujoco"]["stable_t"] = r["stable_t_mujoco"]
+        report["models"][name] = r
+        write_json_atomic(report_path, report)
+        print(f"{name}: " + ", ".join(f"{c} {cell(r, k, f)}" for c, k, f, _ in COLUMNS), flush=True)
+    write_text_atomic(out / "results.md", markdown(report, " ".join(["python", *sys.argv])))
+    print((out / "results.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

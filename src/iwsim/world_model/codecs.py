@@ -1,0 +1,54 @@
+"""The codecs by kind: build one from its config, load a stage-1 checkpoint of any codec."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from iwsim.checkpoint import CheckpointError, load_model_dir
+from iwsim.config import from_dict
+from iwsim.errors import InputError
+from iwsim.world_model.autoencoder import Autoencoder
+from iwsim.world_model.codec import DEFAULT_KIND, KIND, Codec
+from iwsim.world_model.conv_codec import ConvCodec
+
+CODECS: dict[str, type] = {cls.kind: cls for cls in (Autoencoder, ConvCodec)}
+
+
+def codec_class(kind: str) -> type:
+    if kind not in CODECS:
+        raise InputError(f"unknown codec {kind!r}; expected one of {', '.join(CODECS)}.")
+    return CODECS[kind]
+
+
+def kind_of(cfg: Any) -> str:
+    """The kind of codec a config (an ``AE_PRESETS`` entry) is for."""
+    for kind, cls in CODECS.items():
+        if type(cfg) is cls.config_class:
+            return kind
+    raise InputError(f"no codec takes a {type(cfg).__name__}.")
+
+
+def build_codec(kind: str, config: dict[str, Any]) -> Codec:
+    """A codec of ``kind`` with fresh weights from its config as ``to_dict`` wrote it."""
+    cls = codec_class(kind)
+    return cls(from_dict(cls.config_class, config))
+
+
+def load_codec(path: str | Path, device: str | torch.device = "cpu") -> Codec:
+    """A stage-1 run's checkpoint (``model.safetensors`` + ``config.json`` of kind
+    ``autoencoder``, naming its codec; none named: the consistency autoencoder)."""
+    path = Path(path)
+    config, tensors = load_model_dir(path, KIND)
+    try:
+        codec = build_codec(config.get("codec", DEFAULT_KIND), config["model"])
+    except (TypeError, ValueError, KeyError) as e:
+        raise CheckpointError(f"{path / 'config.json'} is not a codec config: {e}") from None
+    try:
+        codec.load_state_dict(tensors)
+    except RuntimeError as e:
+        raise CheckpointError(f"{path / 'model.safetensors'} does not match its config: "
+                              f"{' '.join(str(e).split())[:200]}") from None
+    return codec.to(device).eval()

@@ -1,0 +1,161 @@
+"""The world model's configs and named presets: the codec (stage 1) and the dynamics (stage 2).
+
+A preset is a complete config; command-line flags override single fields of it
+(``dataclasses.replace``). A new latent representation is a codec file plus a preset here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from iwsim.config import TrainConfig
+from iwsim.diffusion.schedule import ScheduleConfig
+from iwsim.errors import InputError
+from iwsim.world_model import objectives
+from iwsim.world_model.autoencoder_net import DecoderConfig, EncoderConfig
+from iwsim.world_model.conv_codec import ConvCodecConfig
+from iwsim.world_model.dynamics import DynamicsConfig
+
+
+@dataclass(frozen=True)
+class AEConfig:
+    """Stage 1: encoder + consistency decoder."""
+
+    image_size: int = 64
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    top_fraction: float = 0.5  # share of training jumps that start at pure noise, like decoding
+    holdout_every: int = 20  # episode i is held out iff i % 20 == 19
+    eval_images: int = 256  # held-out frames scored at each evaluation
+    eval_jumps: tuple[int, ...] = (1, 2, 3)
+    # Stage 3 (decoder fine-tuning): a frozen encoder, and the decoder's latent condition
+    # noised as z + latent_noise_scale * sigma * eps with sigma uniform in latent_noise [lo, hi).
+    freeze_encoder: bool = False
+    latent_noise: tuple[float, float] = (0.0, 0.0)
+    latent_noise_scale: float = 1.0
+
+
+def _ae(image_size: int, channels: tuple[int, ...], blocks: int, emb: int, **train: Any) -> AEConfig:
+    return AEConfig(
+        image_size=image_size,
+        encoder=EncoderConfig(channels=channels, blocks_per_level=blocks),
+        decoder=DecoderConfig(channels=channels, blocks_per_level=blocks, emb_dim=emb),
+        train=TrainConfig(**train),
+    )
+
+
+AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
+    # Seconds on a CPU: for tests.
+    "tiny": dataclasses.replace(
+        _ae(64, (8, 8, 8), 1, 16, steps=6, batch_size=4, warmup_steps=2, log_every=1, eval_every=3,
+            checkpoint_every=3, ema_decay=0.9),
+        eval_images=8,
+    ),
+    # The CPU default: 2200 steps take 45-50 minutes on 2 CPU cores; it passes 32 dB near step 1000.
+    "pusht-64": _ae(64, (16, 32, 64), 1, 128, steps=2200, batch_size=32, lr=1e-3, warmup_steps=100,
+                    eval_every=250, checkpoint_every=250, ema_decay=0.995),
+    # Paper scale (128 px, 64 base channels), for GPUs.
+    "pusht-128": _ae(128, (64, 128, 256), 2, 256, steps=200_000, batch_size=64, lr=2e-4, warmup_steps=2000,
+                     eval_every=5000, checkpoint_every=5000, ema_decay=0.9999),
+    # The deterministic conv-ae codec (iwsim.world_model.conv_codec), x2 downsampling: 4 x 32 x 32
+    # latents at 64 px. "tiny-conv" is for tests.
+    "tiny-conv": ConvCodecConfig(channels=(8, 8), eval_images=8, train=TrainConfig(
+        steps=6, batch_size=4, warmup_steps=2, log_every=1, eval_every=3, checkpoint_every=3, ema_decay=0.9)),
+    "conv-x2-64": ConvCodecConfig(channels=(32, 64), blocks_per_level=2, train=TrainConfig(
+        steps=1500, batch_size=32, lr=1e-3, warmup_steps=100, eval_every=250, checkpoint_every=250,
+        ema_decay=0.995)),
+}
+
+
+@dataclass(frozen=True)
+class DynamicsStageConfig:
+    """Stage 2: the latent dynamics on a frozen stage-1 autoencoder."""
+
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    # "consistency" (ours); the baselines: "edm" (multi-step diffusion, DIAMOND-style) and
+    # "regression" (a deterministic next-latent predictor, DINO-WM-style); see VARIANTS
+    # and iwsim.diffusion.objectives.
+    objective: str = "consistency"
+    predict_delta: bool = True  # generate the change from the newest context latent, not the latent
+    # Context noise in the units the network sees (standardised latents): the context of a
+    # training prediction gets Gaussian noise of a std drawn uniformly from this range, and
+    # is told that std; at inference the context is labelled with ``context_label``.
+    context_sigma: tuple[float, float] = (0.0, 0.3)
+    context_label: float = 0.1
+    jumps: int = 1  # consistency jumps per predicted frame at inference
+    euler_steps: int = 3  # the "edm" objective's Euler steps per predicted frame
+    top_fraction: float = 1.0  # share of training jumps from level T - 1, where inference starts
+    zero_fraction: float = 1.0  # share of training jumps that land on level 0, as inference does
+    # Training on the model's own predictions (a curriculum): from training step k on,
+    # each sequence unrolls n predictions, each from a context holding the earlier ones.
+    unroll: tuple[tuple[int, int], ...] = ((0, 2), (200, 4), (500, 8))
+    unroll_grad: bool = True  # the gradient flows through fed-back predictions (else they are detached)
+    changed_weight: float = 4.0  # extra loss weight on latent cells that change (1 + this)
+    changed_threshold: float = 0.1  # a cell changes when a channel moves by more (standardised)
+    start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
+    holdout_every: int = 20
+    eval_episodes: int = 4  # held-out episodes rolled out open-loop at each evaluation
+    eval_steps: int = 64
+
+    def unroll_at(self, step: int) -> int:
+        """Predictions unrolled per sequence at training step ``step``."""
+        return max(n for k, n in self.unroll if k <= step)
+
+
+def _dyn(context: int, channels: int, blocks: int, heads: int, emb: int, action_channels: int,
+         unroll: tuple[tuple[int, int], ...], **train: Any) -> DynamicsStageConfig:
+    return DynamicsStageConfig(
+        dynamics=DynamicsConfig(context=context, channels=channels, blocks=blocks, heads=heads, emb_dim=emb,
+                                action_channels=action_channels),
+        unroll=unroll, train=TrainConfig(**train))
+
+
+DYNAMICS_PRESETS: dict[str, DynamicsStageConfig] = {
+    # Seconds on a CPU: for tests.
+    "tiny": dataclasses.replace(
+        _dyn(2, 8, 2, 2, 16, 2, ((0, 1), (3, 2)), steps=6, batch_size=4, warmup_steps=2, log_every=1,
+             eval_every=3, checkpoint_every=3, ema_decay=0.9),
+        eval_episodes=2, eval_steps=6,
+    ),
+    # The CPU default for 64 px latents (4 x 16 x 16): about 50 minutes on one core beside
+    # another 1-thread job (the shipped checkpoint's run).
+    "pusht-64": _dyn(3, 64, 8, 4, 128, 8, ((0, 2), (200, 4), (500, 8), (1100, 12)), steps=1400, batch_size=16,
+                     lr=1e-3, warmup_steps=50, eval_every=250, checkpoint_every=250, ema_decay=0.995),
+}
+
+
+OBJECTIVES = tuple(objectives.OBJECTIVES)
+
+# The baselines and ablations of the benchmark: the same network, data and budget as ours,
+# trained differently (``iwsim train dynamics --variant NAME``). A "dynamics" entry
+# changes fields of the network's config.
+VARIANTS: dict[str, dict[str, Any]] = {
+    "ours": {},
+    # Ablation: ours without context-noise augmentation (clean context in training and inference).
+    "no-context-noise": {"context_sigma": (0.0, 0.0), "context_label": 0.0},
+    # Next latent by MSE regression from a clean context (like DINO-WM's predictor).
+    "deterministic": {"objective": "regression", "context_sigma": (0.0, 0.0), "context_label": 0.0},
+    # EDM denoiser sampled by 3 Euler steps (like DIAMOND), with our context noise.
+    "diffusion": {"objective": "edm"},
+    # Ablations of the action pathway, the unrolled training and the change parameterisation.
+    "film-actions": {"dynamics": {"spatial_actions": False, "positional_actions": False, "action_film": True}},
+    "no-points": {"dynamics": {"positional_actions": False}},
+    "no-unroll": {"unroll": ((0, 1),)},
+    "no-delta": {"predict_delta": False},
+}
+
+
+def variant(cfg: DynamicsStageConfig, name: str) -> DynamicsStageConfig:
+    """``cfg`` changed into the named benchmark variant (see VARIANTS)."""
+    if name not in VARIANTS:
+        raise InputError(f"unknown variant {name!r}; expected one of {', '.join(VARIANTS)}.")
+    changes = dict(VARIANTS[name])
+    if "dynamics" in changes:
+        changes["dynamics"] = dataclasses.replace(cfg.dynamics, **changes["dynamics"])
+    return dataclasses.replace(cfg, **changes)

@@ -1,0 +1,38 @@
+"""The world model's yardstick (``bench/yardstick.py``) runs end to end on a tiny model; no
+quality is asserted, only that every measure is there and in range."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from iwsim.data.collect import collect
+from tests.test_dynamics import tiny_world_model
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_yardstick_runs_on_a_tiny_model(tmp_path):
+    data = tmp_path / "eval.zarr"
+    collect("pusht", "play", 2, out=data, steps=40, image_size=64, workers=1, seed=900000, progress=False)
+    ckpt = tiny_world_model().save(tmp_path / "tiny", {"data": str(data)})
+    out = tmp_path / "out"
+    cmd = [sys.executable, str(ROOT / "bench" / "yardstick.py"), "--models", f"tiny={ckpt}", "--data", str(data),
+           "--episodes", "2", "--horizon", "36", "--steps", "6", "--candidates", "2", "--stability-steps", "20",
+           "--speed-calls", "2", "--work", str(tmp_path / "work"), "--out", str(out)]
+    run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    r = json.loads((out / "results.json").read_text())
+    m = r["models"]["tiny"]
+    for key in ("t_found", "pusher_visible", "teleop_rate", "spread", "stable_t"):
+        assert 0 <= m[key] <= 1, key
+    assert m["teleop_kept"].endswith("/2") and len(m["ranking"]) == 8 and m["steps_per_s"] > 0
+    assert m["action_gap_5"] > 0 and m["psnr_play"] > 0 and m["psnr_play_first"] > 0
+    md = (out / "results.md").read_text()
+    assert "| tiny |" in md and "| MuJoCo |" in md and "| target |" in md
+    # a second run reuses the cached evaluation
+    again = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert again.returncode == 0 and json.loads((out / "results.json").read_text())["models"]["tiny"] == m
