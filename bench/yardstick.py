@@ -22,7 +22,9 @@ For each model, on one thread by default (about 20 minutes a model on this CPU):
 
 Results are cached per model under ``--work`` (keyed by the model's weights), so adding a
 model evaluates only that one; ``--out`` gets results.json and results.md with every
-model evaluated so far, the targets and the trivial baselines.
+model evaluated so far, the targets and the trivial baselines, and expert_strip.png: the
+pixel expert's first 100 steps from seed 100000, a frame every 10 steps, one row per model
+in the order of the table, then MuJoCo.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from ablate_dynamics import Episodes, score
-from wm_studies_check import TELEOP_SEED, teleop
+from wm_studies_check import TELEOP_SEED, strip, teleop
 
 from iwsim.checkpoint import load_json, resolve_checkpoint, write_json_atomic, write_text_atomic
 from iwsim.eval.profiling import speed, stability
@@ -127,7 +129,8 @@ def markdown(report: dict, command: str) -> str:
              f"Teleoperation: the pixel expert from {report['candidates']} MuJoCo first frames (seeds from "
              f"{TELEOP_SEED}), kept at pixel IoU 0.9. Ranking: 8 scripted policies x {report['episodes']} "
              f"episodes x {report['steps']} steps from seed {RANK_SEED}. Stability: {report['stability_steps']} "
-             f"play steps, every {STABILITY_EVERY}th frame decoded. Speed at the thread count in brackets.", "",
+             f"play steps, every {STABILITY_EVERY}th frame decoded. Speed at the thread count in brackets. "
+             "`expert_strip.png`: the pixel expert's first 100 steps, one row per model, MuJoCo last.", "",
              "| model | " + " | ".join(c for c, *_ in COLUMNS) + " | minutes |",
              "|---" * (len(COLUMNS) + 2) + "|",
              "| target | " + " | ".join(t for *_, t in COLUMNS) + " | ~20 |"]
@@ -187,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         report["models"][name] = r
         write_json_atomic(report_path, report)
         print(f"{name}: " + ", ".join(f"{c} {cell(r, k, f)}" for c, k, f, _ in COLUMNS), flush=True)
+    strip(out / "expert_strip.png", [r["checkpoint"] for r in report["models"].values()] + [None], RANK_SEED)
     write_text_atomic(out / "results.md", markdown(report, " ".join(["python", *sys.argv])))
     print((out / "results.md").read_text())
     return 0

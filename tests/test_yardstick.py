@@ -33,6 +33,7 @@ def test_yardstick_runs_on_a_tiny_model(tmp_path):
     assert m["action_gap_5"] > 0 and m["psnr_play"] > 0 and m["psnr_play_first"] > 0
     md = (out / "results.md").read_text()
     assert "| tiny |" in md and "| MuJoCo |" in md and "| target |" in md
+    assert (out / "expert_strip.png").stat().st_size > 0
     # a second run reuses the cached evaluation
     again = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert again.returncode == 0 and json.loads((out / "results.json").read_text())["models"]["tiny"] == m
