@@ -1,5 +1,6 @@
 import dataclasses
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -260,3 +261,23 @@ def test_dynamics_takes_either_an_autoencoder_or_a_model_to_fine_tune(play_store
     assert main(["train", "dynamics", "--data", str(play_store), "--init", "a", "--out", str(tmp_path),
                  "--variant", "diffusion"]) != 0
     assert "--variant applies to training from scratch" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_bf16_autocast_on_the_cpu_trains_reproducibly(play_store, tmp_path, one_thread):
+    """``--bf16``: the config records it, the loss stays finite, the same command gives the
+    same weights, and they differ from the float32 run's (the autocast is in effect)."""
+    flags = ["--preset", "tiny", "--no-progress"]
+    assert main(["train", "ae", "--data", str(play_store), "--out", str(tmp_path / "ae"), *flags]) == 0
+    for out, bf16 in (("a", ["--bf16"]), ("b", ["--bf16"]), ("fp32", [])):
+        assert main(["train", "dynamics", "--data", str(play_store), "--ae", str(tmp_path / "ae"), *bf16,
+                     "--out", str(tmp_path / out), *flags]) == 0
+    config = json.loads((tmp_path / "a" / "config.json").read_text())
+    assert config["stage2"]["train"]["cpu_bf16"] is True
+    rows = [json.loads(line) for line in (tmp_path / "a" / "metrics.jsonl").read_text().splitlines()]
+    assert all(math.isfinite(r["loss"]) for r in rows if "loss" in r)
+    a = load_file(tmp_path / "a" / "checkpoints" / "last" / "model.safetensors")
+    b = load_file(tmp_path / "b" / "checkpoints" / "last" / "model.safetensors")
+    assert_same(a, b)
+    fp32 = load_file(tmp_path / "fp32" / "checkpoints" / "last" / "model.safetensors")
+    assert any(not torch.equal(a[k], fp32[k]) for k in a if k.startswith("dynamics."))

@@ -37,6 +37,7 @@ class TrainConfig:
     eval_every: int = 500
     checkpoint_every: int = 500
     seed: int = 0
+    cpu_bf16: bool = False  # bf16 autocast on the CPU as well (CUDA always uses it)
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 A stage supplies a :class:`TrainTask`: a module whose ``forward(batch)`` returns the loss,
 a way to build this rank's share of step k's batch, an evaluation and an export. The loop
 does the rest: AdamW with linear warm-up, gradient clipping, EMA weights, bf16 autocast on
-CUDA, DDP under torchrun, periodic evaluation and atomic checkpoints, logging to
+CUDA (and on the CPU with ``cpu_bf16``), DDP under torchrun, periodic evaluation and atomic checkpoints, logging to
 ``log.txt`` and ``metrics.jsonl``, and exact resumption.
 
 Exact resumption without saving RNG states: everything random at step k (which samples,
@@ -191,7 +191,7 @@ def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, A
     per_rank = cfg.batch_size // d.world
     part = slice(d.rank * per_rank, (d.rank + 1) * per_rank)
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(
-        "cpu", enabled=False)
+        "cpu", dtype=torch.bfloat16, enabled=cfg.cpu_bf16)
     metrics_file = (run_dir / "metrics.jsonl").open("a") if d.main else None
     last_eval: dict[str, float] = {}
 
