@@ -84,3 +84,13 @@ def test_decoder_finetune_refuses_a_bad_latent_noise_range(tmp_path, capsys, val
     err = capsys.readouterr().err
     assert "--latent-noise takes LO,HI" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_the_codec_of_a_world_model_checkpoint_loads_as_a_stage1_codec(tmp_path):
+    """``--ae`` may name a world model: training a new dynamics on its codec."""
+    wm = tiny_world_model()
+    wm.save(tmp_path / "wm")
+    codec = load_codec(tmp_path / "wm")
+    assert codec.kind == wm.codec.kind
+    for k, v in wm.codec.state_dict().items():
+        assert torch.equal(codec.state_dict()[k], v), k

@@ -88,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=_train_ae)
     q = train_sub.add_parser("dynamics", help="stage 2: latent consistency dynamics on a frozen stage 1")
     init = q.add_mutually_exclusive_group(required=True)
-    init.add_argument("--ae", help="stage-1 run directory or checkpoint (e.g. runs/ae): train from scratch")
+    init.add_argument("--ae", help="stage-1 run directory or checkpoint (e.g. runs/ae), or a world-model checkpoint "
+                      "(its codec): train from scratch")
     init.add_argument("--init", help="world-model checkpoint to fine-tune (e.g. checkpoints/pusht-64): its "
                                      "autoencoder, normalisation and network are kept")
     q.add_argument("--variant", default="ours",

@@ -1,4 +1,4 @@
-"""The codecs by kind: build one from its config, load a stage-1 checkpoint of any codec."""
+"""The codecs by kind: build one from its config, load one from a stage-1 or world-model checkpoint."""
 
 from __future__ import annotations
 
@@ -7,13 +7,14 @@ from typing import Any
 
 import torch
 
-from iwsim.checkpoint import CheckpointError, load_model_dir
+from iwsim.checkpoint import CheckpointError, load_json, load_model_dir
 from iwsim.config import from_dict
 from iwsim.errors import InputError
 from iwsim.world_model.autoencoder import Autoencoder
 from iwsim.world_model.codec import DEFAULT_KIND, KIND, Codec
 from iwsim.world_model.conv_codec import ConvCodec
 
+WM_KIND = "world_model"  # a world-model checkpoint's kind (iwsim.world_model.model.KIND)
 CODECS: dict[str, type] = {cls.kind: cls for cls in (Autoencoder, ConvCodec)}
 
 
@@ -37,14 +38,30 @@ def build_codec(kind: str, config: dict[str, Any]) -> Codec:
     return cls(from_dict(cls.config_class, config))
 
 
+def world_model_codec(config: dict[str, Any]) -> tuple[str, str, dict[str, Any] | None]:
+    """(weights prefix, codec kind, codec config) of a world-model ``config.json``; a
+    checkpoint from before the codec seam holds the consistency autoencoder as ``ae``."""
+    if "codec" in config:
+        part = config["codec"] if isinstance(config["codec"], dict) else {}
+        return "codec", part.get("kind"), part.get("config")
+    return "ae", DEFAULT_KIND, config.get("ae")
+
+
 def load_codec(path: str | Path, device: str | torch.device = "cpu") -> Codec:
     """A stage-1 run's checkpoint (``model.safetensors`` + ``config.json`` of kind
-    ``autoencoder``, naming its codec; none named: the consistency autoencoder)."""
+    ``autoencoder``, naming its codec; none named: the consistency autoencoder), or the
+    codec of a world-model checkpoint."""
     path = Path(path)
-    config, tensors = load_model_dir(path, KIND)
+    is_world_model = (path / "config.json").is_file() and load_json(path / "config.json").get("kind") == WM_KIND
+    config, tensors = load_model_dir(path, WM_KIND if is_world_model else KIND)
+    if is_world_model:
+        prefix, kind, cfg = world_model_codec(config)
+        tensors = {k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
+    else:
+        kind, cfg = config.get("codec", DEFAULT_KIND), config.get("model")
     try:
-        codec = build_codec(config.get("codec", DEFAULT_KIND), config["model"])
-    except (TypeError, ValueError, KeyError) as e:
+        codec = build_codec(kind, cfg)
+    except (TypeError, ValueError, KeyError, AttributeError) as e:
         raise CheckpointError(f"{path / 'config.json'} is not a codec config: {e}") from None
     try:
         codec.load_state_dict(tensors)

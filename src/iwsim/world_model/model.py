@@ -49,13 +49,13 @@ from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
 from iwsim.normalize import scale
-from iwsim.world_model.codec import DEFAULT_KIND, Codec
-from iwsim.world_model.codecs import build_codec
+from iwsim.world_model.codec import Codec
+from iwsim.world_model.codecs import WM_KIND, build_codec, world_model_codec
 from iwsim.world_model.denoiser import Denoiser
 from iwsim.world_model.dynamics import Dynamics
 from iwsim.world_model.presets import OBJECTIVES, DynamicsStageConfig
 
-KIND = "world_model"
+KIND = WM_KIND
 
 
 @dataclass
@@ -409,10 +409,7 @@ class WorldModel(nn.Module):
         autoencoder) load as they are."""
         path = Path(path)
         config, tensors = load_model_dir(path, KIND)
-        if "codec" in config:
-            prefix, codec_kind, codec_cfg = "codec", config["codec"].get("kind"), config["codec"].get("config")
-        else:  # the layout before codecs had names
-            prefix, codec_kind, codec_cfg = "ae", DEFAULT_KIND, config.get("ae")
+        prefix, codec_kind, codec_cfg = world_model_codec(config)
         for part, value in (("codec", codec_cfg), *((p, config.get(p)) for p in ("stage2", "action_norm",
                                                                                    "latent_norm"))):
             if value is None:
