@@ -112,3 +112,31 @@ def test_flags_that_size_memory_are_refused_before_allocating(store, tmp_path, c
     line = error_line(capsys)
     assert message in line and "would need about" in line and "available" in line
     assert not out.exists()
+
+
+def test_export_model_force_replaces_only_a_checkpoint_iwsim_wrote(tmp_path, capsys, monkeypatch):
+    """Issue 26: ``--force`` deleted any directory; now it refuses anything but a checkpoint
+    directory holding only what iwsim writes, and the user's files stay."""
+    from tests.test_dynamics import tiny_world_model
+
+    src = tiny_world_model().save(tmp_path / "wm")
+    user = tmp_path / "userdata"
+    (user / "sub").mkdir(parents=True)
+    (user / "sub" / "thesis.txt").write_text("years of work")
+    assert main(["export-model", "--run", str(src), "--out", str(user), "--force"]) == 1
+    assert "not an iwsim checkpoint" in error_line(capsys)
+    assert (user / "sub" / "thesis.txt").read_text() == "years of work"
+    monkeypatch.chdir(user)
+    assert main(["export-model", "--run", str(src), "--out", ".", "--force"]) == 1
+    assert "not an iwsim checkpoint" in error_line(capsys)
+    # a checkpoint with a file the user added beside it is not replaced either
+    ckpt = tiny_world_model(seed=1).save(tmp_path / "ckpt")
+    (ckpt / "notes.txt").write_text("mine")
+    assert main(["export-model", "--run", str(src), "--out", str(ckpt), "--force"]) == 1
+    assert "holds what a checkpoint does not (notes.txt)" in error_line(capsys)
+    assert (ckpt / "notes.txt").read_text() == "mine"
+    # a checkpoint iwsim wrote is replaced
+    (ckpt / "notes.txt").unlink()
+    assert main(["export-model", "--run", str(src), "--out", str(ckpt), "--force"]) == 0
+    assert (ckpt / "model.safetensors").read_bytes() == (src / "model.safetensors").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []

@@ -145,16 +145,43 @@ def save_checkpoint(root: Path, step: int, model: dict[str, torch.Tensor], confi
     return final
 
 
+MODEL_DIR_EXTRAS = ("README.md", "metrics.json")  # what iwsim writes beside a checkpoint's model and config
+
+
+def _check_replaceable(path: Path, ours: set[str]) -> None:
+    """Refuse to replace ``path`` unless it is a checkpoint directory iwsim wrote: a
+    ``config.json`` of a known kind and nothing but the files a checkpoint holds."""
+    def refuse(why: str) -> None:
+        raise FileExistsError(f"{path} {why}; --force replaces only a checkpoint directory iwsim wrote, "
+                              "choose another --out.")
+
+    if path.is_symlink() or not path.is_dir():
+        refuse("is not a directory")
+    try:
+        config = json.loads((path / "config.json").read_text())
+    except (OSError, ValueError):
+        config = None
+    if not isinstance(config, dict) or config.get("kind") not in KINDS:
+        refuse("is not an iwsim checkpoint (no config.json of a known kind)")
+    others = sorted(e.name for e in path.iterdir() if e.name not in ours or not e.is_file() or e.is_symlink())
+    if others:
+        refuse(f"holds what a checkpoint does not ({', '.join(others[:3])}{', ...' if len(others) > 3 else ''})")
+
+
 def save_model_dir(path: Path, tensors: dict[str, torch.Tensor], config: dict[str, Any], force: bool = False,
                    json_files: dict[str, Any] | None = None) -> Path:
     """Write a standalone checkpoint directory (``model.safetensors`` + ``config.json``
     and any ``json_files``) atomically. An existing directory is replaced only with
-    ``force``, and only once the new one is complete."""
+    ``force``, only if it is a checkpoint directory iwsim wrote (nothing else in it), and
+    only once the new one is complete."""
     path = Path(path)
     if path.exists() and not force:
         raise FileExistsError(f"{path} already exists; choose another --out or pass --force to replace it.")
+    if path.exists():
+        _check_replaceable(path, {"model.safetensors", "config.json", *MODEL_DIR_EXTRAS, *(json_files or {})})
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
+    full = path.resolve()  # a name to put the temporary directories beside (also for ".")
+    tmp = full.with_name(f".{full.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, tmp / "model.safetensors")
@@ -162,7 +189,7 @@ def save_model_dir(path: Path, tensors: dict[str, torch.Tensor], config: dict[st
     for name, obj in (json_files or {}).items():
         write_json_atomic(tmp / name, obj)
     if path.exists():
-        old = path.with_name(f".{path.name}.old")
+        old = full.with_name(f".{full.name}.old")
         shutil.rmtree(old, ignore_errors=True)
         os.replace(path, old)
         os.replace(tmp, path)
