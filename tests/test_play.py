@@ -74,6 +74,7 @@ BAD = {
     "bool action": ('{"type": "action", "seq": 1, "action": [0, 0, true, 0]}', "list of 4 numbers"),
     "nan action": ('{"type": "action", "seq": 1, "action": [0, NaN, 0, 0]}', "finite"),
     "huge action": ('{"type": "action", "seq": 1, "action": [0, 1e999, 0, 0]}', "finite"),
+    "huge integer action": ('{"type": "action", "seq": 1, "action": [0, 1' + "0" * 400 + ', 0, 0]}', "finite"),
     "no seq": ('{"type": "action", "action": [0, 0, 0, 0]}', "integer 'seq'"),
     "negative seq": ('{"type": "action", "seq": -1, "action": [0, 0, 0, 0]}', "'seq' must be an integer"),
     "float seq": ('{"type": "action", "seq": 1.5, "action": [0, 0, 0, 0]}', "'seq' must be an integer"),

@@ -100,9 +100,13 @@ def parse(data: str | bytes, action_dim: int) -> Message:
         if (not isinstance(a, list) or len(a) != action_dim
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in a)):
             raise ProtocolError(f"'action' must be a list of {action_dim} numbers, got {str(a)[:60]}.")
-        if not all(math.isfinite(v) for v in a):
-            raise ProtocolError(f"'action' must be finite, got {a}.")
-        return Action(seq, tuple(float(v) for v in a))
+        try:
+            values = tuple(float(v) for v in a)  # an integer beyond float range overflows here
+        except OverflowError:
+            values = (math.inf,)
+        if not all(math.isfinite(v) for v in values):
+            raise ProtocolError(f"'action' must be finite numbers, got {str(a)[:60]}.")
+        return Action(seq, values)
     if kind == "reset":
         source = msg.get("source", "mujoco")
         if source not in RESET_SOURCES:
