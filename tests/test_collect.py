@@ -260,3 +260,17 @@ def test_a_killed_writers_lock_is_free(tmp_path: Path) -> None:
     holder.stdout.close()
     assert main(collect_args(out, 2)) == 0  # the lock died with its holder
     assert EpisodeStore.open(out).n_episodes == 2
+
+
+@pytest.mark.parametrize("what", ["empty directory", "user directory"])
+def test_collect_into_a_directory_that_is_not_a_store_leaves_nothing_in_it(tmp_path: Path, capsys, what) -> None:
+    """Issue 26: refusing a non-store --out left an .iwsim.lock file behind."""
+    out = tmp_path / "dir"
+    out.mkdir()
+    if what == "user directory":
+        (out / "notes.txt").write_text("mine")
+    before = sorted(p.name for p in out.iterdir())
+    assert main(["collect", "--task", "pusht", "--policy", "play", "--episodes", "1", "--steps", "3",
+                 "--workers", "1", "--no-progress", "--out", str(out)]) == 1
+    assert "not" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == before

@@ -249,6 +249,8 @@ class EpisodeStore:
                 if not path.exists():
                     raise
                 # another process created it meanwhile: append to it like to any existing store
+        if not (path / ".zgroup").is_file():  # not a store: say why before a lock file is left in it
+            cls._open(path, "r", None)
         lock = lock_store(path, wait=wait)
         try:
             if check is not None:
