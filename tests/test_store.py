@@ -276,3 +276,9 @@ def test_merge_concatenates_stores_and_refuses_mismatches(tmp_path: Path) -> Non
     with pytest.raises(InputError, match="fps 20 differs"):
         merge([a, make("c.zarr", range(1), fps=20)], tmp_path / "ac.zarr", progress=False)
     assert not (tmp_path / "ac.zarr").exists()
+    # issue 26: an output inside an input would nest a store in its data
+    for inside in (a / "data" / "merged.zarr", b / "x.zarr"):
+        with pytest.raises(InputError, match="inside the input"):
+            merge([a, b], inside, progress=False)
+        assert not inside.exists()
+    assert_episodes(EpisodeStore.open(a))

@@ -130,6 +130,10 @@ def merge(sources: list[str | os.PathLike], out: str | os.PathLike, *, progress:
     store's ``policy`` joins theirs with ``+`` and ``sources`` lists them."""
     if len(sources) < 2:
         raise InputError(f"merge takes at least 2 stores, got {len(sources)}.")
+    target = Path(out).resolve()
+    for src in sources:
+        if target.is_relative_to(Path(src).resolve()):
+            raise InputError(f"--out {out} is inside the input {src}; write the merged store elsewhere.")
     stores = [EpisodeStore.open(src, "r") for src in sources]
     first = stores[0]
     for s in stores[1:]:
