@@ -140,3 +140,28 @@ def test_export_model_force_replaces_only_a_checkpoint_iwsim_wrote(tmp_path, cap
     assert main(["export-model", "--run", str(src), "--out", str(ckpt), "--force"]) == 0
     assert (ckpt / "model.safetensors").read_bytes() == (src / "model.safetensors").read_bytes()
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+@pytest.mark.parametrize("part,size,says", [("codec", 10**5, "of memory"), ("codec", 10**9, "can be built"),
+                                            ("dynamics", 10**6, "of memory")])
+def test_absurd_sizes_in_a_checkpoint_config_are_one_line_before_allocation(store, tmp_path, capsys, part, size, says):
+    """Issue 26: encoder channels of 10^9 in config.json gave a traceback from a 108 GB
+    allocation; the sizes are now checked on the meta device first."""
+    import json
+    import time
+
+    from tests.test_dynamics import tiny_world_model
+
+    ckpt = tiny_world_model().save(tmp_path / "wm")
+    config = json.loads((ckpt / "config.json").read_text())
+    if part == "codec":
+        config["codec"]["config"]["encoder"]["channels"] = [size, 8, 8]
+    else:
+        config["stage2"]["dynamics"]["channels"] = size
+    (ckpt / "config.json").write_text(json.dumps(config))
+    t0 = time.perf_counter()
+    assert main(["rollout", "--checkpoint", str(ckpt), "--data", str(store),
+                 "--out", str(tmp_path / "v.mp4")]) == 1
+    line = error_line(capsys)
+    assert f"the {part} of {ckpt}" in line and says in line, line
+    assert time.perf_counter() - t0 < 30

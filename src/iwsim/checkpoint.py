@@ -20,14 +20,17 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Callable
+from itertools import chain
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from iwsim.errors import IwsimError
+from iwsim.resources import human_bytes, require_memory
 
 # What each ``config.json`` kind holds, for messages.
 KINDS = {"autoencoder": "an autoencoder", "world_model": "a world model", "policy": "a policy"}
@@ -65,6 +68,25 @@ def load_json(path: Path) -> dict[str, Any]:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise CheckpointError(f"checkpoint file {path} is not valid JSON: {e}.") from None
+
+
+M = TypeVar("M", bound=torch.nn.Module)
+
+
+def build_within_memory(make: Callable[[], M], what: str) -> M:
+    """``make()``, a network from a config that may come from a file, once its weights are
+    known to fit: it is first built on the meta device (nothing allocated) to count them.
+    A config that cannot be built is a CheckpointError, one that would not fit a
+    ResourceError; both one line naming ``what``."""
+    try:
+        with torch.device("meta"):
+            probe = make()
+    except (RuntimeError, ValueError, TypeError, OverflowError, MemoryError) as e:
+        raise CheckpointError(f"{what} does not describe a network that can be built: "
+                              f"{' '.join(str(e).split())[:200]}") from None
+    need = sum(t.numel() * t.element_size() for t in chain(probe.parameters(), probe.buffers()))
+    require_memory(2 * need, f"{what} ({human_bytes(need)} of weights, held twice while loading)")
+    return make()
 
 
 def load_model_dir(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:

@@ -18,7 +18,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from iwsim.checkpoint import CheckpointError, load_model_dir
+from iwsim.checkpoint import CheckpointError, build_within_memory, load_model_dir
 from iwsim.config import TrainConfig, from_dict, to_dict
 from iwsim.errors import InputError
 from iwsim.policies.act import ACTConfig, ACTPolicy
@@ -97,8 +97,8 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_s
         from_dict(config_class(config.get("policy", "")), config["model"])  # a bad value: its one-line InputError
     try:
         a, s = int(config["action_dim"]), int(config["state_dim"])
-        policy = make_policy(config["policy"], config["model"], Normalizer(torch.zeros(a), torch.ones(a)),
-                             Normalizer(torch.zeros(s), torch.ones(s)))
+        policy = build_within_memory(lambda: make_policy(config["policy"], config["model"], Normalizer(
+            torch.zeros(a), torch.ones(a)), Normalizer(torch.zeros(s), torch.ones(s))), f"the policy of {path}")
         policy.load_state_dict(tensors)
         policy.image_size = int(config.get("image_size", 64))  # the frames it was trained on
     except (KeyError, TypeError, ValueError, RuntimeError) as e:

@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from iwsim.checkpoint import CheckpointError, load_json, load_model_dir
+from iwsim.checkpoint import CheckpointError, build_within_memory, load_json, load_model_dir
 from iwsim.config import from_dict
 from iwsim.errors import InputError
 from iwsim.world_model.autoencoder import Autoencoder
@@ -60,7 +60,7 @@ def load_codec(path: str | Path, device: str | torch.device = "cpu") -> Codec:
     else:
         kind, cfg = config.get("codec", DEFAULT_KIND), config.get("model")
     try:
-        codec = build_codec(kind, cfg)
+        codec = build_within_memory(lambda: build_codec(kind, cfg), f"the codec of {path}")
     except (TypeError, ValueError, KeyError, AttributeError) as e:
         raise CheckpointError(f"{path / 'config.json'} is not a codec config: {e}") from None
     try:

@@ -43,14 +43,21 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.checkpoint import CheckpointError, load_json, load_model_dir, resolve_checkpoint, save_model_dir
+from iwsim.checkpoint import (
+    CheckpointError,
+    build_within_memory,
+    load_json,
+    load_model_dir,
+    resolve_checkpoint,
+    save_model_dir,
+)
 from iwsim.config import from_dict, to_dict
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
 from iwsim.normalize import scale
 from iwsim.world_model.codec import Codec
-from iwsim.world_model.codecs import WM_KIND, build_codec, world_model_codec
+from iwsim.world_model.codecs import WM_KIND, build_codec, codec_class, world_model_codec
 from iwsim.world_model.denoiser import Denoiser
 from iwsim.world_model.dynamics import Dynamics
 from iwsim.world_model.presets import OBJECTIVES, DynamicsStageConfig
@@ -415,10 +422,11 @@ class WorldModel(nn.Module):
             if value is None:
                 raise CheckpointError(f"{path / 'config.json'} is missing the {part!r} part of the world model.")
         try:
-            codec = build_codec(codec_kind, codec_cfg)
             cfg = from_dict(DynamicsStageConfig, config["stage2"])
+            from_dict(codec_class(codec_kind).config_class, codec_cfg)
         except (TypeError, ValueError, KeyError, AttributeError) as e:
             raise CheckpointError(f"{path / 'config.json'} does not describe a world model: {e}") from None
+        codec = build_within_memory(lambda: build_codec(codec_kind, codec_cfg), f"the codec of {path}")
         parts = {}
         for part, name in ((prefix, "codec"), ("dynamics", "dynamics")):
             parts[name] = {k[len(part) + 1:]: v for k, v in tensors.items() if k.startswith(part + ".")}
@@ -426,7 +434,7 @@ class WorldModel(nn.Module):
                 raise CheckpointError(f"{path / 'model.safetensors'} has no {name} weights ({part}.*).")
         if "latent_mean" not in tensors:
             raise CheckpointError(f"{path / 'model.safetensors'} has no latent normalisation (latent_mean).")
-        dyn = Dynamics(cfg.dynamics)
+        dyn = build_within_memory(lambda: Dynamics(cfg.dynamics), f"the dynamics of {path}")
         try:
             codec.load_state_dict(parts["codec"])
             dyn.load_state_dict(parts["dynamics"])
