@@ -623,11 +623,28 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
+# Resident memory of one open play session (its state, queues, buffers), measured with 60
+# sessions (about 12 MiB each), plus the frames of a full recording (max_record_steps).
+SESSION_MIB = 12.0
+RECORD_STEPS = 6000  # PlayConfig.max_record_steps
+
+
+def _check_sessions_memory(sessions: int) -> None:
+    from iwsim.resources import require_memory
+
+    per = SESSION_MIB * 2**20 + RECORD_STEPS * 64 * 64 * 3
+    require_memory(sessions * per, f"--max-sessions {sessions} (about {human_bytes(per)} per session, "
+                                   "a full recording included)")
+
+
 def _play(args: argparse.Namespace) -> int:
     from iwsim.play.access import LOOPBACK, Access, bind, check_bind, resolve_token
 
-    # Before the slow imports and the model: a bad token or a taken port fails at once.
+    # Before the slow imports and the model: a bad token, too many sessions for this
+    # machine's memory or a taken port fails at once.
     token, source = resolve_token(args.token, args.token_file)
+    _check_positive(args, "max_sessions")
+    _check_sessions_memory(args.max_sessions)
     check_bind(args.host, token)
     sock = bind(args.host, args.port)
     try:
