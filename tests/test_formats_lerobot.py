@@ -412,3 +412,17 @@ def test_a_killed_exports_temporary_directory_is_removed_by_the_next_run(play_st
         assert not stale.exists() and live.exists()
     assert validate(out)[1] == [] and not (out / ".iwsim.lock").exists()
     assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == [live.name]
+
+
+@pytest.mark.parametrize("fmt", ["lerobot-v3", "lerobot-v2.1"])
+def test_validate_finds_frames_of_another_shape_than_info_declares(exports, tmp_path, fmt):
+    """Issue 26: a dataset whose info.json declares a frame shape its videos do not have
+    was called valid."""
+    root = tmp_path / "ds"
+    shutil.copytree(exports[fmt], root)
+    info = json.loads((root / "meta/info.json").read_text())
+    h, w, c = info["features"]["observation.image"]["shape"]
+    info["features"]["observation.image"]["shape"] = [h * 2, w, c]
+    (root / "meta/info.json").write_text(json.dumps(info))
+    _, problems = validate(root)
+    assert any(f"info.json says {(h * 2, w, c)}" in p and f"{(h, w, c)}" in p for p in problems), problems

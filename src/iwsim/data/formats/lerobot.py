@@ -551,6 +551,16 @@ def read_v21(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tupl
 
 # -- validation ---------------------------------------------------------------------------
 
+def _declared_hwc(feature: dict) -> tuple:
+    """(height, width, channels) of a camera feature's declared shape, read by its names
+    when they say which axis is which (LeRobot writes [h, w, 3] with names
+    height, width, channels)."""
+    shape, names = list(feature["shape"]), feature.get("names")
+    if isinstance(names, list) and len(names) == len(shape) and {"height", "width", "channels"} <= set(names):
+        return tuple(shape[names.index(k)] for k in ("height", "width", "channels"))
+    return tuple(shape)
+
+
 def validate_lerobot(path: Path) -> tuple[str, list[str]]:
     """(kind, problems) of a LeRobot dataset directory: the schema of info.json and of every
     metadata, data and video file, and that they agree with each other."""
@@ -609,11 +619,16 @@ def validate_lerobot(path: Path) -> tuple[str, list[str]]:
     frames = episodes = 0
     try:
         _, n, eps = reader(path, camera=None)
+        cam = _camera(raw, path, None)
+        declared = _declared_hwc(feats[cam])
         for i, (ep, _) in enumerate(eps):
             want = feats[STATE]["shape"][0], feats[ACTION]["shape"][0]
             got = ep["state"].shape[1], ep["action"].shape[1]
             if got != want:
                 problems.append(f"{where(path, episode=i)}: state/action sizes {got}, info.json says {want}.")
+            if tuple(ep["img"].shape[1:]) != declared:
+                problems.append(f"{where(path, episode=i)}: {cam} frames are (H, W, C) = "
+                                f"{tuple(ep['img'].shape[1:])}, info.json says {declared}.")
             frames += len(ep["img"])
             episodes += 1
     except FormatError as e:
