@@ -203,3 +203,21 @@ def test_statistics_match_scipy(k, n):
     np.testing.assert_allclose((got["low"], got["high"]), post.interval(0.95), atol=1e-9)
     with pytest.raises(ValueError):
         clopper_pearson(n + 1, n)
+
+
+@pytest.mark.parametrize("policy", ["tiny-dp", "tiny-act"])
+def test_a_policys_initial_weights_come_from_its_seed_not_the_global_rng(play_store, policy):
+    """Issue 26: the initial weights came from the global RNG, so two runs of one study
+    trained different policies."""
+    from iwsim.training.policy import PolicyTask
+
+    cfg = PRESETS[policy]
+    sources = [Source(play_store, None)]
+    torch.manual_seed(1)
+    a = PolicyTask(cfg, sources).module.state_dict()
+    torch.manual_seed(2)
+    state = torch.random.get_rng_state()
+    b = PolicyTask(cfg, sources).module.state_dict()
+    assert torch.equal(torch.random.get_rng_state(), state)  # the global RNG is left as it was
+    for k in a:
+        assert torch.equal(a[k], b[k]), k

@@ -26,7 +26,9 @@ class PolicyTask:
         model = from_dict(config_class(cfg.policy), cfg.model)
         self.data = PolicyData(sources, model.obs_horizon, model.horizon)
         self.action_norm, self.state_norm = self.data.normalizers()
-        self.module = make_policy(cfg.policy, cfg.model, *self.data.normalizers())
+        with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
+            torch.manual_seed(cfg.train.seed)
+            self.module = make_policy(cfg.policy, cfg.model, *self.data.normalizers())
         self.cfg, self.sources = cfg, sources
         g = torch.Generator().manual_seed(12345)
         self.eval_steps = torch.randint(0, self.data.n_frames, (min(EVAL_WINDOWS, self.data.n_frames),), generator=g)
