@@ -217,3 +217,19 @@ def test_tiny_study_end_to_end(wm_path, tmp_path):
     r3 = json.loads((tmp_path / "out2" / "results.json").read_text())
     assert all("only 0 were kept" in run["skipped"] for run in r3["runs"])
     assert "not trained" in r3["parity"]["note"]
+
+
+@pytest.mark.parametrize("study", ["datagen", "policy-eval"])
+def test_a_second_study_on_a_work_directory_in_use_is_refused(wm_path, tmp_path, capsys, study):
+    """Issue 26: two studies on one --work trained the same run directories at once."""
+    from iwsim.data.lock import DirLock
+
+    work = tmp_path / "work"
+    work.mkdir()
+    with DirLock(work, what="running the datagen study"):
+        args = ["experiment", study, "--preset", "tiny", "--world-model", str(wm_path),
+                "--out", str(tmp_path / "out"), "--work", str(work), "--no-progress"]
+        assert main(args) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is in use by another study" in err[0] and "running the datagen study" in err[0], err
+    assert sorted(p.name for p in work.iterdir()) == [".iwsim.lock"] and not (tmp_path / "out").exists()

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.config import from_dict, to_dict
+from iwsim.data.lock import DirLock, LockedError
 from iwsim.errors import InputError
 from iwsim.eval.policy import rollout, summarize
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class, load_policy
@@ -65,6 +66,18 @@ class PolicyRun:
         if not self.data:
             raise InputError(f"policy run {self.name!r} has no data.")
         return [Source(Path(path), n) for path, n in self.data]
+
+
+def lock_work(work: Path, study: str) -> DirLock:
+    """The lock of a study's work directory, held while the study runs: two studies on one
+    work directory would train the same run directories at once."""
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        return DirLock(work, what=f"running the {study} study")
+    except LockedError:
+        holder = (work / ".iwsim.lock").read_text(errors="replace").strip() or "another process"
+        raise InputError(f"{work} is in use by another study ({holder}); one study per work directory at a "
+                         "time: wait for it, or pass another --work.") from None
 
 
 def fingerprint(world_model: str | os.PathLike) -> str:

@@ -36,7 +36,14 @@ from iwsim.checkpoint import write_json_atomic, write_text_atomic
 from iwsim.envs.pusht import SUCCESS_IOU
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
-from iwsim.experiments.common import PolicyRun, evaluate_policies, fingerprint, train_runs, training_time
+from iwsim.experiments.common import (
+    PolicyRun,
+    evaluate_policies,
+    fingerprint,
+    lock_work,
+    train_runs,
+    training_time,
+)
 from iwsim.experiments.demos import DemoRecipe, DemoStats, record_with, simulator_demos, simulator_store
 from iwsim.policies.scripted import ScriptedConfig
 
@@ -167,6 +174,11 @@ def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset
         raise InputError(f"jobs must be a positive integer, got {jobs}.")
     if not Path(cfg.world_model).is_dir():
         raise InputError(f"world model {cfg.world_model} is not a checkpoint directory; pass --world-model PATH.")
+    with lock_work(work, "datagen"):
+        return _run_datagen(cfg, out, work, preset, jobs, progress)
+
+
+def _run_datagen(cfg: DatagenConfig, out: Path, work: Path, preset: str, jobs: int, progress: bool) -> dict[str, Any]:
     t0 = time.perf_counter()
     runs = plan(cfg)
     tag = fingerprint(cfg.world_model)[:8]

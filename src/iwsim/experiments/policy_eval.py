@@ -46,6 +46,7 @@ from iwsim.experiments.common import (
     PolicySource,
     checkpoints,
     evaluate_policies,
+    lock_work,
     train_runs,
     training_time,
 )
@@ -202,6 +203,12 @@ def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path,
     if not (wm / "config.json").is_file():
         raise InputError(f"world model {wm} is not a checkpoint directory (config.json + model.safetensors); "
                          "pass --world-model PATH.")
+    with lock_work(work, "policy-eval"):
+        return _run_policy_eval(cfg, out, work, preset, jobs, progress)
+
+
+def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, jobs: int, progress: bool
+                     ) -> dict[str, Any]:
     t0, timings = time.perf_counter(), {}
 
     log.info("policy-eval 1/4: demonstrations")
