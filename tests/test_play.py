@@ -417,3 +417,48 @@ def test_play_config_rejects_bad_values():
     for bad in ({"hz": 0}, {"hz": 100}, {"max_sessions": 0}, {"max_record_steps": 0}):
         with pytest.raises(ValueError):
             PlayConfig(**bad)
+
+
+def test_outbox_is_bounded_for_a_client_that_never_reads():
+    """Issue 26: the per-connection event queue grew without bound (~10 MiB/s)."""
+    import asyncio
+
+    from iwsim.play.server import MAX_UNSENT_EVENTS, Outbox
+
+    class Stuck:  # a socket whose sends never complete
+        async def send_text(self, text):
+            await asyncio.Event().wait()
+
+    async def flood() -> Outbox:
+        out = Outbox(Stuck())
+        task = asyncio.create_task(out.run())
+        for i in range(10 * MAX_UNSENT_EVENTS):
+            out.event(f"error {i}")
+            out.put_frame(b"x" * 100)
+            await asyncio.sleep(0)
+        task.cancel()
+        return out
+
+    out = asyncio.run(flood())
+    assert out.overflow and len(out.events) <= MAX_UNSENT_EVENTS
+
+
+def test_server_drops_a_flooding_client_that_never_reads_and_serves_the_others():
+    import socket
+    from urllib.parse import urlparse
+
+    eng = engine(max_sessions=2)
+    with running(eng) as srv:
+        url = urlparse(srv.ws)
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # fills at once when nobody reads
+        sock.connect((url.hostname, url.port))
+        with connect(srv.ws, sock=sock, max_queue=1) as flooder:
+            bad = json.dumps({"type": "action", "seq": 1, "action": [0, 0, 0]})
+            t0 = time.monotonic()
+            with pytest.raises(ConnectionClosed):  # it never reads: the server gives up on it, well
+                while time.monotonic() < t0 + 60:  # before its keepalive would (20 s pings here)
+                    flooder.send(bad)
+            assert time.monotonic() - t0 < 10
+        with connect(srv.ws) as ws:  # a well-behaved client still gets its frames
+            receive(ws, "frame")

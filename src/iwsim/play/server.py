@@ -133,17 +133,27 @@ def _settle(future: asyncio.Future, result: Any, error: BaseException | None) ->
         future.set_result(result)
 
 
+MAX_UNSENT_EVENTS = 256  # a client that leaves this many messages unread is dropped
+OVERFLOW_REASON = "dropped: the client sent faster than it read the replies"
+
+
 class Outbox:
-    """What one connection still has to send: events in order, then the newest frame."""
+    """What one connection still has to send: events in order (at most
+    MAX_UNSENT_EVENTS; beyond that ``overflow`` is set and the connection is closed), then
+    the newest frame (older unsent frames are skipped), so its memory is bounded."""
 
     def __init__(self, ws: WebSocket) -> None:
         self.ws = ws
         self.events: deque[str] = deque()
         self.frame: bytes | None = None
         self.dropped = 0
+        self.overflow = False
         self._wake = asyncio.Event()
 
     def event(self, text: str) -> None:
+        if len(self.events) >= MAX_UNSENT_EVENTS:
+            self.overflow = True
+            return
         self.events.append(text)
         self._wake.set()
 
@@ -249,12 +259,18 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
                     parsed = proto.parse(data, engine.model.action_dim)
                 except proto.ProtocolError as e:
                     out.event(proto.event("error", message=str(e)))
-                    continue
-                events, frame = await runner.call(apply, s, parsed)
-                for text in events:
-                    out.event(text)
-                if frame is not None:
-                    out.put_frame(frame)
+                else:
+                    events, frame = await runner.call(apply, s, parsed)
+                    for text in events:
+                        out.event(text)
+                    if frame is not None:
+                        out.put_frame(frame)
+                if out.overflow:
+                    log.warning("session %d: %s", s.id, OVERFLOW_REASON)
+                    sender.cancel()
+                    with contextlib.suppress(Exception):  # its socket may be full: do not wait for long
+                        await asyncio.wait_for(ws.close(code=1008, reason=OVERFLOW_REASON), timeout=2.0)
+                    break
         finally:
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
