@@ -110,11 +110,13 @@ def test_every_variant_trains(name):
     assert np.isfinite(losses).all() and losses[-1] < losses[0]
 
 
-@pytest.mark.parametrize("through", [True, False])
-def test_the_gradient_reaches_the_first_unrolled_step(through):
+@pytest.mark.parametrize("through,every", [(True, 0), (False, 0), (True, 1), (True, 3)])
+def test_the_gradient_reaches_the_first_unrolled_step(through, every):
     """With ``unroll_grad`` the last prediction's loss depends, through the fed-back
-    predictions, on what the first one saw (its context noise); detached, it does not."""
-    cfg = dataclasses.replace(tiny_cfg(), unroll_grad=through)
+    predictions, on what the first one saw (its context noise); detached, or cut after
+    every prediction (``unroll_grad_every`` 1), it does not; cut every 3 (beyond these 3
+    predictions) it does."""
+    cfg = dataclasses.replace(tiny_cfg(), unroll_grad=through, unroll_grad_every=every)
     torch.manual_seed(0)
     module = DynamicsTrainModule(randomise(Dynamics(cfg.dynamics)), cfg)
     g = torch.Generator().manual_seed(0)
@@ -124,7 +126,7 @@ def test_the_gradient_reaches_the_first_unrolled_step(through):
     batch.ctx_eps.requires_grad_(True)
     module.unroll(batch)[:, -1].sum().backward()
     first = batch.ctx_eps.grad[:, 0].abs().max().item()
-    assert (first > 0) == through
+    assert (first > 0) == (through and every != 1)
     assert batch.ctx_eps.grad[:, -1].abs().max().item() > 0
 
 
@@ -192,3 +194,13 @@ def test_a_short_training_run_learns_to_follow_the_action(positional):
         assert (cell(y[:, 0]) - cell(z[:, 1, 0])).norm(dim=1).median() <= 1.5
     else:
         assert (y[:, 0].mean((1, 2)) - z[:, 1, 0].mean((1, 2))).abs().median() < 0.2
+
+
+def test_cli_help_names_every_variant(capsys):
+    from iwsim.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["train", "dynamics", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in VARIANTS:
+        assert name in text, name

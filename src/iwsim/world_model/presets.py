@@ -96,6 +96,7 @@ class DynamicsStageConfig:
     # each sequence unrolls n predictions, each from a context holding the earlier ones.
     unroll: tuple[tuple[int, int], ...] = ((0, 2), (200, 4), (500, 8))
     unroll_grad: bool = True  # the gradient flows through fed-back predictions (else they are detached)
+    unroll_grad_every: int = 0  # with unroll_grad, cut it every this many predictions (0: never; TBPTT)
     changed_weight: float = 4.0  # extra loss weight on latent cells that change (1 + this)
     changed_threshold: float = 0.1  # a cell changes when a channel moves by more (standardised)
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
@@ -148,6 +149,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "no-points": {"dynamics": {"positional_actions": False}},
     "no-unroll": {"unroll": ((0, 1),)},
     "no-delta": {"predict_delta": False},
+    # Levers of issue 23 (rigid objects): a longer window (the paper's is 10 frames), and
+    # longer unrolls with the gradient cut every 8 predictions.
+    "window-6": {"dynamics": {"context": 6}},
+    "long-unroll": {"unroll": ((0, 2), (200, 4), (500, 8), (800, 16), (1100, 24)), "unroll_grad_every": 8},
 }
 
 

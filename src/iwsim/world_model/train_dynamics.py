@@ -9,7 +9,8 @@ network sees (``cfg.context_sigma``), and the network is told that std. The loss
 latent cells that change ``1 + cfg.changed_weight`` times more than static ones.
 
 The gradient flows through the fed-back predictions (back-propagation through the whole
-unroll) unless ``cfg.unroll_grad`` is off. The benchmark's baselines train in the same
+unroll, or truncated every ``cfg.unroll_grad_every`` predictions) unless ``cfg.unroll_grad``
+is off. The benchmark's baselines train in the same
 way with another ``objective`` (see ``iwsim.config.VARIANTS``); the "edm" objective's
 fed-back context is a real sample (Euler steps, no gradient), since its one-pass
 estimate is not what inference produces.
@@ -87,7 +88,8 @@ class DynamicsTrainModule(nn.Module):
             if not self.feeds_estimate:
                 with torch.no_grad():
                     pred = self.denoiser.sample(ctx_in, sig, acts, batch.feed_eps[:, u])
-            ctx = torch.cat([ctx[:, 1:], (pred if cfg.unroll_grad else pred.detach())[:, None]], 1)
+            cut = not cfg.unroll_grad or (cfg.unroll_grad_every and (u + 1) % cfg.unroll_grad_every == 0)
+            ctx = torch.cat([ctx[:, 1:], (pred.detach() if cut else pred)[:, None]], 1)
         return torch.stack(losses, 1)
 
 
