@@ -233,3 +233,42 @@ def test_a_second_study_on_a_work_directory_in_use_is_refused(wm_path, tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is in use by another study" in err[0] and "running the datagen study" in err[0], err
     assert sorted(p.name for p in work.iterdir()) == [".iwsim.lock"] and not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_a_study_killed_at_any_point_and_rerun_ends_as_an_uninterrupted_one(wm_path, tmp_path):
+    """Issue 26: a study killed and re-run must end with the results (scores and trained
+    weights) of an uninterrupted run; killed here at three points of its run."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    iwsim = Path(sys.executable).parent / "iwsim"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+
+    def cmd(name: str) -> list[str]:
+        return [str(iwsim), "experiment", "datagen", "--preset", "tiny", "--world-model", str(wm_path),
+                "--out", str(tmp_path / name / "out"), "--work", str(tmp_path / name / "work"), "--jobs", "1",
+                "--no-progress"]
+
+    def outcome(name: str) -> dict:
+        r = json.loads((tmp_path / name / "out" / "results.json").read_text())
+        runs = tmp_path / name / "work" / "datagen" / "runs"
+        return {run["name"]: (run["mean_max_iou"], run["success_rate"],
+                              (runs / run["name"] / "checkpoints" / "last" / "model.safetensors").read_bytes())
+                for run in r["runs"]}
+
+    t0 = time.monotonic()
+    subprocess.run(cmd("whole"), env=env, check=True, capture_output=True)
+    duration = time.monotonic() - t0
+    want = outcome("whole")
+    for i, fraction in enumerate((0.2, 0.5, 0.8)):
+        name = f"killed{i}"
+        proc = subprocess.Popen(cmd(name), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(fraction * duration)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        subprocess.run(cmd(name), env=env, check=True, capture_output=True)
+        assert outcome(name) == want, f"killed after {fraction * duration:.1f} s"
