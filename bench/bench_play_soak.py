@@ -1,12 +1,14 @@
-"""Soak test of ``iwsim play``: a long session with well-behaved clients and one flood client.
+"""Soak test of ``iwsim play``: a long session with well-behaved clients and two flood clients.
 
 Starts the real server (``iwsim play`` in a subprocess, as ``bench_play.py`` does) with room
 for every client, drives it for ``--seconds`` with ``--clients`` page-like clients (key
-presses every 0.4-0.6 s, ``bench_play.client``) and one flood client that sends as fast as
-it can: valid actions, malformed and oversized messages, and now and then a connection
-without the token. Records the well-behaved clients' frames/s and key-to-frame latency
-(p50/p95, per minute as well, to show drift), what the flood client got through, and the
-server's resident memory every second.
+presses every 0.4-0.6 s, ``bench_play.client``), one flood client that sends as fast as
+it can (valid actions, malformed and oversized messages, and now and then a connection
+without the token) and reads what comes back, and one token holder that floods bad
+messages and never reads (a tiny receive buffer), reconnecting whenever it is dropped.
+Records the well-behaved clients' frames/s and key-to-frame latency (p50/p95, per minute
+as well, to show drift), what the flood clients got through, how often the server dropped
+the one that never reads, and the server's resident memory every second.
 
     MUJOCO_GL=egl .venv/bin/python bench/bench_play_soak.py --seconds 300
 
@@ -89,6 +91,32 @@ def flood(server: Server, seconds: float, out: dict) -> None:
     out.update(sent=sent, received=received, refused_without_token=refused)
 
 
+def flood_never_reading(server: Server, seconds: float, out: dict) -> None:
+    """Send bad messages as fast as the socket takes them and never read; reconnect when
+    the server drops the connection (it must: its replies pile up unread)."""
+    import socket
+
+    from websockets.exceptions import ConnectionClosed, InvalidStatus
+    from websockets.sync.client import connect
+
+    sent = drops = 0
+    stop = time.perf_counter() + seconds
+    bad = json.dumps({"type": "action", "seq": 1, "action": [0, 0, 0]})
+    while time.perf_counter() < stop:
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        try:
+            sock.connect(("127.0.0.1", server.port))
+            with connect(server.ws_url, sock=sock, max_queue=1) as ws:
+                while time.perf_counter() < stop:
+                    ws.send(bad)
+                    sent += 1
+        except (ConnectionClosed, InvalidStatus, OSError):
+            drops += 1
+            time.sleep(0.2)
+    out.update(sent=sent, dropped=drops)
+
+
 def per_minute(frame_times: list[float], t0: float) -> list[float]:
     """Frames per second in each whole minute after ``t0``."""
     x = np.asarray(frame_times) - t0
@@ -106,15 +134,18 @@ def main() -> None:
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    server = Server(args.checkpoint, args.hz, args.clients + 1, SERVER_LOG)
+    server = Server(args.checkpoint, args.hz, args.clients + 2, SERVER_LOG)
     memory: list[tuple[float, float]] = []
     try:
         t0 = time.perf_counter()
         outs = [{} for _ in range(args.clients)]
         flood_out: dict = {}
+        silent_out: dict = {}
         threads = [threading.Thread(target=client, args=(server.ws_url, args.hz, args.warmup, args.seconds, i, o))
                    for i, o in enumerate(outs)]
         threads.append(threading.Thread(target=flood, args=(server, args.warmup + args.seconds, flood_out)))
+        threads.append(threading.Thread(target=flood_never_reading,
+                                        args=(server, args.warmup + args.seconds, silent_out)))
         for t in threads:
             t.start()
         while any(t.is_alive() for t in threads):
@@ -141,6 +172,7 @@ def main() -> None:
         "fps_per_minute": [per_minute(o["frame_times"], start) for o in outs],
         "latency_ms": summary(lat),
         "flood": flood_out,
+        "never_reading": silent_out,
         "server_alive_at_end": alive,
         "memory_mib": {"start": float(mem[0]), "max": float(mem.max()), "end": float(mem[-1])} if len(mem) else {},
         "memory_trace": memory,
@@ -160,6 +192,8 @@ def main() -> None:
            if result["memory_mib"] else "n/a")
         + f" | {flood_out.get('sent', 0)} | {flood_out.get('received', 0)} | "
           f"{flood_out.get('refused_without_token', 0)} |", "",
+        f"The token holder that floods and never reads sent {silent_out.get('sent', 0)} messages and was dropped "
+        f"{silent_out.get('dropped', 0)} times (each connection's unsent replies are bounded).", "",
         f"Server still running at the end: {alive}."
         + (f" The server closed the flood client's connection {flood_out['flood_closed']}."
            if "flood_closed" in flood_out else ""), ""])
