@@ -111,6 +111,32 @@ def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco:
     return result
 
 
+def scaling_figure(path: Path, models: dict[str, dict], mujoco: dict) -> None:
+    """The yardstick's object measures against the training steps of one run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [int(Path(r["checkpoint"]).name) for r in models.values()]
+    rows = [("T kept, held-out play (192 steps)", "t_found", 1.0), ("T kept, 2000-step run", "stable_t", 1.0),
+            ("teleop mean max IoU", "teleop_iou", mujoco["teleop"]["mean_candidate_max_iou"]),
+            ("PSNR 1-192 minus repeat-first (dB)", None, None)]
+    fig, axes = plt.subplots(1, len(rows), figsize=(4 * len(rows), 3.2))
+    for ax, (title, key, ref) in zip(axes, rows):
+        if key is None:
+            ys = [r["psnr_play"] - r["psnr_play_first"] for r in models.values()]
+            ax.axhline(4.0, color="k", ls=":", label="target")
+        else:
+            ys = [r[key] for r in models.values()]
+            ax.axhline(ref, color="k", ls="--", label="MuJoCo")
+        ax.plot(steps, ys, "o-")
+        ax.set_title(title, fontsize=9), ax.set_xlabel("training steps"), ax.grid(alpha=0.3), ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def cell(r: dict, key: str, fmt: str) -> str:
     v = r.get(key)
     if v is None:
@@ -164,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--horizon", type=int, default=192, help="open-loop steps on held-out play (default: %(default)s)")
     p.add_argument("--speed-calls", type=int, default=100, help="timed steps per speed test (default: %(default)s)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
+    p.add_argument("--curve", help="NAME,NAME,...: models of one run (checkpoints named by their step) to plot "
+                   "against training steps in scaling.png")
     p.add_argument("--work", default="runs/yardstick", help="cache (default: %(default)s)")
     p.add_argument("--out", default="bench/results/yardstick", help="report directory (default: %(default)s)")
     args = p.parse_args(argv)
@@ -190,6 +218,12 @@ def main(argv: list[str] | None = None) -> int:
         report["models"][name] = r
         write_json_atomic(report_path, report)
         print(f"{name}: " + ", ".join(f"{c} {cell(r, k, f)}" for c, k, f, _ in COLUMNS), flush=True)
+    if args.curve:
+        curve = [n.strip() for n in args.curve.split(",")]
+        missing = [n for n in curve if n not in report["models"]]
+        if missing:
+            p.error(f"--curve names models not evaluated: {', '.join(missing)}")
+        scaling_figure(out / "scaling.png", {n: report["models"][n] for n in curve}, report["mujoco"])
     strip(out / "expert_strip.png", [r["checkpoint"] for r in report["models"].values()] + [None], RANK_SEED)
     write_text_atomic(out / "results.md", markdown(report, " ".join(["python", *sys.argv])))
     print((out / "results.md").read_text())

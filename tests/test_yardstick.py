@@ -18,9 +18,11 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_yardstick_runs_on_a_tiny_model(tmp_path):
     data = tmp_path / "eval.zarr"
     collect("pusht", "play", 2, out=data, steps=40, image_size=64, workers=1, seed=900000, progress=False)
-    ckpt = tiny_world_model().save(tmp_path / "tiny", {"data": str(data)})
+    ckpt = tiny_world_model().save(tmp_path / "run" / "00000002", {"data": str(data)})
+    later = tiny_world_model(seed=1).save(tmp_path / "run" / "00000004", {"data": str(data)})
     out = tmp_path / "out"
-    cmd = [sys.executable, str(ROOT / "bench" / "yardstick.py"), "--models", f"tiny={ckpt}", "--data", str(data),
+    cmd = [sys.executable, str(ROOT / "bench" / "yardstick.py"), "--models", f"tiny={ckpt}", f"later={later}",
+           "--curve", "tiny,later", "--data", str(data),
            "--episodes", "2", "--horizon", "36", "--steps", "6", "--candidates", "2", "--stability-steps", "20",
            "--speed-calls", "2", "--work", str(tmp_path / "work"), "--out", str(out)]
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
@@ -33,7 +35,7 @@ def test_yardstick_runs_on_a_tiny_model(tmp_path):
     assert m["action_gap_5"] > 0 and m["psnr_play"] > 0 and m["psnr_play_first"] > 0
     md = (out / "results.md").read_text()
     assert "| tiny |" in md and "| MuJoCo |" in md and "| target |" in md
-    assert (out / "expert_strip.png").stat().st_size > 0
+    assert (out / "expert_strip.png").stat().st_size > 0 and (out / "scaling.png").stat().st_size > 0
     # a second run reuses the cached evaluation
     again = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert again.returncode == 0 and json.loads((out / "results.json").read_text())["models"]["tiny"] == m
