@@ -462,3 +462,34 @@ def test_server_drops_a_flooding_client_that_never_reads_and_serves_the_others()
             assert time.monotonic() - t0 < 30  # under 1 s here; the old code took ~50 s (keepalive)
         with connect(srv.ws) as ws:  # a well-behaved client still gets its frames
             receive(ws, "frame")
+
+
+def test_message_budget_allows_the_page_rate_and_cuts_a_flood():
+    from iwsim.play.server import MAX_MESSAGES_PER_SECOND, MessageBudget
+
+    now = [0.0]
+    budget = MessageBudget(clock=lambda: now[0])
+    for _ in range(600):  # 60 s of the page's most: two actions per step at 10 Hz, and a command
+        now[0] += 0.1
+        assert all(budget.take() for _ in range(3))
+    flood = [budget.take() for _ in range(5 * MAX_MESSAGES_PER_SECOND)]  # all in one instant
+    assert flood.index(False) == 2 * MAX_MESSAGES_PER_SECOND - 3  # the burst (less this step's 3), no more
+
+
+def test_server_drops_a_client_that_sends_too_fast_and_serves_the_others():
+    """Issue 26 soak: a flood of messages took the server's time (the others' frames/s 9.9 -> 5.7)."""
+    from iwsim.play.server import RATE_REASON
+
+    eng = engine(max_sessions=2)
+    with running(eng) as srv:
+        with connect(srv.ws) as flooder:
+            receive(flooder, "hello")
+            msg = json.dumps({"type": "action", "seq": 1, "action": [0.0, 0.0, 0.0, 0.0]})
+            with pytest.raises(ConnectionClosed) as closed:
+                for _ in range(100_000):
+                    flooder.send(msg)
+                while True:
+                    flooder.recv(timeout=10)
+        assert closed.value.rcvd.code == 1008 and closed.value.rcvd.reason == RATE_REASON
+        with connect(srv.ws) as ws:
+            receive(ws, "frame")

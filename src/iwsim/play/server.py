@@ -135,6 +135,29 @@ def _settle(future: asyncio.Future, result: Any, error: BaseException | None) ->
 
 MAX_UNSENT_EVENTS = 256  # a client that leaves this many messages unread is dropped
 OVERFLOW_REASON = "dropped: the client sent faster than it read the replies"
+# The page sends at most two actions per control step (20/s at 10 Hz) and a few commands;
+# a connection that sends more than this many messages a second, sustained over a burst of
+# twice as many, is dropped, so one client cannot take the server's time from the others.
+MAX_MESSAGES_PER_SECOND = 100
+RATE_REASON = f"dropped: more than {MAX_MESSAGES_PER_SECOND} messages a second"
+
+
+class MessageBudget:
+    """A token bucket: ``take()`` is False once a connection's messages outrun
+    ``rate`` a second beyond a burst of ``2 * rate``."""
+
+    def __init__(self, rate: float = MAX_MESSAGES_PER_SECOND, clock: Callable[[], float] = time.monotonic) -> None:
+        self.rate, self.burst, self.clock = rate, 2 * rate, clock
+        self.tokens, self.last = self.burst, clock()
+
+    def take(self) -> bool:
+        now = self.clock()
+        self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens < 1:
+            return False
+        self.tokens -= 1
+        return True
 
 
 class Outbox:
@@ -246,6 +269,7 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
         out.event(engine.hello(s))
         out.put_frame(await runner.call(engine.frame_message, s))
         sender = asyncio.create_task(out.run())
+        budget = MessageBudget()
         try:
             while not sender.done():  # messages -> engine until the client goes
                 try:
@@ -253,6 +277,9 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
                 except (WebSocketDisconnect, RuntimeError):
                     break
                 if msg["type"] == "websocket.disconnect":
+                    break
+                if not budget.take():
+                    await _drop(ws, sender, s.id, RATE_REASON)
                     break
                 data = msg.get("text") if msg.get("text") is not None else msg.get("bytes", b"")
                 try:
@@ -266,10 +293,7 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
                     if frame is not None:
                         out.put_frame(frame)
                 if out.overflow:
-                    log.warning("session %d: %s", s.id, OVERFLOW_REASON)
-                    sender.cancel()
-                    with contextlib.suppress(Exception):  # its socket may be full: do not wait for long
-                        await asyncio.wait_for(ws.close(code=1008, reason=OVERFLOW_REASON), timeout=2.0)
+                    await _drop(ws, sender, s.id, OVERFLOW_REASON)
                     break
         finally:
             sender.cancel()
@@ -280,6 +304,14 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
             log.info("session %d closed (%d frames skipped while it was slow to read)", s.id, out.dropped)
 
     return app
+
+
+async def _drop(ws: WebSocket, sender: asyncio.Task, sid: int, reason: str) -> None:
+    """Close a session's connection with 1008 and ``reason``, not waiting long: its socket may be full."""
+    log.warning("session %d: %s", sid, reason)
+    sender.cancel()
+    with contextlib.suppress(Exception):
+        await asyncio.wait_for(ws.close(code=1008, reason=reason), timeout=2.0)
 
 
 async def _refuse(ws: WebSocket, kind: str, message: str, code: int) -> None:

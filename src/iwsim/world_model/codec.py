@@ -73,6 +73,11 @@ class Codec(Protocol):
 
     def encoder_parameters(self) -> list[torch.nn.Parameter]: ...
 
+    def prepare(self, frames: torch.Tensor) -> None:
+        """Take what the loss needs from a sample of training frames (N, 3, H, W) in
+        [-1, 1] before fresh training (e.g. a background image); most codecs need nothing."""
+        ...
+
     # and nn.Module's state_dict / load_state_dict / to / eval
 
 
@@ -100,6 +105,9 @@ class EncoderCodec(nn.Module):
 
     def encoder_parameters(self) -> list[nn.Parameter]:
         return list(self.encoder.parameters())
+
+    def prepare(self, frames: torch.Tensor) -> None:
+        pass
 
 
 def reconstruct(codec: Codec, x: torch.Tensor, jumps: int = 1, chunk: int = 64) -> torch.Tensor:

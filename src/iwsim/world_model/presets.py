@@ -68,6 +68,17 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
     "conv-x2-64": ConvCodecConfig(channels=(32, 64), blocks_per_level=2, train=TrainConfig(
         steps=1500, batch_size=32, lr=1e-3, warmup_steps=100, eval_every=250, checkpoint_every=250,
         ema_decay=0.995)),
+    # Issue 23's coarse codecs: a decoder that holds the objects' shapes in its weights, fed
+    # by few latent cells (x8: 8 x 8 x 8 latents; x16: 16 x 4 x 4), trained on latents noised
+    # like stage 2's context (std up to 0.3) and with the small things weighted up.
+    "conv-x8-64": ConvCodecConfig(
+        latent_channels=8, channels=(16, 32, 64, 128), blocks_per_level=2, foreground_weight=10.0,
+        latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
+                                                    eval_every=250, checkpoint_every=250, ema_decay=0.995)),
+    "conv-x16-64": ConvCodecConfig(
+        latent_channels=16, channels=(16, 32, 64, 128, 128), blocks_per_level=2, foreground_weight=10.0,
+        latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
+                                                    eval_every=250, checkpoint_every=250, ema_decay=0.995)),
 }
 
 

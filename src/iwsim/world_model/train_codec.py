@@ -84,6 +84,8 @@ class AETask:
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
             self.module = AETrainModule(build_codec(self.kind, to_dict(cfg)))
+        sample = np.linspace(0, len(self.train_frames) - 1, min(1024, len(self.train_frames))).round().astype(int)
+        self.module.codec.prepare(to_model(self.train_frames.frames(sample)))
         if init is not None:
             self.module.codec.load_state_dict(init)
         if cfg.freeze_encoder:
