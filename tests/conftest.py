@@ -1,5 +1,6 @@
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -31,3 +32,68 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+# -- a second task, built here: a 2-D point pusher drawn by a tiny renderer ---------------------
+
+POINT_BACKGROUND, POINT_COLOUR, POINT_RADIUS = (230, 230, 225), (40, 90, 220), 5.0
+
+
+def render_point(pos: np.ndarray, size: int = 64) -> np.ndarray:
+    """Frames (..., size, size, 3) uint8 of a disk at positions (..., 2) in [-1, 1] (x right, y up)."""
+    centre = (np.asarray(pos, np.float64)[..., None, None, :] * [1, -1] + 1) / 2 * size
+    yy, xx = np.mgrid[0:size, 0:size] + 0.5
+    inside = (xx - centre[..., 0]) ** 2 + (yy - centre[..., 1]) ** 2 <= POINT_RADIUS**2
+    return np.where(inside[..., None], POINT_COLOUR, POINT_BACKGROUND).astype(np.uint8)
+
+
+def point_episodes(episodes: int = 6, steps: int = 20, seed: int = 0) -> dict[str, np.ndarray]:
+    """Diffusion Policy's ReplayBuffer layout of a point robot under position control: a
+    smooth random walk of 2-D targets in [-0.8, 0.8]; frame t shows the point where action
+    t - 1 put it (img float32 in [0, 255], as DP's Push-T file), ``state`` is that position."""
+    rng = np.random.default_rng(seed)
+    imgs, states, actions = [], [], []
+    for _ in range(episodes):
+        pos = rng.uniform(-0.5, 0.5, 2)
+        vel = np.zeros(2)
+        for _ in range(steps):
+            vel = 0.7 * vel + rng.normal(0, 0.06, 2)
+            target = np.clip(pos + vel, -0.8, 0.8)
+            imgs.append(render_point(pos))
+            states.append(pos.copy())
+            actions.append(target)
+            pos = target
+    return {"data/img": np.stack(imgs).astype(np.float32), "data/state": np.asarray(states, np.float32),
+            "data/action": np.asarray(actions, np.float32),
+            "meta/episode_ends": np.arange(1, episodes + 1, dtype=np.int64) * steps}
+
+
+@pytest.fixture(scope="session")
+def point_model(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A world model of the point task, made as a user would: a Diffusion Policy Zarr ->
+    ``data import`` -> ``train ae`` / ``train dynamics`` (tiny presets) -> ``export-model``.
+    Returns the paths of the source, the store and the checkpoint."""
+    import zarr
+
+    from iwsim.cli import main
+
+    root = tmp_path_factory.mktemp("point")
+    src = root / "point.zarr"
+    group = zarr.open_group(src, mode="w", zarr_format=2)
+    for key, value in point_episodes().items():
+        group.create_array(key, shape=value.shape, dtype=value.dtype, fill_value=0)[...] = value
+    group.attrs.update({"fps": 10, "action_names": ["x", "y"]})
+    store, ae, dyn, wm = root / "store.zarr", root / "ae", root / "dyn", root / "wm"
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for argv in (["data", "import", "--format", "zarr", "--in", str(src), "--out", str(store),
+                      "--image-size", "64"],
+                     ["train", "ae", "--data", str(store), "--preset", "tiny", "--out", str(ae), "--no-progress"],
+                     ["train", "dynamics", "--data", str(store), "--ae", str(ae), "--preset", "tiny", "--out",
+                      str(dyn), "--no-progress"],
+                     ["export-model", "--run", str(dyn), "--out", str(wm)]):
+            assert main(argv) == 0, argv
+    finally:
+        torch.set_num_threads(n)
+    return {"source": src, "store": store, "checkpoint": wm}

@@ -199,7 +199,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
                    help="another web origin (http://host:port) whose pages may open sessions; repeatable")
     p.add_argument("--record-to", help="episode store that saved demonstrations are appended to")
-    p.add_argument("--store", help="episode store to draw 'frame from store' starts from")
+    p.add_argument("--store", help="episode store to draw 'frame from store' starts from (for a task other than "
+                                   "T-push also its starts; default: the store its checkpoint records)")
+    p.add_argument("--bindings", help="JSON file of teleop bindings instead of the task's: {\"keys\": {\"w\": "
+                                      "[dim, sign], ...}, \"axes\": [[axis, dim, sign], ...], \"speed\": "
+                                      "[units/s per dim]}")
     p.add_argument("--hz", type=float, default=10.0, help="control rate, steps per second (default: %(default)s)")
     p.add_argument("--max-sessions", type=int, default=4, help="concurrent sessions (default: %(default)s)")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
@@ -533,6 +537,10 @@ def _eval_policy(args: argparse.Namespace) -> int:
                       image_size=policy.image_size, out=args.out, videos=args.videos, progress=not args.no_progress,
                       meta={"checkpoint": str(args.checkpoint), "n_action_steps": policy.cfg.n_action_steps,
                             "world_model": args.world_model if args.env == "world-model" else None})
+    if result["scorer"] is None:
+        print(f"{args.env}: no scorer (task {result['task']!r} has no pixel scorer): {args.episodes} episodes of "
+              f"{args.steps} steps without a score; {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
+        return 0
     post = result["success_beta_posterior"]
     lo, hi = result["success_clopper_pearson"]
     print(f"{args.env}: mean max IoU {result['mean_max_iou']:.3f}; success {result['success_rate']:.2f} "
@@ -643,6 +651,7 @@ def _play(args: argparse.Namespace) -> int:
     # Before the slow imports and the model: a bad token, too many sessions for this
     # machine's memory or a taken port fails at once.
     token, source = resolve_token(args.token, args.token_file)
+    bindings = None if args.bindings is None else _read_json(args.bindings, "--bindings")
     _check_positive(args, "max_sessions")
     _check_sessions_memory(args.max_sessions)
     check_bind(args.host, token)
@@ -659,7 +668,8 @@ def _play(args: argparse.Namespace) -> int:
         port = access.port
         cfg = PlayConfig(hz=args.hz, max_sessions=args.max_sessions, checkpoint=args.checkpoint,
                          record_to=Path(args.record_to) if args.record_to else None,
-                         store=Path(args.store) if args.store else None, wait_for_lock=args.wait_for_lock)
+                         store=Path(args.store) if args.store else None, wait_for_lock=args.wait_for_lock,
+                         bindings=bindings)
         engine = Engine(WorldModel.load(args.checkpoint, resolve_device(args.device)), cfg)
         shown = "localhost" if args.host in ("0.0.0.0", "::") else args.host
         # The token is never logged: the page served here carries it, remote users know their own.
@@ -671,6 +681,18 @@ def _play(args: argparse.Namespace) -> int:
     finally:
         sock.close()
     return 0
+
+
+def _read_json(path: str, flag: str) -> object:
+    import json
+
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except OSError as e:
+        raise InputError(f"{flag} {path}: cannot read it ({e.strerror}).") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{flag} {path} is not valid JSON: {e}.") from None
 
 
 def _experiment_datagen(args: argparse.Namespace) -> int:

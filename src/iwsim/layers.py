@@ -13,8 +13,8 @@ LAYERS: list[tuple[str, ...]] = [
      "iwsim.normalize", "iwsim.config", "iwsim.layers", "iwsim.training.trainer", "iwsim.training.distributed"),
     # 2. the ground truth: MuJoCo tasks, their scripted policies, pixel scorers
     ("iwsim.envs",),
-    # 3. data, then the models as objects (the world model with its codecs and its training)
-    ("iwsim.data",),
+    # 3. data and the task registry, then the models as objects (the world model with its codecs and its training)
+    ("iwsim.data", "iwsim.tasks"),
     ("iwsim.world_model", "iwsim.policies"),
     # 4. Gymnasium envs over a world model
     ("iwsim.world_model_env",),

@@ -1,17 +1,24 @@
-"""The world model as a Gymnasium environment, with the spaces of ``iwsim/BimanualPushT-v0``.
+"""The world model as a Gymnasium environment, with its task's spaces.
 
     env = gym.make("iwsim/WorldModel-v0", checkpoint="checkpoints/pusht-64")
-    obs, info = env.reset(seed=100000)   # the MuJoCo task's initial frame for that seed
+    obs, info = env.reset(seed=100000)   # T-push: the MuJoCo task's initial frame for that seed
     obs, reward, terminated, truncated, info = env.step(action)
 
-Initial frames come from ``reset_source``: ``"mujoco"`` (a fresh MuJoCo reset with the
-given seed, so a policy starts from the same state in both environments), ``"store"``
-(a random frame of the episode store ``store``), or ``reset(options={"frame": f})``.
-``agent_pos`` is read from the frame (the pushers' colours), and ``info["iou"]``
-and the reward come from the pixel scorer, so nothing but the model's pixels is used.
-Actions are commanded targets, approached at the task's speed limit exactly as MuJoCo
-does (:func:`iwsim.envs.pusht.limit_targets`, starting from the pushers' positions at
-reset); the model is conditioned on that executed motion (``info["target"]``).
+The task (:class:`iwsim.envs.task.Task`) is the one the checkpoint records (``task=``
+overrides it): its action space, how a command becomes the executed motion, its pixel
+scorer and its initial frames. Initial frames come from ``reset_source``: the task's own
+(``"mujoco"`` for T-push, a fresh MuJoCo reset with the given seed, so a policy starts
+from the same state in both environments; ``"dataset"`` for any other robot's task, the
+first frame of its store's episode ``seed % episodes``), ``"store"`` (a random frame of
+the episode store ``store``), or ``reset(options={"frame": f})``.
+
+For T-push, ``agent_pos`` is read from the frame (the pushers' colours), and
+``info["iou"]`` and the reward come from the pixel scorer, so nothing but the model's
+pixels is used; actions are commanded targets, approached at the task's speed limit
+exactly as MuJoCo does (:func:`iwsim.envs.pusht.limit_targets`, starting from the
+pushers' positions at reset). A task without a scorer reports ``info["score"] = None``
+and reward 0, and its ``agent_pos`` is the executed command. Either way the model is
+conditioned on the executed motion (``info["target"]``).
 
 :class:`WorldModelVectorEnv` steps many environments in one forward pass. Its episodes
 run in lockstep (all start together and are truncated together after
@@ -20,7 +27,6 @@ run in lockstep (all start together and are truncated together after
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,94 +35,63 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from iwsim.data.store import EpisodeStore
-from iwsim.envs import make_env
-from iwsim.envs.pixels import pixel_iou, pusher_positions, read_frames
-from iwsim.envs.pusht import CONTROL_HZ, SUCCESS_IOU, WORKSPACE, check_actions, limit_targets, spaces
+from iwsim.envs.task import Start, Task
 from iwsim.errors import InputError
+from iwsim.tasks import StoreStarts, get_task, task_of
 from iwsim.world_model import WorldModel
 
-SOURCES = ("mujoco", "store")
-
-
-@dataclass(frozen=True)
-class Start:
-    """An initial frame (H, W, 3) uint8, its pusher positions (4,) and, when known, the
-    MuJoCo state ``[lx, ly, rx, ry, bx, by, byaw]`` that renders it (``reset_to_state``)."""
-
-    frame: np.ndarray
-    agent_pos: np.ndarray
-    state: np.ndarray | None
+STORE = "store"
 
 
 class Starts:
-    """Initial frames from MuJoCo resets or from a random frame of an episode store."""
+    """Initial frames: the task's own (``task.start_source``: MuJoCo resets for T-push, a
+    dataset episode's first frame for a generic task) or a random frame of the episode
+    store ``store`` (source ``"store"``)."""
 
-    def __init__(self, source: str, image_size: int, store: str | Path | None, task: str) -> None:
-        if source not in SOURCES:
-            raise InputError(f"reset_source must be one of {SOURCES}, got {source!r}.")
-        if source == "store" and store is None:
+    def __init__(self, task: Task, image_size: int, store: str | Path | None, source: str | None = None) -> None:
+        self.task, self.image_size = task, image_size
+        self.sources = (task.start_source, STORE)
+        self.source = source or task.start_source
+        if self.source not in self.sources:
+            raise InputError(f"reset_source must be one of {self.sources}, got {self.source!r}.")
+        if self.source == STORE and store is None:
             raise InputError("reset_source 'store' needs store=<path of an episode store>.")
-        self.source, self.image_size, self.task = source, image_size, task
-        self._env: gym.Env | None = None
-        self._store = None
-        if store is not None:
-            self._store = EpisodeStore.open(store, "r")
-            size = self._store.array("img").shape[1]
-            if size != image_size:
-                raise InputError(f"{store} holds {size}x{size} frames; the world model needs "
-                                 f"{image_size}x{image_size}.")
+        self._own = None
+        self._store = None if store is None else StoreStarts(task, store, image_size, first=False)
+        self._store_path = store
+        if self.source == task.start_source:
+            self._own = task.initial_frames(image_size, None if store is None else str(store))
 
     @property
     def has_store(self) -> bool:
         return self._store is not None
 
     def draw(self, seed: int, source: str | None = None, state: Any = None) -> Start:
-        """The start for ``seed`` (and, for MuJoCo, an explicit ``state`` if given)."""
+        """The start for ``seed`` (and an explicit ground-truth ``state`` if given)."""
         source = source or self.source
-        if source == "mujoco":
-            if self._env is None:
-                self._env = make_env(self.task, self.image_size)
-            obs, _ = self._env.reset(seed=int(seed), options=None if state is None else {"reset_to_state": state})
-            return Start(obs["pixels"], obs["agent_pos"], self._env.unwrapped.get_state())
-        if source != "store" or self._store is None:
-            raise InputError(f"reset source {source!r} is not available; expected one of {SOURCES} "
+        if source == self.task.start_source:
+            if self._own is None:
+                self._own = self.task.initial_frames(self.image_size, self._store_path)
+            return self._own.draw(int(seed), state)
+        if source != STORE or self._store is None:
+            raise InputError(f"reset source {source!r} is not available; expected one of {self.sources} "
                              "(and a store for 'store').")
-        rng = np.random.default_rng(seed)
-        ends = self._store.episode_ends
-        e = int(rng.integers(len(ends)))
-        start = 0 if e == 0 else int(ends[e - 1])
-        i = int(rng.integers(start, ends[e]))
-        frame = np.asarray(self._store.array("img")[i])
-        if "state" not in self._store.keys:
-            return Start(frame, read_agent_pos(frame[None], np.zeros((1, 4), np.float32))[0], None)
-        pos = np.asarray(self._store.array("state")[i], dtype=np.float32)
-        state = None
-        if "block_pose" in self._store.keys:
-            state = np.concatenate([pos, self._store.array("block_pose")[i]]).astype(np.float64)
-        return Start(frame, pos, state)
+        return self._store.draw(int(seed))
 
     def close(self) -> None:
-        if self._env is not None:
-            self._env.close()
-            self._env = None
+        for frames in (self._own, self._store):
+            if frames is not None:
+                frames.close()
+        self._own = None
 
 
-def read_agent_pos(frames: np.ndarray, previous: np.ndarray) -> np.ndarray:
-    """Pusher positions read from frames (B, H, W, 3); a pusher not seen keeps its previous position."""
-    return _hold_unseen(*pusher_positions(frames), previous)
-
-
-def observe(frames: np.ndarray, previous: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel IoU (B,) and pusher positions (B, 4) (as :func:`read_agent_pos`) of frames
-    (B, H, W, 3), in one pass of the colour segmentation."""
-    iou, pos, found = read_frames(frames)
-    return iou, _hold_unseen(pos, found, previous)
-
-
-def _hold_unseen(pos: np.ndarray, found: np.ndarray, previous: np.ndarray) -> np.ndarray:
-    pos = np.where(np.repeat(~found, 2, axis=-1), previous, pos)
-    return np.clip(pos, -WORKSPACE, WORKSPACE).astype(np.float32)
+def resolve_task(model: WorldModel, task: str | Task | None) -> Task:
+    """``task`` (a built-in name or a Task), else the model's; its action size must be the model's."""
+    task = task_of(model) if task is None else get_task(task) if isinstance(task, str) else task
+    if task.action_dim != model.action_dim:
+        raise InputError(f"the world model takes {model.action_dim}-D actions; task {task.name!r} needs "
+                         f"{task.action_dim}.")
+    return task
 
 
 def _load(model: WorldModel | None, checkpoint: str | Path | None, device: str) -> WorldModel:
@@ -130,22 +105,22 @@ def _load(model: WorldModel | None, checkpoint: str | Path | None, device: str) 
 class WorldModelEnv(gym.Env):
     """One world-model rollout behind the Gymnasium API (see the module docstring)."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, checkpoint: str | Path | None = None, *, model: WorldModel | None = None,
-                 reset_source: str = "mujoco", store: str | Path | None = None, task: str = "pusht",
+                 reset_source: str | None = None, store: str | Path | None = None, task: str | Task | None = None,
                  device: str = "cpu", render_mode: str | None = "rgb_array",
                  terminate_on_success: bool = False) -> None:
         if render_mode not in (None, "rgb_array"):
             raise InputError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}.")
         self.model = _load(model, checkpoint, device)
-        if self.model.action_dim != 4:
-            raise InputError(f"the world model takes {self.model.action_dim}-D actions; {task} needs 4.")
+        self.task = resolve_task(self.model, task)
+        self.metadata = {**self.metadata, "render_fps": self.task.fps}
         self.render_mode, self.terminate_on_success = render_mode, terminate_on_success
-        self.action_space, self.observation_space = spaces(self.model.image_size)
-        self._starts = Starts(reset_source, self.model.image_size, store, task)
+        self.action_space, self.observation_space = self.task.spaces(self.model.image_size)
+        self._starts = Starts(self.task, self.model.image_size, store, reset_source)
         self._frame: np.ndarray | None = None
-        self._agent_pos = np.zeros(4, np.float32)
+        self._agent_pos = np.zeros(self.task.action_dim, np.float32)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -158,38 +133,48 @@ class WorldModelEnv(gym.Env):
         draw = int(self.np_random.integers(2**31)) if seed is None else seed
         if "frame" in options:
             frame = self.model.check_frames(np.asarray(options["frame"])[None], 4).numpy()[0]
-            pos = options.get("agent_pos")
-            pos = read_agent_pos(frame[None], np.zeros((1, 4), np.float32))[0] if pos is None else pos
+            start = self.task.start_from_frame(frame, options.get("agent_pos"))
         else:
             start = self._starts.draw(draw, options.get("source"), options.get("reset_to_state"))
-            frame, pos = start.frame, start.agent_pos
-        self.model.reset(frame[None], seed=draw)
-        self._frame, self._agent_pos = frame, np.asarray(pos, dtype=np.float32)
-        self._setpoint = self._agent_pos.astype(np.float64)
-        return self._obs(), self._info()
+        self.model.reset(start.frame[None], seed=draw)
+        self._frame, self._agent_pos = start.frame, np.asarray(start.agent_pos, dtype=np.float32)
+        self._setpoint = np.asarray(start.command, np.float64)
+        return self._obs(), self._info(self.task.score(self._frame[None]))
 
     def step(self, action):
         if self._frame is None:
             raise RuntimeError("call reset() before step().")
-        self._setpoint = limit_targets(self._setpoint, check_actions(action, (4,)))
+        task = self.task
+        self._setpoint = task.executed(self._setpoint, task.check_actions(action, (task.action_dim,)))
         self._frame = self.model.step(self._setpoint.astype(np.float32)[None])[0]
-        self._agent_pos = read_agent_pos(self._frame[None], self._agent_pos[None])[0]
-        info = {**self._info(), "target": self._setpoint.astype(np.float32)}
-        terminated = bool(self.terminate_on_success and info["is_success"])
-        return self._obs(), float(info["iou"]), terminated, False, info
+        score, pos = task.observe(self._frame[None], self._setpoint[None], self._agent_pos[None])
+        self._agent_pos = pos[0]
+        info = {**self._info(score), "target": self._setpoint.astype(np.float32)}
+        terminated = bool(self.terminate_on_success and info.get("is_success"))
+        return self._obs(), 0.0 if score is None else float(score[0]), terminated, False, info
 
     def _obs(self) -> dict[str, np.ndarray]:
         return {"pixels": self._frame, "agent_pos": self._agent_pos.copy()}
 
-    def _info(self) -> dict[str, Any]:
-        iou = float(pixel_iou(self._frame))
-        return {"iou": iou, "is_success": iou >= SUCCESS_IOU}
+    def _info(self, score: np.ndarray | None) -> dict[str, Any]:
+        """``info[score_key]``: the task's pixel score (None: the task has no scorer), and
+        ``is_success`` where the task defines success."""
+        out: dict[str, Any] = {score_key(self.task): None if score is None else float(score[0])}
+        success = self.task.is_success(score)
+        if success is not None:
+            out["is_success"] = bool(success[0])
+        return out
 
     def render(self):
         return None if self.render_mode is None else self._frame
 
     def close(self) -> None:
         self._starts.close()
+
+
+def score_key(task: Task) -> str:
+    """The ``info`` key of a task's score: ``iou`` for T-push (as ever), else ``score``."""
+    return "iou" if task.score_name == "IoU" else "score"
 
 
 class WorldModelVectorEnv(VectorEnv):
@@ -200,22 +185,24 @@ class WorldModelVectorEnv(VectorEnv):
     next-step autoreset) from the next seeds.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ, "autoreset_mode": AutoresetMode.NEXT_STEP}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int, checkpoint: str | Path | None = None, *, model: WorldModel | None = None,
-                 reset_source: str = "mujoco", store: str | Path | None = None, task: str = "pusht",
+                 reset_source: str | None = None, store: str | Path | None = None, task: str | Task | None = None,
                  device: str = "cpu", max_episode_steps: int = 600) -> None:
         if num_envs < 1 or max_episode_steps < 1:
             raise InputError(f"num_envs and max_episode_steps must be >= 1, got {num_envs}, {max_episode_steps}.")
         self.model = _load(model, checkpoint, device)
+        self.task = resolve_task(self.model, task)
+        self.metadata = {**self.metadata, "render_fps": self.task.fps}
         self.num_envs, self.max_episode_steps = num_envs, max_episode_steps
-        self.single_action_space, self.single_observation_space = spaces(self.model.image_size)
+        self.single_action_space, self.single_observation_space = self.task.spaces(self.model.image_size)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.render_mode = "rgb_array"
-        self._starts = Starts(reset_source, self.model.image_size, store, task)
+        self._starts = Starts(self.task, self.model.image_size, store, reset_source)
         self._frames: np.ndarray | None = None
-        self._agent_pos = np.zeros((num_envs, 4), np.float32)
+        self._agent_pos = np.zeros((num_envs, self.task.action_dim), np.float32)
         self._t = 0
         self._next_seed = 0
         self._needs_reset = False
@@ -235,16 +222,17 @@ class WorldModelVectorEnv(VectorEnv):
             frames = self.model.check_frames(np.asarray(options["frames"]), 4).numpy()
             if len(frames) != self.num_envs:
                 raise InputError(f"got {len(frames)} frames for {self.num_envs} environments.")
-            pos = np.asarray(options.get("agent_pos", read_agent_pos(frames, np.zeros((len(frames), 4), np.float32))))
+            pos = options.get("agent_pos")
+            drawn = [self.task.start_from_frame(f, None if pos is None else pos[i]) for i, f in enumerate(frames)]
         else:
             drawn = [self._starts.draw(s, options.get("source")) for s in seeds]
             frames = np.stack([d.frame for d in drawn])
-            pos = np.stack([d.agent_pos for d in drawn])
         self.model.reset(frames, seed=seeds)
-        self._frames, self._agent_pos = frames, pos.astype(np.float32)
-        self._setpoint = self._agent_pos.astype(np.float64)
+        self._frames = frames
+        self._agent_pos = np.stack([d.agent_pos for d in drawn]).astype(np.float32)
+        self._setpoint = np.stack([d.command for d in drawn]).astype(np.float64)
         self._t, self._needs_reset = 0, False
-        return self._obs(), self._info()
+        return self._obs(), self._info(self.task.score(self._frames))
 
     def step(self, actions):
         if self._frames is None:
@@ -253,21 +241,27 @@ class WorldModelVectorEnv(VectorEnv):
             obs, info = self.reset()
             zeros = np.zeros(self.num_envs, dtype=bool)
             return obs, np.zeros(self.num_envs), zeros, zeros.copy(), info
-        self._setpoint = limit_targets(self._setpoint, check_actions(actions, (self.num_envs, 4)))
+        task = self.task
+        self._setpoint = task.executed(self._setpoint, task.check_actions(actions, (self.num_envs, task.action_dim)))
         self._frames = self.model.step(self._setpoint.astype(np.float32))
-        self._agent_pos = read_agent_pos(self._frames, self._agent_pos)
+        score, self._agent_pos = task.observe(self._frames, self._setpoint, self._agent_pos)
         self._t += 1
-        info = {**self._info(), "target": self._setpoint.astype(np.float32)}
+        info = {**self._info(score), "target": self._setpoint.astype(np.float32)}
         truncated = np.full(self.num_envs, self._t >= self.max_episode_steps)
         self._needs_reset = bool(truncated.all())
-        return self._obs(), info["iou"].astype(np.float64), np.zeros(self.num_envs, dtype=bool), truncated, info
+        reward = np.zeros(self.num_envs) if score is None else np.asarray(score, np.float64)
+        return self._obs(), reward, np.zeros(self.num_envs, dtype=bool), truncated, info
 
     def _obs(self) -> dict[str, np.ndarray]:
         return {"pixels": self._frames, "agent_pos": self._agent_pos.copy()}
 
-    def _info(self) -> dict[str, np.ndarray]:
-        iou = np.asarray(pixel_iou(self._frames), dtype=np.float64)
-        return {"iou": iou, "is_success": iou >= SUCCESS_IOU}
+    def _info(self, score: np.ndarray | None) -> dict[str, Any]:
+        """As :meth:`WorldModelEnv._info`, batched (the score None without a scorer)."""
+        out: dict[str, Any] = {score_key(self.task): None if score is None else np.asarray(score, np.float64)}
+        success = self.task.is_success(score)
+        if success is not None:
+            out["is_success"] = success
+        return out
 
     def render(self):
         return self._frames

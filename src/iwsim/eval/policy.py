@@ -2,7 +2,9 @@
 (``iwsim eval policy``).
 
 Episode i starts from MuJoCo seed ``seed + i`` in both environments: the world model
-starts from MuJoCo's rendering of that seed's initial state. All episodes step together:
+starts from MuJoCo's rendering of that seed's initial state (a world model of another
+robot's task starts from the first frame of its dataset's episode ``(seed + i) %
+episodes``, and without a pixel scorer its episodes report no score). All episodes step together:
 inside the world model that is one batched forward pass per step; in MuJoCo the
 environments step one after another (Gymnasium's ``SyncVectorEnv``). The score of an episode is the maximum IoU it
 reaches (the paper's T-pushing score), success is IoU >= 0.9; the success rate comes with
@@ -25,11 +27,14 @@ from tqdm import tqdm
 
 from iwsim.checkpoint import write_json_atomic
 from iwsim.envs import make_env
-from iwsim.envs.pusht import SUCCESS_IOU
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.eval.video import upscale, write_video
-from iwsim.world_model_env import WorldModelVectorEnv
+from iwsim.tasks import get_task
+from iwsim.world_model_env import WorldModelVectorEnv, score_key
+
+PUSHT = get_task("pusht")
 
 ENVS = ("pusht", "world-model")
 
@@ -47,22 +52,33 @@ def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, im
     if world_model.image_size != image_size:
         raise InputError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
                          f"renders {world_model.image_size}x{world_model.image_size}.")
-    return WorldModelVectorEnv(n, model=world_model, reset_source="mujoco", max_episode_steps=steps + 1)
+    # the task's own starts: for T-push MuJoCo's rendering of each seed, for another robot's
+    # task the first frame of its dataset's episode seed % episodes
+    return WorldModelVectorEnv(n, model=world_model, max_episode_steps=steps + 1)
+
+
+def env_task(venv: VectorEnv, env: str) -> Task:
+    """The task of an environment of :func:`make_vector_env`."""
+    return venv.task if isinstance(venv, WorldModelVectorEnv) else get_task(env)
 
 
 def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
             image_size: int = 64, record: int = 0, progress: bool = True,
             stop: Callable[[dict[str, np.ndarray]], bool] | None = None) -> dict[str, Any]:
     """Run ``policy`` for ``steps`` steps from each seed, all episodes together. Returns
-    per-step IoU ``iou`` (E, T + 1), the pushers' positions ``agent_pos`` (E, T + 1, 4),
-    the commanded ``action`` and executed ``target`` (info["target"], the speed-limited
-    setpoints) of every step (E, T, 4) and the frames ``frames`` (E', T + 1, H, W, 3) of
-    the first ``record`` episodes; step t's action follows frame t. T = ``steps``, or fewer
-    when ``stop(obs)``, called with each step's new observations, returns True."""
+    the task's per-step pixel score ``iou`` (E, T + 1) (T-push: the IoU; None when the task
+    has no scorer; its name in ``scorer``), ``agent_pos`` (E, T + 1, A) (T-push: the
+    pushers' positions), the commanded ``action`` and executed ``target`` (info["target"],
+    for T-push the speed-limited setpoints) of every step (E, T, A) and the frames
+    ``frames`` (E', T + 1, H, W, 3) of the first ``record`` episodes; step t's action
+    follows frame t. T = ``steps``, or fewer when ``stop(obs)``, called with each step's
+    new observations, returns True."""
     venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size)
+    task = env_task(venv, env)
+    key = score_key(task)
     try:
         obs, info = venv.reset(seed=list(seeds))
-        iou = info["iou"]
+        iou = info[key]
         history: deque[dict[str, np.ndarray]] = deque([obs] * policy.obs_horizon, maxlen=policy.obs_horizon)
         ious, frames, positions, actions, targets = [iou], [obs["pixels"][:record]], [obs["agent_pos"]], [], []
         policy.reset()
@@ -78,7 +94,7 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
             actions.append(queue.pop(0).astype(np.float32))
             obs, _, _, _, info = venv.step(actions[-1])
             history.append(obs)
-            ious.append(info["iou"])
+            ious.append(info[key])
             frames.append(obs["pixels"][:record])
             positions.append(obs["agent_pos"])
             targets.append(info["target"])
@@ -89,14 +105,16 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
         seconds = time.perf_counter() - t0
     finally:
         venv.close()
-    return {"iou": np.stack(ious, 1), "frames": np.stack(frames, 1) if record else None,
+    return {"iou": None if task.score_name is None else np.stack(ious, 1), "scorer": task.score_name,
+            "task": task.name, "success_score": task.success_score,
+            "frames": np.stack(frames, 1) if record else None,
             "agent_pos": np.stack(positions, 1), "action": np.stack(actions, 1), "target": np.stack(targets, 1),
             "seconds": seconds}
 
 
-def summarize(max_iou: np.ndarray, seeds: list[int]) -> dict[str, Any]:
+def summarize(max_iou: np.ndarray, seeds: list[int], success_score: float = PUSHT.success_score) -> dict[str, Any]:
     """Per-episode scores and the statistics over episodes."""
-    success = max_iou >= SUCCESS_IOU
+    success = max_iou >= success_score
     k, n = int(success.sum()), len(success)
     return {
         "episodes": [{"seed": s, "max_iou": float(m), "success": bool(ok)}
@@ -107,6 +125,12 @@ def summarize(max_iou: np.ndarray, seeds: list[int]) -> dict[str, Any]:
         "success_beta_posterior": beta_posterior(k, n),
         "success_clopper_pearson": list(clopper_pearson(k, n)),
     }
+
+
+def no_score(seeds: list[int]) -> dict[str, Any]:
+    """The scores of episodes of a task without a scorer: none, said as such (never a fake number)."""
+    return {"episodes": [{"seed": s} for s in seeds], "mean_max_iou": None, "std_max_iou": None,
+            "success_rate": None, "note": "no scorer: the task has no pixel scorer, so episodes have no score."}
 
 
 MAX_SEED = 2**32 - 1  # numpy's SeedSequence, behind gymnasium's reset(seed=), takes 32-bit seeds here
@@ -133,7 +157,8 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
     seeds = [seed + i for i in range(episodes)]
     run = rollout(policy, env, seeds, steps, world_model=world_model, image_size=image_size,
                   record=min(videos, episodes) if out is not None else 0, progress=progress)
-    result = {"env": env, "steps": steps, **(meta or {}), **summarize(run["iou"].max(1), seeds),
+    result = {"env": env, "steps": steps, **(meta or {}), "task": run["task"], "scorer": run["scorer"],
+              **(no_score(seeds) if run["iou"] is None else summarize(run["iou"].max(1), seeds, run["success_score"])),
               "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
     if out is not None:
         out = Path(out)
@@ -141,5 +166,6 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
         write_json_atomic(out / "results.json", result, sort_keys=False)
         for i in range(0 if run["frames"] is None else len(run["frames"])):
             write_video(out / f"episode_{seeds[i]}.mp4", upscale(run["frames"][i], 4), fps=10)
-        (out / "iou.json").write_text(json.dumps({"seeds": seeds, "iou_per_step": run["iou"].round(4).tolist()}))
+        if run["iou"] is not None:
+            (out / "iou.json").write_text(json.dumps({"seeds": seeds, "iou_per_step": run["iou"].round(4).tolist()}))
     return result

@@ -9,13 +9,18 @@ Each session holds its own :class:`~iwsim.world_model.StreamState`. A tick joins
 states of all sessions into one batch, takes one functional step
 (:meth:`~iwsim.world_model.WorldModel.step_state`) and splits the states again.
 
-Motion: a session's action is a commanded target; the pushers approach it at the task's
-speed limit (:func:`iwsim.envs.pusht.limit_targets`, the function MuJoCo runs too), and
-the world model is conditioned on that executed motion, as it was trained.
+The task (:class:`iwsim.envs.task.Task`, the world model's unless the config names one)
+decides the rest. Motion: a session's action is a command; the task maps it to the
+executed motion (:meth:`~iwsim.envs.task.Task.executed`; for T-push the pushers approach
+it at the speed limit, :func:`iwsim.envs.pusht.limit_targets`, the function MuJoCo runs
+too), and the world model is conditioned on that executed motion, as it was trained.
+A command outside the task's bounds is refused with one line (T-push clips it, as MuJoCo
+does); the session goes on.
 
-Recording: step t stores the frame shown before action t, the pusher positions read from
-it, the action, the setpoints it executed and the frame's pixel IoU (``img``, ``state``,
-``action``, ``target``, ``iou``: the layout of ``iwsim collect``). The take lives in memory
+Recording: step t stores the frame shown before action t, the ``agent_pos`` observed
+there (T-push: the pusher positions read from it), the action, the motion it executed and
+the frame's pixel score if the task has a scorer (``img``, ``state``, ``action``,
+``target``, ``iou``: the layout of ``iwsim collect``). The take lives in memory
 until it is saved, and a save is one atomic append, so a client that vanishes
 mid-recording leaves nothing behind.
 """
@@ -25,26 +30,29 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from iwsim.data.collect import store_attrs
+import iwsim
 from iwsim.data.store import EpisodeStore, StoreError
-from iwsim.envs import make_env
-from iwsim.envs.pixels import pixel_iou
-from iwsim.envs.pusht import TaskSpec, limit_targets
+from iwsim.envs.task import Bindings, Start, Task
 from iwsim.errors import InputError
 from iwsim.play import protocol as proto
 from iwsim.world_model import StreamState, WorldModel
-from iwsim.world_model_env import Start, Starts, observe
+from iwsim.world_model_env import STORE, Starts, resolve_task, score_key
 
 log = logging.getLogger(__name__)
 
-EPISODE_KEYS = ("img", "state", "action", "target", "iou")
+EPISODE_KEYS = ("img", "state", "action", "target", "iou")  # T-push's; a task without a scorer has no "iou"
+
+
+def episode_keys(task: Task) -> tuple[str, ...]:
+    """The arrays a recorded step stores: frame, agent_pos, command, executed motion, and the score if any."""
+    return ("img", "state", "action", "target", *((score_key(task),) if task.score_name else ()))
 
 
 @dataclass(frozen=True)
@@ -53,10 +61,11 @@ class PlayConfig:
     max_sessions: int = 4
     record_to: Path | None = None  # episode store that saved takes are appended to
     store: Path | None = None  # episode store to draw "store" resets from
-    task: str = "pusht"
+    task: str | Task | None = None  # default: the world model's task
     max_record_steps: int = 6000  # 10 minutes at 10 Hz
     checkpoint: str = ""  # recorded in the store's attributes
     wait_for_lock: bool = False  # when another process writes record_to: wait for it (else refuse)
+    bindings: dict | None = None  # teleop bindings in their JSON form, instead of the task's (Bindings.from_dict)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.hz, (int, float)) and 0 < self.hz <= 60):
@@ -74,17 +83,17 @@ class Session:
 
     id: int
     target: np.ndarray  # the action applied at every step until the client sends another
-    setpoint: np.ndarray = field(default_factory=lambda: np.zeros(4, np.float32))  # the executed motion
+    setpoint: np.ndarray  # the executed motion
     ack: int = -1  # seq of the last action message
     state: StreamState | None = None
     frame: np.ndarray | None = None  # the world model's current frame (H, W, 3)
-    agent_pos: np.ndarray = field(default_factory=lambda: np.zeros(4, np.float32))
-    iou: float = 0.0
+    agent_pos: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    iou: float | None = 0.0  # the task's pixel score of the frame (None: the task has no scorer)
     step: int = 0
     start: Start | None = None
-    source: str = "mujoco"
+    source: str = ""
     seed: int = 0
-    twin: Any = None  # MuJoCo env in side-by-side mode
+    twin: Any = None  # the ground-truth simulator (MuJoCo) in side-by-side mode
     twin_frame: np.ndarray | None = None
     twin_iou: float | None = None
     take: dict[str, list] | None = None  # the recording in progress
@@ -94,15 +103,16 @@ class Session:
 class Recorder:
     """Appends saved takes to an episode store, one at a time, on a writer thread."""
 
-    def __init__(self, path: Path, attrs: dict[str, Any], wait_for_lock: bool = False) -> None:
+    def __init__(self, path: Path, attrs: dict[str, Any], wait_for_lock: bool = False,
+                 keys: tuple[str, ...] = EPISODE_KEYS) -> None:
         def check(store: EpisodeStore) -> None:
             have = store.attrs
             for key in ("task", "image_size"):
                 if have.get(key) != attrs[key]:
                     raise StoreError(f"{path} holds episodes with {key}={have.get(key)!r}, not {attrs[key]!r}; "
                                      "record into another store.")
-            if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
-                raise StoreError(f"{path} holds arrays {store.keys}, not the recorded {sorted(EPISODE_KEYS)} "
+            if store.n_episodes and set(store.keys) != set(keys):
+                raise StoreError(f"{path} holds arrays {store.keys}, not the recorded {sorted(keys)} "
                                  "(a store of iwsim collect?); record into another store.")
 
         # Held (locked) for the whole session: another writer would invalidate what we know of the store.
@@ -127,18 +137,21 @@ class Engine:
     """The simulator behind ``iwsim play`` (see the module docstring)."""
 
     def __init__(self, model: WorldModel, cfg: PlayConfig = PlayConfig()) -> None:
-        if model.action_dim != 4:
-            raise InputError(f"the world model takes {model.action_dim}-D actions; {cfg.task} needs 4.")
         self.model, self.cfg = model, cfg
-        self.spec = TaskSpec()
-        self.low = np.asarray(self.spec.action_low, np.float32)
-        self.high = np.asarray(self.spec.action_high, np.float32)
-        self.starts = Starts("mujoco", model.image_size, cfg.store, cfg.task)
+        task = resolve_task(model, cfg.task)
+        if cfg.bindings is not None:
+            task = replace(task, bindings=Bindings.from_dict(cfg.bindings, task.action_dim, task.view_half))
+        self.task = task
+        self.low = np.asarray(task.action_low, np.float32)
+        self.high = np.asarray(task.action_high, np.float32)
+        self.starts = Starts(task, model.image_size, cfg.store)
+        self.keys = episode_keys(task)
         self.recorder: Recorder | None = None
         if cfg.record_to is not None:
-            attrs = {**store_attrs(cfg.task, "teleop", 0, model.image_size), "steps": None,
-                     "source": "world_model", "world_model": cfg.checkpoint, "keys": list(EPISODE_KEYS)}
-            self.recorder = Recorder(Path(cfg.record_to), attrs, cfg.wait_for_lock)
+            attrs = {**task.store_attrs(), "image_size": model.image_size, "policy": "teleop", "steps": None,
+                     "iwsim_version": iwsim.__version__, "source": "world_model", "world_model": cfg.checkpoint,
+                     "keys": list(self.keys)}
+            self.recorder = Recorder(Path(cfg.record_to), attrs, cfg.wait_for_lock, self.keys)
         self.sessions: dict[int, Session] = {}
         self._saves: list[tuple[Session, Future[int], int]] = []
         self._next_id = 0
@@ -148,13 +161,15 @@ class Engine:
 
     # -- sessions -------------------------------------------------------------------------
     def open(self) -> Session | None:
-        """A new session, reset to a fresh MuJoCo start, or None when ``max_sessions`` are open."""
+        """A new session, reset to a fresh start of the task's own (MuJoCo for T-push), or
+        None when ``max_sessions`` are open."""
         if len(self.sessions) >= self.cfg.max_sessions:
             return None
-        s = Session(self._next_id, target=np.zeros(4, np.float32))
+        zeros = np.zeros(self.task.action_dim, np.float32)
+        s = Session(self._next_id, target=zeros, setpoint=zeros.copy(), agent_pos=zeros.copy())
         self._next_id += 1
         self.sessions[s.id] = s
-        self.reset(s, "mujoco", None)
+        self.reset(s, self.task.start_source, None)
         return s
 
     def close(self, s: Session) -> None:
@@ -168,9 +183,9 @@ class Engine:
     def hello(self, s: Session) -> str:
         return proto.event(
             "hello", session=s.id, image_size=self.model.image_size, hz=self.cfg.hz,
-            action_low=self.low.tolist(), action_high=self.high.tolist(),
-            action_names=list(self.spec.action_names), view_half=self.spec.view_half,
-            reset_sources=["mujoco", *(["store"] if self.starts.has_store else [])],
+            **{**self.task.page_info(), "action_low": self.low.tolist(), "action_high": self.high.tolist()},
+            reset_sources=[self.task.start_source, *([STORE] if self.starts.has_store else [])],
+            side_by_side=self.task.has_ground_truth,
             recording_to=None if self.recorder is None else self.recorder.path.name,  # a name, never a path
             max_message_bytes=proto.MAX_MESSAGE_BYTES)
 
@@ -181,19 +196,31 @@ class Engine:
         if s.closed:
             return []
         if isinstance(msg, proto.Action):
-            s.target = np.clip(np.asarray(msg.action, np.float32), self.low, self.high)
+            command = np.asarray(msg.action, np.float64)
+            refused = self.task.out_of_bounds(command)
+            if refused is not None:
+                return [proto.event("error", message=refused)]
+            s.target = np.clip(command.astype(np.float32), self.low, self.high)
             s.ack = msg.seq
             return []
         if isinstance(msg, proto.Reset):
-            if msg.source == "store" and not self.starts.has_store:
+            if msg.source == STORE and not self.starts.has_store:
                 return [proto.event("error", message="no store to reset from; start iwsim play with --store PATH.")]
+            if msg.source not in self.starts.sources:
+                return [proto.event("error", message=f"task {self.task.name!r} starts from "
+                                                     f"{self.task.start_source!r} or 'store', not {msg.source!r}.")]
             dropped = self._drop_take(s)
             self.reset(s, msg.source, msg.seed)
             return dropped + [self._status(s, f"reset to a {msg.source} start (seed {s.seed})")]
         if isinstance(msg, proto.SideBySide):
+            if msg.on and s.twin is None:
+                twin = self.task.ground_truth_env(self.model.image_size)
+                if twin is None:
+                    return [proto.event("error", message=f"task {self.task.name!r} has no simulator to run "
+                                                         "side by side.")]
             dropped = self._drop_take(s)
             if msg.on and s.twin is None:
-                s.twin = make_env(self.cfg.task, self.model.image_size)
+                s.twin = twin
             elif not msg.on and s.twin is not None:
                 s.twin.close()
                 s.twin, s.twin_frame, s.twin_iou = None, None, None
@@ -208,7 +235,7 @@ class Engine:
                 return [proto.event("error", message="already recording; save (Shift+S) or discard (q) first.")]
             if self.recorder is None:
                 return [proto.event("error", message="recording is off; start iwsim play with --record-to STORE.")]
-            s.take = {k: [] for k in EPISODE_KEYS}
+            s.take = {k: [] for k in self.keys}
             return [self._status(s, "recording")]
         if s.take is None:
             return [proto.event("error", message=f"nothing to {name}: not recording (press c to record).")]
@@ -250,15 +277,19 @@ class Engine:
 
     # -- stepping -------------------------------------------------------------------------
     def reset(self, s: Session, source: str, seed: int | None) -> None:
-        """Start the session's episode from a MuJoCo reset or a store frame."""
+        """Start the session's episode from the task's own start (a MuJoCo reset for
+        T-push, a dataset episode's first frame otherwise) or a store frame."""
         seed = int(self._rng.integers(proto.MAX_SEED)) if seed is None else seed
         start = self.starts.draw(seed, source)
         s.state = self.model.reset_state(start.frame[None], seed=seed)
         s.start, s.source, s.seed, s.step = start, source, seed, 0
         s.frame, s.agent_pos = start.frame, start.agent_pos.astype(np.float32)
-        s.target = np.clip(s.agent_pos, self.low, self.high)  # the pushers hold still
-        s.setpoint = s.agent_pos.copy()  # MuJoCo's position controllers start at the pushers
-        s.iou = float(pixel_iou(s.frame))
+        # the robot holds still: the command is where it is (T-push: MuJoCo's position
+        # controllers start at the pushers)
+        s.target = np.clip(start.command.astype(np.float32), self.low, self.high)
+        s.setpoint = start.command.astype(np.float32)
+        score = self.task.score(s.frame[None])
+        s.iou = None if score is None else float(score[0])
         s.twin_frame = s.twin_iou = None
         if s.twin is not None and start.state is not None:
             obs, info = s.twin.reset(seed=seed, options={"reset_to_state": start.state})
@@ -272,9 +303,9 @@ class Engine:
             return []
         t0 = time.perf_counter()
         for s in sessions:
-            s.setpoint = limit_targets(s.setpoint, s.target).astype(np.float32)
+            s.setpoint = self.task.executed(s.setpoint, s.target).astype(np.float32)
             if s.take is not None and len(s.take["img"]) < self.cfg.max_record_steps:
-                for key, value in zip(EPISODE_KEYS, (s.frame, s.agent_pos, s.target, s.setpoint, s.iou)):
+                for key, value in zip(self.keys, (s.frame, s.agent_pos, s.target, s.setpoint, s.iou)):
                     s.take[key].append(np.asarray(value, np.uint8 if key == "img" else np.float32))
         state = sessions[0].state if len(sessions) == 1 else StreamState.cat([s.state for s in sessions])
         # One session's step is too small to gain from a second thread, and with the browser
@@ -288,9 +319,10 @@ class Engine:
         states = [state] if len(sessions) == 1 else state.split()
         for s, state, frame in zip(sessions, states, frames):
             s.state, s.frame = state, frame
-        ious, pos = observe(np.stack([s.frame for s in sessions]), np.stack([s.agent_pos for s in sessions]))
-        for s, iou, p in zip(sessions, ious, pos):
-            s.iou, s.agent_pos, s.step = float(iou), p, s.step + 1
+        ious, pos = self.task.observe(np.stack([s.frame for s in sessions]), np.stack([s.setpoint for s in sessions]),
+                                      np.stack([s.agent_pos for s in sessions]))
+        for i, (s, p) in enumerate(zip(sessions, pos)):
+            s.iou, s.agent_pos, s.step = None if ious is None else float(ious[i]), p, s.step + 1
             if s.twin_frame is not None:
                 obs, _, _, _, info = s.twin.step(s.target)
                 s.twin_frame, s.twin_iou = obs["pixels"], float(info["iou"])

@@ -2,9 +2,10 @@
 
 Client -> server: JSON text, at most ``MAX_MESSAGE_BYTES``::
 
-    {"type": "action", "seq": 17, "action": [lx, ly, rx, ry]}   pusher targets (m), used
-                                                                from the next control step
-    {"type": "reset", "source": "mujoco" | "store", "seed": 3}  seed optional
+    {"type": "action", "seq": 17, "action": [a0, ..., aA-1]}    the task's command (T-push:
+                                                                pusher targets [lx, ly, rx, ry]
+                                                                in m), from the next control step
+    {"type": "reset", "source": "mujoco" | "dataset" | "store", "seed": 3}  seed optional
     {"type": "record"} | {"type": "save"} | {"type": "discard"}
     {"type": "side_by_side", "on": true}                         restarts the episode
 
@@ -31,7 +32,7 @@ import numpy as np
 from iwsim.errors import InputError
 
 MAX_MESSAGE_BYTES = 4096
-RESET_SOURCES = ("mujoco", "store")
+RESET_SOURCES = ("mujoco", "dataset", "store")  # the task's own starts (T-push: mujoco; others: dataset), or a store's
 MAX_SEED = 2**31 - 1
 
 

@@ -54,8 +54,10 @@ from iwsim.checkpoint import (
 from iwsim.config import from_dict, to_dict
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.schedule import gaussian
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.normalize import scale
+from iwsim.tasks import task_from_config
 from iwsim.world_model.codec import Codec
 from iwsim.world_model.codecs import WM_KIND, build_codec, codec_class, world_model_codec
 from iwsim.world_model.denoiser import Denoiser
@@ -140,6 +142,9 @@ class WorldModel(nn.Module):
         self.jumps, self.euler_steps, self.context_label = cfg.jumps, cfg.euler_steps, cfg.context_label
         self.reencode = False
         self._state: StreamState | None = None
+        # The robot task (iwsim.envs.task.Task) the checkpoint records, set by load; None
+        # for a model built in code (its callers then take iwsim.tasks.task_of's default).
+        self.task: Task | None = None
 
     @property
     def context_label(self) -> float:
@@ -401,7 +406,8 @@ class WorldModel(nn.Module):
         return {"kind": KIND, "codec": {"kind": self.codec.kind, "config": to_dict(self.codec.cfg)},
                 "stage2": to_dict(self.cfg),
                 "action_norm": {"low": self.action_low.tolist(), "high": self.action_high.tolist()},
-                "latent_norm": {"scale": self.latent_scale}}
+                "latent_norm": {"scale": self.latent_scale},
+                **({} if self.task is None else {"task": self.task.describe()})}
 
     def save(self, path: str | Path, extra: dict | None = None, force: bool = False) -> Path:
         """Write a self-contained checkpoint directory atomically; ``extra`` entries
@@ -442,8 +448,12 @@ class WorldModel(nn.Module):
             raise CheckpointError(f"{path / 'model.safetensors'} does not match its config: "
                                   f"{' '.join(str(e).split())[:200]}") from None
         norm = config["action_norm"]
-        return cls(codec, dyn, cfg, norm["low"], norm["high"], tensors["latent_mean"],
-                   config["latent_norm"]["scale"]).to(device).eval()
+        wm = cls(codec, dyn, cfg, norm["low"], norm["high"], tensors["latent_mean"], config["latent_norm"]["scale"])
+        wm.task = task_from_config(config, path / "config.json")
+        if wm.task.action_dim != wm.action_dim:
+            raise CheckpointError(f"{path / 'config.json'}: its task {wm.task.name!r} takes {wm.task.action_dim}-D "
+                                  f"actions but the model {wm.action_dim}-D ones.")
+        return wm.to(device).eval()
 
 
 def export_model(run: str | Path, out: str | Path, force: bool = False) -> Path:

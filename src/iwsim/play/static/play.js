@@ -1,17 +1,15 @@
 // iwsim play: drive the world model from the browser.
-// The page owns the pushers' targets (the action) and sends them when they change; the
-// server applies the latest one at every control step and streams frames back. Frames
-// are binary: uint32 header length, JSON header, then each view's RGB bytes.
+// The page owns the command (the action: for T-push the pushers' targets) and sends it when
+// it changes; the server applies the latest one at every control step and streams frames
+// back. Frames are binary: uint32 header length, JSON header, then each view's RGB bytes.
+// How keys, gamepad axes and mouse drags move the command's dimensions comes from the
+// task's bindings in the server's hello (keys: {key: [dim, sign]}, axes: [[axis, dim,
+// sign]], speed per dim, drag: [[x dim, y dim]] positions in the image); every dimension
+// also has a slider.
 "use strict";
 
-const KEY_SPEED = 0.2;   // m/s of a target under a held key or a full stick
-const DRAG_SPEED = 0.3;  // m/s at most when a target follows the mouse (the play data's top speed)
 const STICK_DEADZONE = 0.15;
-const MOVES = {  // key -> [pusher, dx, dy]
-  w: [0, 0, 1], s: [0, 0, -1], a: [0, -1, 0], d: [0, 1, 0],
-  i: [1, 0, 1], k: [1, 0, -1], j: [1, -1, 0], l: [1, 1, 0],
-};
-const COLOURS = ["#2e6beb", "#9e38c7"];
+const COLOURS = ["#2e6beb", "#9e38c7", "#46a758", "#e5484d"];
 
 const $ = (id) => document.getElementById(id);
 const wmCanvas = $("wm"), twinCanvas = $("twin");
@@ -53,6 +51,7 @@ function say(text, kind = "") {
 function onEvent(msg) {
   if (msg.type === "hello") {
     state.hello = msg;
+    setupTask(msg);
     $("reset-store").disabled = !msg.reset_sources.includes("store");
     $("record").disabled = !msg.recording_to;
     $("rate").textContent = `control rate ${msg.hz} Hz` +
@@ -75,8 +74,9 @@ function onFrame(buf) {
   const now = performance.now();
   if (state.target === null || (header.step === 0 && state.header && state.header.step !== 0) ||
       (state.header && (header.seed !== state.header.seed || header.source !== state.header.source))) {
-    state.target = header.action.slice();  // a new episode: the pushers start where they are
+    state.target = header.action.slice();  // a new episode: the robot starts where it is
     state.sent = state.target.slice();
+    showCommand();
   }
   state.header = header;
   header.views.forEach((name, v) => {
@@ -109,7 +109,7 @@ function updateHud(h, now) {
   }
   $("fps").textContent = st.fps.toFixed(1);
   $("step").textContent = h.step;
-  $("iou").textContent = h.iou.toFixed(3);
+  $("iou").textContent = h.iou === null ? "no scorer" : h.iou.toFixed(3);
   $("twin-iou").textContent = h.mujoco_iou === null ? "–" : h.mujoco_iou.toFixed(3);
   $("step-ms").textContent = `${h.step_ms.toFixed(1)} ms · ${h.sessions} session${h.sessions === 1 ? "" : "s"}`;
   $("episode").textContent = `${h.source} seed ${h.seed}`;
@@ -133,6 +133,57 @@ function draw(canvas, rgb, size, overlay) {
   if (overlay && state.target) drawTargets(ctx, canvas);
 }
 
+// ---- the task: bindings, sliders, legend -------------------------------------------------
+function bindings() { return state.hello.bindings; }
+
+function setupTask(hello) {
+  $("score-name").textContent = hello.score_name ? `${hello.score_name} (model)` : "score";
+  for (const el of document.querySelectorAll(".twin-score")) el.hidden = !hello.side_by_side;
+  $("side-row").hidden = !hello.side_by_side;
+  $("reset-mujoco").firstChild.textContent = hello.start_source === "mujoco" ? "MuJoCo start " :
+    `${hello.start_source[0].toUpperCase()}${hello.start_source.slice(1)} start `;
+  $("legend").replaceChildren(...hello.bindings.legend.map((line) => {
+    const div = document.createElement("div");
+    div.textContent = line;
+    return div;
+  }));
+  $("wm-caption").textContent = hello.bindings.drag.length ? "world model — drag a ring to move it" : "world model";
+  const box = $("sliders");
+  box.replaceChildren();
+  state.sliders = hello.action_names.map((name, d) => {
+    const row = document.createElement("label");
+    row.className = "slider";
+    const label = document.createElement("span");
+    label.textContent = name;
+    const input = document.createElement("input");
+    Object.assign(input, { type: "range", min: hello.action_low[d], max: hello.action_high[d],
+                           step: (hello.action_high[d] - hello.action_low[d]) / 1000 });
+    input.dataset.dim = d;
+    const value = document.createElement("output");
+    input.addEventListener("input", () => setDim(d, Number(input.value)));
+    row.append(label, input, value);
+    box.append(row);
+    return { input, value };
+  });
+}
+
+// Set one dimension of the command from its slider, and send it at once.
+function setDim(d, v) {
+  if (!state.target || !state.hello) return;
+  state.target[d] = v;
+  state.target = clip(state.target);
+  state.pending = null;
+  sendTarget(performance.now());
+}
+
+function showCommand() {
+  if (!state.target || !state.sliders) return;
+  state.sliders.forEach(({ input, value }, d) => {
+    if (document.activeElement !== input) input.value = state.target[d];
+    value.textContent = state.target[d].toFixed(3);
+  });
+}
+
 function toCanvas(x, y, canvas) {
   const vh = state.hello.view_half;
   return [(x + vh) / (2 * vh) * canvas.width, (vh - y) / (2 * vh) * canvas.height];
@@ -144,9 +195,10 @@ function toWorld(cx, cy, canvas) {
 }
 
 function drawTargets(ctx, canvas) {
-  for (let p = 0; p < 2; p++) {
-    const [x, y] = toCanvas(state.target[2 * p], state.target[2 * p + 1], canvas);
-    ctx.strokeStyle = COLOURS[p];
+  const drag = state.hello.bindings.drag;
+  for (let p = 0; p < drag.length; p++) {
+    const [x, y] = toCanvas(state.target[drag[p][0]], state.target[drag[p][1]], canvas);
+    ctx.strokeStyle = COLOURS[p % COLOURS.length];
     ctx.lineWidth = 3;
     ctx.beginPath();
     ctx.arc(x, y, 16, 0, 2 * Math.PI);
@@ -162,13 +214,17 @@ function clip(a) {
   return a.map((v, i) => Math.min(hi[i], Math.max(lo[i], v)));
 }
 
-// Move the targets by velocity (m/s, per pusher [vx, vy]) for dt seconds. A press (its
-// event time given) is sent at once; continuous motion at most twice per control step,
-// as the server only uses the latest target of each step.
+// Move the command by velocity (units/s per dimension) for dt seconds. A press (its event
+// time given) is sent at once; continuous motion at most twice per control step, as the
+// server only uses the latest command of each step.
 function move(vel, dt, press) {
   if (!state.target || !state.hello) return;
-  const next = clip(state.target.map((v, i) => v + vel[i >> 1][i & 1] * dt));
+  const next = clip(state.target.map((v, i) => v + vel[i] * dt));
   if (next.some((v, i) => Math.abs(v - state.target[i]) > 1e-6)) state.target = next;
+  sendTarget(press);
+}
+
+function sendTarget(press) {
   const now = performance.now();
   const changed = !state.sent || state.target.some((v, i) => v !== state.sent[i]);
   if (changed && (press || now - state.sentAt >= 500 / state.hello.hz)) {
@@ -177,25 +233,27 @@ function move(vel, dt, press) {
     state.sent = state.target.slice();
     state.sentAt = now;
     send({ type: "action", seq: state.seq, action: state.target });
+    showCommand();
   }
 }
 
+function zeros() { return state.hello.action_low.map(() => 0); }
+
 function keyVelocity() {
-  const vel = [[0, 0], [0, 0]];
+  const vel = zeros(), b = bindings();
   for (const k of state.held) {
-    const [p, dx, dy] = MOVES[k];
-    vel[p][0] += dx * KEY_SPEED; vel[p][1] += dy * KEY_SPEED;
+    const [d, sign] = b.keys[k];
+    vel[d] += sign * b.speed[d];
   }
   return vel;
 }
 
 function padVelocity() {
-  const vel = [[0, 0], [0, 0]];
+  const vel = zeros(), b = bindings();
   for (const pad of navigator.getGamepads ? navigator.getGamepads() : []) {
     if (!pad) continue;
     const ax = pad.axes.map((v) => (Math.abs(v) < STICK_DEADZONE ? 0 : v));
-    vel[0][0] += (ax[0] || 0) * KEY_SPEED; vel[0][1] -= (ax[1] || 0) * KEY_SPEED;
-    vel[1][0] += (ax[2] || 0) * KEY_SPEED; vel[1][1] -= (ax[3] || 0) * KEY_SPEED;
+    for (const [axis, d, sign] of b.axes) vel[d] += sign * (ax[axis] || 0) * b.speed[d];
     const was = state.pads[pad.index] || [];
     const pressed = pad.buttons.map((b) => b.pressed);
     const edge = (i) => pressed[i] && !was[i];
@@ -209,14 +267,15 @@ function padVelocity() {
 }
 
 function dragVelocity(dt) {
-  const vel = [[0, 0], [0, 0]];
+  const vel = zeros(), b = bindings();
   if (state.drag === null || !state.mouse || !state.target) return vel;
-  const p = state.drag;
-  const dx = state.mouse[0] - state.target[2 * p], dy = state.mouse[1] - state.target[2 * p + 1];
+  const [ix, iy] = b.drag[state.drag];
+  const dx = state.mouse[0] - state.target[ix], dy = state.mouse[1] - state.target[iy];
   const dist = Math.hypot(dx, dy);
   if (dist > 1e-6 && dt > 0) {
-    const speed = Math.min(DRAG_SPEED, dist / dt);  // reach the cursor, no faster than DRAG_SPEED
-    vel[p] = [dx / dist * speed, dy / dist * speed];
+    const speed = Math.min(b.drag_speed, dist / dt);  // reach the cursor, no faster than drag_speed
+    vel[ix] = dx / dist * speed;
+    vel[iy] = dy / dist * speed;
   }
   return vel;
 }
@@ -224,16 +283,18 @@ function dragVelocity(dt) {
 function frameLoop(now) {
   const dt = Math.min(0.1, (now - state.lastTick) / 1000);
   state.lastTick = now;
-  const k = keyVelocity(), g = padVelocity(), d = dragVelocity(dt);
-  move([0, 1].map((p) => [k[p][0] + g[p][0] + d[p][0], k[p][1] + g[p][1] + d[p][1]]), dt, null);
+  if (state.hello) {
+    const k = keyVelocity(), g = padVelocity(), d = dragVelocity(dt);
+    move(k.map((v, i) => v + g[i] + d[i]), dt, null);
+  }
   requestAnimationFrame(frameLoop);
 }
 
 function command(name) { send({ type: name }); }
 
-function resetMujoco() {
+function resetMujoco() {  // the task's own start (T-push: a MuJoCo reset)
   const v = $("seed").value.trim();
-  const msg = { type: "reset", source: "mujoco" };
+  const msg = { type: "reset", source: state.hello ? state.hello.start_source : "mujoco" };
   if (v !== "") msg.seed = Number(v);
   state.target = null;
   send(msg);
@@ -246,16 +307,16 @@ document.addEventListener("keydown", (e) => {
   const key = e.key.toLowerCase();
   if (e.key === "Enter" || (e.key === "S" && e.shiftKey)) { command("save"); e.preventDefault(); return; }
   if (e.ctrlKey || e.metaKey || e.altKey) return;
-  if (key in MOVES) {
+  if (state.hello && Object.hasOwn(bindings().keys, key)) {
     e.preventDefault();
     if (!state.held.has(key)) {
       state.held.add(key);
-      // a press moves the target by one control step at once (a tap nudges); holding
+      // a press moves the command by one control step at once (a tap nudges); holding
       // keeps it moving in the frame loop
-      const [p, dx, dy] = MOVES[key];
-      const vel = [[0, 0], [0, 0]];
-      vel[p] = [dx * KEY_SPEED, dy * KEY_SPEED];
-      move(vel, 1 / (state.hello ? state.hello.hz : 10), performance.now());
+      const [d, sign] = bindings().keys[key];
+      const vel = zeros();
+      vel[d] = sign * bindings().speed[d];
+      move(vel, 1 / state.hello.hz, performance.now());
     }
     return;
   }
@@ -264,7 +325,7 @@ document.addEventListener("keydown", (e) => {
   else if (key === "q") command("discard");
   else if (key === "r") resetMujoco();
   else if (key === "t" && !$("reset-store").disabled) resetStore();
-  else if (key === "b") { $("side").checked = !$("side").checked; sideBySide(); }
+  else if (key === "b" && !$("side-row").hidden) { $("side").checked = !$("side").checked; sideBySide(); }
 });
 document.addEventListener("keyup", (e) => state.held.delete(e.key.toLowerCase()));
 window.addEventListener("blur", () => state.held.clear());
@@ -272,10 +333,10 @@ window.addEventListener("blur", () => state.held.clear());
 function sideBySide() { state.target = null; send({ type: "side_by_side", on: $("side").checked }); }
 
 wmCanvas.addEventListener("pointerdown", (e) => {
-  if (!state.target || !state.hello) return;
+  if (!state.target || !state.hello || !bindings().drag.length) return;
   const [x, y] = toWorld(e.clientX, e.clientY, wmCanvas);
-  const d = [0, 1].map((p) => Math.hypot(x - state.target[2 * p], y - state.target[2 * p + 1]));
-  state.drag = d[0] <= d[1] ? 0 : 1;
+  const d = bindings().drag.map(([ix, iy]) => Math.hypot(x - state.target[ix], y - state.target[iy]));
+  state.drag = d.indexOf(Math.min(...d));  // the nearest; a tie goes to the first
   state.mouse = [x, y];
   state.pending = null;
   wmCanvas.setPointerCapture(e.pointerId);
