@@ -1,5 +1,7 @@
 """iwsim play end to end in a real browser: Debian's chromium driven by Playwright against
-the real server (a tiny world model): keys, mouse drag, record, save, discard, side by side."""
+the real server (a tiny world model): keys, mouse drag, record, save, discard, side by side;
+and for tasks other than T-push (the point task of ``conftest.point_model``, 14-D actions)
+the task's key bindings and a slider per action dimension."""
 
 import time
 from pathlib import Path
@@ -49,6 +51,19 @@ def settle(page) -> None:
     wait(page, "window.iwsim.state.header.ack >= window.iwsim.state.seq")
 
 
+def hold_d_or_a(page) -> tuple[np.ndarray, np.ndarray, float]:
+    """Hold D (or A, whichever way the first dimension has room) for 0.4 s: the command
+    before and after, and the direction (+1 for D)."""
+    before = target(page)
+    sx = room(before[0])
+    key = "d" if sx > 0 else "a"
+    page.keyboard.down(key)
+    time.sleep(0.4)
+    page.keyboard.up(key)
+    settle(page)
+    return before, target(page), sx
+
+
 # A stand-in for the browser's Gamepad API: tests set window.fakePad.axes / .buttons.
 FAKE_PAD = """
 window.fakePad = {index: 0, id: "fake pad", axes: [0, 0, 0, 0],
@@ -90,14 +105,7 @@ def test_drive_record_and_save_in_chromium(browser, tmp_path):
         canvas = page.eval_on_selector("#wm", "c => c.toDataURL()")
 
         # keys: D (A) moves the left pusher's target right (left), and the frames follow
-        before = target(page)
-        sx = room(before[0])
-        key = "d" if sx > 0 else "a"
-        page.keyboard.down(key)
-        time.sleep(0.4)
-        page.keyboard.up(key)
-        settle(page)
-        after = target(page)
+        before, after, sx = hold_d_or_a(page)
         assert sx * (after[0] - before[0]) > 0.02 and np.allclose(after[1:], before[1:])
         assert page.eval_on_selector("#wm", "c => c.toDataURL()") != canvas
         assert np.allclose(page.evaluate("window.iwsim.state.header.action"), after, atol=1e-6)
@@ -154,3 +162,94 @@ def test_drive_record_and_save_in_chromium(browser, tmp_path):
     right_y = ep["action"][:, 3]
     assert right_y[-1] > right_y[0] + 0.02  # i moved the right pusher up while recording
     assert np.allclose(ep["action"][:, :3], ep["action"][0, :3])
+
+
+# -- a task other than T-push: keys and sliders from the task's bindings ------------------------
+
+
+def wide_world_model(store: Path, action_dim: int = 14):
+    """A tiny random world model with ALOHA-sized actions, whose generic task starts from ``store``."""
+    import dataclasses
+
+    import torch
+
+    from iwsim.tasks import task_from_store
+    from iwsim.world_model import WorldModel
+    from iwsim.world_model.autoencoder import Autoencoder
+    from iwsim.world_model.dynamics import Dynamics
+    from iwsim.world_model.presets import AE_PRESETS
+    from tests.test_dynamics import randomise, tiny_cfg
+
+    cfg = tiny_cfg()
+    cfg = dataclasses.replace(cfg, dynamics=dataclasses.replace(cfg.dynamics, action_dim=action_dim, point_index=(),
+                                                                point_scale=(), point_offset=()))
+    torch.manual_seed(0)
+    wm = WorldModel(Autoencoder(AE_PRESETS["tiny"]), randomise(Dynamics(cfg.dynamics)), cfg,
+                    [-1.0] * action_dim, [1.0] * action_dim).eval()
+    wm.task = task_from_store(store, wm.action_low.tolist(), wm.action_high.tolist())
+    return wm
+
+
+def test_point_task_driven_with_keys_and_sliders_and_recorded(browser, point_model, tmp_path):
+    from iwsim.play.engine import Engine, PlayConfig
+    from iwsim.world_model import WorldModel
+
+    demos = tmp_path / "demos.zarr"
+    eng = Engine(WorldModel.load(point_model["checkpoint"]), PlayConfig(record_to=demos, hz=20))
+    errors: list[str] = []
+    with running(eng) as srv:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.page)
+        wait(page, "window.iwsim.stats.frames > 2")
+        sliders = page.locator("#sliders input[type=range]")
+        assert sliders.count() == 2 and page.locator("#sliders span").all_inner_texts() == ["x", "y"]
+        assert page.inner_text("#iou") == "no scorer" and page.locator("#side-row").is_hidden()
+        assert page.inner_text("#reset-mujoco").startswith("Dataset start")
+
+        # a key (D / A) moves x by the task's step per control step, y stays
+        before, after, sx = hold_d_or_a(page)
+        assert sx * (after[0] - before[0]) > 0.02 and after[1] == before[1]
+        assert np.allclose(page.evaluate("window.iwsim.state.header.action"), after, atol=1e-6)
+        assert float(page.inner_text("#sliders output >> nth=0")) == pytest.approx(after[0], abs=1e-3)
+
+        # the y slider sets y; the frames follow
+        page.keyboard.press("c")
+        wait(page, "document.getElementById('rec').textContent.includes('REC')")
+        sliders.nth(1).fill("0.25")
+        settle(page)
+        assert target(page)[1] == pytest.approx(0.25, abs=1e-3)
+        assert page.evaluate("window.iwsim.state.header.action")[1] == pytest.approx(0.25, abs=1e-3)
+        wait(page, "window.iwsim.state.header.recording >= 4")
+        page.keyboard.press("Shift+S")
+        wait(page, "document.getElementById('message').textContent.includes('saved episode 0')")
+        page.close()
+    assert not errors, errors
+    ep = EpisodeStore.open(demos).episode(0)
+    assert sorted(ep) == ["action", "img", "state", "target"] and ep["action"].shape[1] == 2
+    assert ep["action"][-1, 1] == pytest.approx(0.25, abs=1e-3)
+
+
+def test_fourteen_dimensions_get_fourteen_sliders(browser, tmp_path):
+    """ALOHA-sized actions: a slider per dimension, each moving only its own dimension."""
+    store = EpisodeStore.create(tmp_path / "aloha.zarr", {"task": "aloha-like", "fps": 50, "image_size": 64})
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-0.5, 0.5, (6, 14)).astype(np.float32)
+    store.append({"img": rng.integers(0, 256, (6, 64, 64, 3), dtype=np.uint8), "action": actions})
+    from iwsim.play.engine import Engine, PlayConfig
+
+    eng = Engine(wide_world_model(tmp_path / "aloha.zarr"), PlayConfig(hz=20))
+    with running(eng) as srv:
+        page = browser.new_page(viewport={"width": 1500, "height": 1400})
+        page.goto(srv.page)
+        wait(page, "window.iwsim.stats.frames > 2")
+        sliders = page.locator("#sliders input[type=range]")
+        assert sliders.count() == 14
+        np.testing.assert_allclose(target(page), actions[0], atol=1e-6)  # the episode's first command
+        sliders.nth(13).fill("0.75")
+        settle(page)
+        want = actions[0].copy()
+        want[13] = 0.75
+        np.testing.assert_allclose(target(page), want, atol=1e-3)
+        np.testing.assert_allclose(page.evaluate("window.iwsim.state.header.action"), want, atol=1e-3)
+        page.close()
