@@ -1,6 +1,7 @@
 """The layers run one way: every module of ``src/iwsim`` imports (at module or function
 level) only from its own layer or those below (``iwsim.layers.LAYERS``), and no imports
-form a cycle."""
+form a cycle. A task's modules are imported only by ``envs/`` and the Task registry (and
+T-push's ground-truth tooling, named in ``iwsim.layers.GROUND_TRUTH_TOOLING``)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from iwsim.layers import LAYERS, layer_of
+from iwsim.layers import GROUND_TRUTH_TOOLING, LAYERS, TASK_IMPORTERS, TASK_MODULES, layer_of, within
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 ROOT = "iwsim"  # the package's __init__, outside the layers
@@ -72,6 +73,19 @@ def test_imports_have_no_cycle():
         if name not in state:
             visit(name, [name])
     assert cycles == []
+
+
+def test_only_envs_and_the_task_registry_import_a_task_module():
+    """The world model's callers (WorldModel-v0, play, evaluation, the studies, the CLI)
+    reach a task only through the Task seam."""
+    found = [f"{name} imports {dep}" for name, deps in sorted(GRAPH.items()) for dep in sorted(deps)
+             if within(dep, TASK_MODULES) and not within(name, TASK_IMPORTERS) and name not in GROUND_TRUTH_TOOLING]
+    assert found == []
+
+
+def test_the_ground_truth_tooling_list_only_names_modules_that_need_it():
+    """A module that stops importing a task module leaves the list (so it can only shrink)."""
+    assert [m for m in GROUND_TRUTH_TOOLING if not any(within(d, TASK_MODULES) for d in GRAPH[m])] == []
 
 
 @pytest.mark.parametrize("module, layer", [("iwsim.checkpoint", 0), ("iwsim.envs.scripted", 1),

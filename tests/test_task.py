@@ -207,6 +207,10 @@ def test_play_records_and_exports_and_eval_reports_no_scorer(point_model, tmp_pa
     assert main(["data", "validate", str(lerobot)]) == 0
     info = json.loads((lerobot / "meta" / "info.json").read_text())
     assert info["features"]["action"]["shape"] == [2] and info["features"]["action"]["names"] == ["x", "y"]
+    back = tmp_path / "back.zarr"  # and a LeRobot v3 dataset imports as the same task
+    assert main(["data", "import", "--format", "lerobot-v3", "--in", str(lerobot), "--out", str(back),
+                 "--image-size", "64"]) == 0
+    assert task_from_store(back).action_names == ("x", "y") and task_from_store(back).name == "point"
 
     # a (barely) trained policy evaluated inside the model: no scorer, so no score
     policy, out = tmp_path / "policy", tmp_path / "eval"
@@ -232,3 +236,28 @@ def test_play_cli_refuses_bad_bindings_in_one_line(point_model, tmp_path, capsys
     bad.write_text("{not json")
     assert main(["play", "--checkpoint", str(point_model["checkpoint"]), "--port", "0", "--bindings", str(bad)]) == 1
     assert "is not valid JSON" in capsys.readouterr().err
+
+
+def test_rollout_of_the_point_model_reports_no_score(point_model, tmp_path, capsys, one_thread):
+    """Open loop on another robot's episodes: PSNR and SSIM, never T-push's IoU of its frames."""
+    video = tmp_path / "r.mp4"
+    capsys.readouterr()
+    assert main(["rollout", "--checkpoint", str(point_model["checkpoint"]), "--data", str(point_model["store"]),
+                 "--episode", "1", "--steps", "4", "--out", str(video)]) == 0
+    assert "no scorer (the task has no pixel scorer)" in capsys.readouterr().out
+    scores = json.loads(video.with_suffix(".json").read_text())
+    assert scores["iou_true"] is None and scores["iou_abs_err"] is None and len(scores["psnr_per_step"]) == 4
+    assert main(["bench", "--checkpoint", str(point_model["checkpoint"]), "--data", str(point_model["store"]),
+                 "--out", str(tmp_path / "bench"), "--episodes", "1", "--steps", "2"]) == 1
+    assert "task 'point' has no pixel scorer" in capsys.readouterr().err
+
+
+def test_a_policy_of_another_size_is_refused_in_one_line(point_model, one_thread):
+    from iwsim.eval.policy import evaluate
+
+    class Still:
+        obs_horizon, action_dim, state_dim = 1, 2, 5
+
+    with pytest.raises(InputError, match="the policy takes 5-D states; task 'point' in world-model has 2-D ones"):
+        evaluate(Still(), "world-model", episodes=1, seed=0, steps=1,
+                 world_model=WorldModel.load(point_model["checkpoint"]))

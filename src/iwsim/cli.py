@@ -18,8 +18,7 @@ EXIT_USER_ERROR = 1  # bad values the library rejected (argparse's own usage err
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from iwsim.envs import POLICIES, TASKS
-    from iwsim.envs.pusht import IMAGE_SIZES
+    from iwsim.envs import IMAGE_SIZES, POLICIES, TASKS
     from iwsim.resources import available_cores
 
     parser = argparse.ArgumentParser(prog="iwsim", description="Interactive world simulator for robot learning.")
@@ -598,7 +597,8 @@ def _rollout(args: argparse.Namespace) -> int:
     path = write_side_by_side(result, args.out)
     s = result.summary()
     print(f"{path}: mean PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.3f}, last-step PSNR {s['psnr_last']:.2f} dB, "
-          f"mean |IoU error| {s['iou_abs_err']:.3f}")
+          + ("no scorer (the task has no pixel scorer)" if s["iou_abs_err"] is None else
+             f"mean |IoU error| {s['iou_abs_err']:.3f}"))
     return 0
 
 

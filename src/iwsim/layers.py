@@ -25,6 +25,28 @@ LAYERS: list[tuple[str, ...]] = [
 ]
 
 
+# A task's own modules: its ground truth (simulator, geometry, pixel scorer, scripted
+# policies) and its Task class. Everything else reaches a task through the Task seam
+# (iwsim.envs.task, the registry iwsim.tasks), so a world model of any robot runs through
+# the same code (tests/test_layers.py checks it).
+TASK_MODULES = ("iwsim.envs.pusht", "iwsim.envs.pixels", "iwsim.envs.geometry", "iwsim.envs.scripted",
+                "iwsim.envs.pusht_task")
+TASK_IMPORTERS = ("iwsim.envs", "iwsim.tasks")  # envs/ itself and the Task registry
+# T-push's ground-truth tooling, by name: it runs the MuJoCo simulator or its scripted
+# experts, which no other robot's data comes with.
+GROUND_TRUTH_TOOLING = {
+    "iwsim.data.collect": "records MuJoCo episodes under the scripted policies (iwsim collect)",
+    "iwsim.policies.scripted": "T-push's scripted experts behind the policy interface",
+    "iwsim.eval.rollout": "against_mujoco: a scripted expert's take in MuJoCo beside the model's",
+    "iwsim.eval.profiling": "the yardstick's measures of T-push's objects (block pose, pushers)",
+}
+
+
+def within(module: str, names: tuple[str, ...] | dict) -> bool:
+    """Whether ``module`` is one of ``names`` or inside one of them."""
+    return any(module == n or module.startswith(n + ".") for n in names)
+
+
 def layer_of(module: str) -> int | None:
     """The index in :data:`LAYERS` of ``module`` (a dotted name), or None if no layer holds it."""
     best: tuple[int, int] | None = None  # (length of the matching name, layer)

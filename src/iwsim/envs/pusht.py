@@ -19,10 +19,10 @@ import gymnasium as gym  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from iwsim.envs import IMAGE_SIZES  # noqa: E402, F401 - the sizes this task renders
 from iwsim.envs import geometry as geo  # noqa: E402
 from iwsim.errors import InputError
 
-IMAGE_SIZES = (64, 96, 128)
 CONTROL_HZ = 10
 TIMESTEP = 0.002  # physics step (s); 50 substeps per control step
 SUBSTEPS = round(1 / (CONTROL_HZ * TIMESTEP))

@@ -29,7 +29,6 @@ import torch
 from iwsim.checkpoint import load_json, resolve_checkpoint, write_json_atomic
 from iwsim.data.frames import split_episodes
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.pixels import pixel_iou
 from iwsim.errors import InputError
 from iwsim.eval import features as feats
 from iwsim.eval.figures import curves_figure, frames_figure, stability_figure
@@ -37,6 +36,7 @@ from iwsim.eval.profiling import speed, stability
 from iwsim.eval.report import COPY, markdown
 from iwsim.eval.rollout import open_loop
 from iwsim.eval.scores import FeatureNets, frame_metrics, i3d_features, inception_features, set_metrics, summarize
+from iwsim.tasks import task_of
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
@@ -66,6 +66,10 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
         raise InputError("no model to benchmark.")
     paths = {name: resolve_checkpoint(p) for name, p in models.items()}
     wms = {name: WorldModel.load(p, device) for name, p in paths.items()}
+    task = task_of(next(iter(wms.values())))
+    if task.score_name is None:
+        raise InputError(f"iwsim bench compares the models' pixel scores; task {task.name!r} has no pixel scorer "
+                         "(iwsim rollout gives PSNR and SSIM for any task).")
     first = next(iter(paths.values()))
     data = data or _data_of(first)
     if data is None:
@@ -116,7 +120,7 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
     # For scale: a "model" that repeats the context frame.
     still = np.repeat(context[:, None], steps, 1)
     scores = frame_metrics(truth, still, nets, device=device)
-    scores["iou_err"] = np.abs(np.asarray(pixel_iou(context))[:, None] - truth_iou)
+    scores["iou_err"] = np.abs(task.score(context)[:, None] - truth_iou)
     result["reference"] = {COPY: {"accuracy": summarize(scores, set_metrics(truth_feats, still, nets))}}
     for name, wm in wms.items():
         result["models"][name]["speed"] = speed(wm, context[0], speed_batch, speed_calls)

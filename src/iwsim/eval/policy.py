@@ -76,6 +76,13 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
     venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size)
     task = env_task(venv, env)
     key = score_key(task)
+    want = {"action": getattr(policy, "action_dim", task.action_dim), "state": getattr(policy, "state_dim", None)}
+    have = {"action": task.action_dim, "state": venv.single_observation_space["agent_pos"].shape[0]}
+    for what in ("action", "state"):
+        if want[what] is not None and want[what] != have[what]:
+            venv.close()
+            raise InputError(f"the policy takes {want[what]}-D {what}s; task {task.name!r} in {env} has "
+                             f"{have[what]}-D ones.")
     try:
         obs, info = venv.reset(seed=list(seeds))
         iou = info[key]

@@ -12,37 +12,38 @@ import numpy as np
 
 from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
-from iwsim.envs.pixels import pixel_iou
 from iwsim.envs.scripted import run_scripted
 from iwsim.errors import InputError
 from iwsim.eval.figures import plot_psnr
 from iwsim.eval.video import score_bar, upscale, write_video
 from iwsim.metrics import psnr, ssim
+from iwsim.tasks import get_task, task_of
 from iwsim.world_model import WorldModel
 
 
 @dataclass
 class OpenLoop:
     """Truth and prediction (E, S, H, W, 3) uint8 for E episodes and S steps, with
-    per-step PSNR and SSIM (E, S) and the pixel IoU of both videos (E, S)."""
+    per-step PSNR and SSIM (E, S) and the task's pixel score (T-push: the IoU) of both
+    videos (E, S), None when the task has no scorer."""
 
     episodes: list[int]
     truth: np.ndarray
     pred: np.ndarray
     psnr: np.ndarray
     ssim: np.ndarray
-    iou_true: np.ndarray
-    iou_pred: np.ndarray
+    iou_true: np.ndarray | None
+    iou_pred: np.ndarray | None
 
     def select(self, i: int) -> OpenLoop:
         """Episode ``i`` of this result alone."""
-        return OpenLoop([self.episodes[i]], *(getattr(self, k)[i:i + 1] for k in
-                                              ("truth", "pred", "psnr", "ssim", "iou_true", "iou_pred")))
+        return OpenLoop([self.episodes[i]], *(None if getattr(self, k) is None else getattr(self, k)[i:i + 1]
+                                              for k in ("truth", "pred", "psnr", "ssim", "iou_true", "iou_pred")))
 
-    def summary(self) -> dict[str, float]:
+    def summary(self) -> dict[str, float | None]:
         return {"psnr": float(self.psnr.mean()), "ssim": float(self.ssim.mean()),
                 "psnr_last": float(self.psnr[:, -1].mean()), "ssim_last": float(self.ssim[:, -1].mean()),
-                "iou_abs_err": float(np.abs(self.iou_pred - self.iou_true).mean())}
+                "iou_abs_err": None if self.iou_true is None else float(np.abs(self.iou_pred - self.iou_true).mean())}
 
 
 def frame_scores(truth: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,7 +72,8 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
     truth = np.stack([ep["img"][context:context + steps] for ep in eps])
     pred = wm.rollout(frames, actions, ctx_actions, seed=seed, progress=progress)
     p, s = frame_scores(truth, pred)
-    return OpenLoop(list(episodes), truth, pred, p, s, np.asarray(pixel_iou(truth)), np.asarray(pixel_iou(pred)))
+    task = task_of(wm)  # its pixel scorer, if it has one: never T-push's IoU on another robot's frames
+    return OpenLoop(list(episodes), truth, pred, p, s, task.score(truth), task.score(pred))
 
 
 def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert", noise_seed: int = 0,
@@ -87,7 +89,8 @@ def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert"
     actions = np.stack([tr.next_info["target"] for tr in run])[None]
     pred = wm.rollout(first[None], actions, seed=noise_seed, progress=progress)
     p, s = frame_scores(truth_v, pred)
-    return OpenLoop([seed], truth_v, pred, p, s, np.asarray(pixel_iou(truth_v)), np.asarray(pixel_iou(pred)))
+    pusht = get_task("pusht")
+    return OpenLoop([seed], truth_v, pred, p, s, pusht.score(truth_v), pusht.score(pred))
 
 
 def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10.0, scale: int = 4) -> Path:
@@ -103,7 +106,8 @@ def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10
     first = result.select(0)
     scores = {"episode": first.episodes[0], "steps": int(first.psnr.shape[1]), **first.summary(),
               "psnr_per_step": first.psnr[0].round(3).tolist(), "ssim_per_step": first.ssim[0].round(4).tolist(),
-              "iou_true": first.iou_true[0].round(4).tolist(), "iou_pred": first.iou_pred[0].round(4).tolist()}
+              **({"iou_true": None, "iou_pred": None} if first.iou_true is None else
+                 {"iou_true": first.iou_true[0].round(4).tolist(), "iou_pred": first.iou_pred[0].round(4).tolist()})}
     tmp = out.with_name(f".{out.stem}.json.tmp")
     tmp.write_text(json.dumps(scores, indent=1) + "\n")
     os.replace(tmp, out.with_suffix(".json"))

@@ -59,16 +59,18 @@ from tqdm import tqdm
 
 from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore, attrs_mismatch
-from iwsim.envs.pixels import pixel_iou
-from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU
+from iwsim.envs import IMAGE_SIZES
 from iwsim.errors import InputError
 from iwsim.eval.policy import ENVS, MAX_SEED, rollout
 from iwsim.experiments.common import fingerprint
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.scripted import ScriptedBatch
+from iwsim.tasks import get_task
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
+
+PUSHT = get_task("pusht")  # the demonstrations are of T-push (its scorer and success threshold)
 
 POLICY_NAMES = {"world-model": "world-model-teleop", "pusht": "expert-pixels"}
 SOURCES = {"world-model": "world_model", "pusht": "mujoco"}
@@ -88,7 +90,7 @@ class DemoRecipe:
 
     steps: int = 300  # horizon of a take
     tail: int | None = 10  # a kept take ends this many steps after success (None: whole)
-    accept_iou: float = SUCCESS_IOU  # a take is kept when its max pixel IoU reaches this
+    accept_iou: float = PUSHT.success_score  # a take is kept when its max pixel IoU reaches this
     attempts_per_demo: float = 2.0  # at most this many candidates per demonstration wanted
     batch: int = 16  # candidates recorded in lockstep
     give_up_after: int | None = 32  # stop when this many candidates were tried and none was kept (None: never)
@@ -151,7 +153,8 @@ def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, s
 
 
 def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, seed: int, *,
-                 world_model: str | os.PathLike | None = None, accept_iou: float = SUCCESS_IOU, tail: int | None = 10,
+                 world_model: str | os.PathLike | None = None, accept_iou: float = PUSHT.success_score,
+                 tail: int | None = 10,
                  batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
                  image_size: int = 64, progress: bool = True, wait_for_lock: bool = False) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
@@ -227,7 +230,7 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
         scores = _Scores(n, accept_iou, tail)
         run = rollout(ScriptedBatch("expert"), env, seeds, steps, world_model=model,
                       image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores)
-        ious = np.stack([pixel_iou(run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
+        ious = np.stack([PUSHT.score(run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
         for i, s in enumerate(seeds):
             tried += 1
             max_ious.append(round(float(ious[i].max()), 4))
@@ -269,7 +272,7 @@ class _Scores:
         self.first = np.full(n, np.inf)  # first step whose frame reached accept_iou
 
     def __call__(self, obs: dict[str, np.ndarray]) -> bool:
-        self.ious.append(np.atleast_1d(pixel_iou(obs["pixels"])))
+        self.ious.append(np.atleast_1d(PUSHT.score(obs["pixels"])))
         t = len(self.ious)
         self.first = np.where(np.isinf(self.first) & (self.ious[-1] >= self.accept_iou), t, self.first)
         return self.tail is not None and bool(np.all(self.first + self.tail <= t))
