@@ -110,13 +110,14 @@ def task_from_store(path: str | Path, action_low: Any = None, action_high: Any =
         raise InputError(f"cannot read the store {path}: {e}") from None
     if "action" not in store.keys:
         raise InputError(f"{path} has no data/action to build a task from.")
-    actions = np.asarray(store.array("target" if "target" in store.keys else "action")[:], np.float64)
-    if actions.ndim != 2 or not len(actions):
-        raise InputError(f"{path}: data/action must be (frames, action_dim) with frames, got {actions.shape}.")
-    attrs, n = store.attrs, actions.shape[1]
+    array = store.array("target" if "target" in store.keys else "action")
+    if len(array.shape) != 2 or not array.shape[0]:
+        raise InputError(f"{path}: data/action must be (frames, action_dim) with frames, got {array.shape}.")
+    attrs, n = store.attrs, array.shape[1]
     name = str(attrs.get("task") or Path(path).name.removesuffix(".zarr"))
     if name in REGISTRY and REGISTRY[name]().action_dim == n:
-        return REGISTRY[name]()
+        return REGISTRY[name]()  # (without reading the actions: a large store loads as fast)
+    actions = np.asarray(array[:], np.float64)
     low = _floats(action_low, n) or _floats(attrs.get("action_low"), n) or tuple(actions.min(0))
     high = _floats(action_high, n) or _floats(attrs.get("action_high"), n) or tuple(actions.max(0))
     low, high = tuple(min(a, b - 1e-3) for a, b in zip(low, high)), high  # a constant dimension still moves
