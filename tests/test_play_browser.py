@@ -190,7 +190,7 @@ def wide_world_model(store: Path, action_dim: int = 14):
     return wm
 
 
-def test_point_task_driven_with_keys_and_sliders_and_recorded(browser, point_model, tmp_path):
+def test_point_task_driven_with_keys_gamepad_and_sliders_and_recorded(browser, point_model, tmp_path):
     from iwsim.play.engine import Engine, PlayConfig
     from iwsim.world_model import WorldModel
 
@@ -200,6 +200,7 @@ def test_point_task_driven_with_keys_and_sliders_and_recorded(browser, point_mod
     with running(eng) as srv:
         page = browser.new_page(viewport={"width": 1500, "height": 900})
         page.on("pageerror", lambda e: errors.append(str(e)))
+        page.add_init_script(FAKE_PAD)
         page.goto(srv.page)
         wait(page, "window.iwsim.stats.frames > 2")
         sliders = page.locator("#sliders input[type=range]")
@@ -212,6 +213,16 @@ def test_point_task_driven_with_keys_and_sliders_and_recorded(browser, point_mod
         assert sx * (after[0] - before[0]) > 0.02 and after[1] == before[1]
         assert np.allclose(page.evaluate("window.iwsim.state.header.action"), after, atol=1e-6)
         assert float(page.inner_text("#sliders output >> nth=0")) == pytest.approx(after[0], abs=1e-3)
+
+        # gamepad axis 1 (a stick's up is negative) moves y, x stays
+        before = target(page)
+        sy = room(before[1])
+        page.evaluate(f"window.fakePad.axes = [0, {-0.9 * sy}, 0, 0]")
+        time.sleep(0.4)
+        page.evaluate("window.fakePad.axes = [0, 0, 0, 0]")
+        settle(page)
+        after = target(page)
+        assert sy * (after[1] - before[1]) > 0.02 and after[0] == before[0]
 
         # the y slider sets y; the frames follow
         page.keyboard.press("c")

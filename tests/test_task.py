@@ -261,3 +261,13 @@ def test_a_policy_of_another_size_is_refused_in_one_line(point_model, one_thread
     with pytest.raises(InputError, match="the policy takes 5-D states; task 'point' in world-model has 2-D ones"):
         evaluate(Still(), "world-model", episodes=1, seed=0, steps=1,
                  world_model=WorldModel.load(point_model["checkpoint"]))
+
+
+def test_play_takes_bindings_instead_of_the_tasks(point_model):
+    own = {"keys": {"h": [1, 1], "n": [1, -1]}, "axes": [[3, 0, 1]], "speed": [0.5, 0.25], "legend": ["y: H / N"]}
+    eng = Engine(WorldModel.load(point_model["checkpoint"]), PlayConfig(bindings=own))
+    hello = json.loads(eng.hello(eng.open()))
+    assert hello["bindings"] == {**own, "keys": {"h": [1, 1.0], "n": [1, -1.0]}, "axes": [[3, 0, 1.0]],
+                                 "drag": [], "drag_speed": 0.0}
+    with pytest.raises(InputError, match="binding key 'q' is taken by the page"):
+        Engine(WorldModel.load(point_model["checkpoint"]), PlayConfig(bindings={**own, "keys": {"q": [0, 1]}}))

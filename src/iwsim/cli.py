@@ -269,6 +269,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     rank = int(os.environ.get("RANK", "0"))  # under torchrun only rank 0 logs
     logging.basicConfig(level=logging.INFO if rank == 0 else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    # PyOpenGL (under MuJoCo's renderer) says at import, at INFO, that its optional
+    # accelerator is missing: noise, and a user error must stay one line.
+    logging.getLogger("OpenGL").setLevel(logging.WARNING)
     try:
         set_threads(args.threads)
         return args.func(args)

@@ -22,15 +22,14 @@ from tqdm import tqdm
 
 import iwsim
 from iwsim.data.store import EpisodeStore, attrs_mismatch
-from iwsim.envs import POLICIES, check_task
-from iwsim.envs.pusht import IMAGE_SIZES, SUCCESS_IOU, TaskSpec
+from iwsim.envs import IMAGE_SIZES, POLICIES, check_task
 from iwsim.envs.scripted import record_episode
 from iwsim.errors import InputError
 from iwsim.resources import require_memory
+from iwsim.tasks import get_task
 
 log = logging.getLogger(__name__)
 
-TASK_SPECS = {"pusht": TaskSpec}
 STEP_LOWDIM_BYTES = 256  # per step besides the frame: state, action, poses, IoU, contacts (generous)
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps")
@@ -60,9 +59,8 @@ class CollectStats:
 def store_attrs(task: str, policy: str, steps: int, image_size: int) -> dict[str, Any]:
     """Root attributes of a collected store: the task spec (fps, action bounds and names,
     goal pose, ...) plus how the episodes were made."""
-    spec = dataclasses.asdict(TASK_SPECS[task]())
-    spec["task"] = spec.pop("name")
-    return {**spec, "image_size": image_size, "policy": policy, "steps": steps, "iwsim_version": iwsim.__version__}
+    return {**get_task(task).store_attrs(), "image_size": image_size, "policy": policy, "steps": steps,
+            "iwsim_version": iwsim.__version__}
 
 
 def collect(
@@ -134,7 +132,7 @@ def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episo
         frames_per_second=frames / seconds,
         contact_fraction=contact_steps / frames,
         mean_max_iou=float(ious.mean()),
-        success_rate=float(np.mean(ious >= SUCCESS_IOU)),
+        success_rate=float(np.mean(ious >= get_task(task).success_score)),
     )
     log.info("%s; store now holds %d episodes", stats.summary(), stats.episodes_total)
     return stats
@@ -142,8 +140,7 @@ def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episo
 
 def _check_args(task: str, policy: str, episodes: int, steps: int, image_size: int, workers: int, seed: int) -> None:
     check_task(task)
-    if task not in TASK_SPECS:
-        raise InputError(f"task {task!r} has no TaskSpec registered for collection.")
+    get_task(task)  # its Task: the attributes its stores carry
     if policy not in POLICIES:
         raise InputError(f"unknown policy {policy!r}; expected one of {list(POLICIES)}.")
     if image_size not in IMAGE_SIZES:
