@@ -96,4 +96,4 @@ def point_model(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             assert main(argv) == 0, argv
     finally:
         torch.set_num_threads(n)
-    return {"source": src, "store": store, "checkpoint": wm}
+    return {"source": src, "store": store, "checkpoint": wm, "run": dyn}

@@ -127,6 +127,9 @@ def test_the_checkpoint_records_its_task(point_model):
     wm = WorldModel.load(point_model["checkpoint"])
     assert wm.task == task_from_dict(task) and wm.action_dim == 2
     np.testing.assert_allclose(wm.task.action_low, wm.action_low.numpy(), rtol=1e-6)
+    # the training run's own checkpoints record it too (they load without the store)
+    run_config = json.loads((point_model["run"] / "checkpoints" / "last" / "config.json").read_text())
+    assert run_config["task"] == task
 
 
 def test_world_model_env_on_the_point_task(point_model, one_thread):

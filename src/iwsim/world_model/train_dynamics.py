@@ -36,6 +36,7 @@ from torch import nn
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.errors import InputError
 from iwsim.metrics import psnr
+from iwsim.tasks import task_from_store
 from iwsim.training import trainer
 from iwsim.world_model.denoiser import Denoiser
 from iwsim.world_model.dynamics import Dynamics
@@ -156,14 +157,20 @@ class DynamicsTask:
         if wm is not None:
             self.module.dynamics.load_state_dict(wm.dynamics.state_dict())
         self.init = None if init is None else str(init)
+        # The robot task the checkpoints record: the fine-tuned model's, else the store's.
+        d = self.data
+        self.task = wm.task if wm is not None and wm.task is not None else task_from_store(
+            data, d.action_low.tolist(), d.action_high.tolist())
 
     def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device) -> DynBatch:
         return self.data.batch(step, generator, part, device)
 
     def world_model(self, dynamics: Dynamics) -> WorldModel:
         d = self.data
-        return WorldModel(d.codec, dynamics, self.cfg, d.action_low.tolist(), d.action_high.tolist(), d.latent_mean,
-                          d.latent_scale)
+        wm = WorldModel(d.codec, dynamics, self.cfg, d.action_low.tolist(), d.action_high.tolist(), d.latent_mean,
+                        d.latent_scale)
+        wm.task = self.task
+        return wm
 
     def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
         """Open-loop rollouts of held-out episodes (:func:`evaluate_open_loop`); a strip of
