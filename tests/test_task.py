@@ -274,3 +274,14 @@ def test_play_takes_bindings_instead_of_the_tasks(point_model):
                                  "drag": [], "drag_speed": 0.0}
     with pytest.raises(InputError, match="binding key 'q' is taken by the page"):
         Engine(WorldModel.load(point_model["checkpoint"]), PlayConfig(bindings={**own, "keys": {"q": [0, 1]}}))
+
+
+@pytest.mark.parametrize("study", ["datagen", "policy-eval"])
+def test_the_studies_refuse_a_world_model_of_another_task(point_model, tmp_path, capsys, study):
+    """The studies compare with MuJoCo's T-push: a point-robot model gets one line, and no work is started."""
+    work = tmp_path / "work"
+    assert main(["experiment", study, "--preset", "tiny", "--world-model", str(point_model["checkpoint"]),
+                 "--work", str(work), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "task 'point'" in err[0] and "'pusht'" in err[0]
+    assert not work.exists()

@@ -31,10 +31,12 @@ from iwsim.eval.policy import rollout, summarize
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class, load_policy
 from iwsim.policies.data import Source
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
+from iwsim.tasks import task_from_config
 from iwsim.training.policy import train_policy
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
+STUDY_TASK = "pusht"  # the studies' ground truth is MuJoCo's T-push
 
 PolicySource = str | Path | ScriptedConfig  # a policy run or checkpoint directory, or a scripted policy
 
@@ -78,6 +80,19 @@ def lock_work(work: Path, study: str) -> DirLock:
         holder = (work / ".iwsim.lock").read_text(errors="replace").strip() or "another process"
         raise InputError(f"{work} is in use by another study ({holder}); one study per work directory at a "
                          "time: wait for it, or pass another --work.") from None
+
+
+def check_study_model(world_model: str | os.PathLike | None) -> None:
+    """One line unless ``world_model`` is a T-push world-model checkpoint: the studies
+    compare the model with MuJoCo's T-push, their ground truth, which no other task has."""
+    path = Path(world_model) if world_model is not None else None
+    if path is None or not (path / "config.json").is_file():
+        raise InputError(f"world model {world_model} is not a checkpoint directory (config.json + "
+                         "model.safetensors); pass --world-model PATH.")
+    task = task_from_config(load_json(path / "config.json"), path / "config.json")
+    if task.kind != STUDY_TASK:
+        raise InputError(f"{path} is a world model of task {task.name!r}; the studies compare with MuJoCo's "
+                         f"{STUDY_TASK!r}, their only ground truth (evaluate a policy in it with iwsim eval policy).")
 
 
 def fingerprint(world_model: str | os.PathLike) -> str:

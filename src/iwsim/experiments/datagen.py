@@ -37,6 +37,7 @@ from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
 from iwsim.experiments.common import (
     PolicyRun,
+    check_study_model,
     evaluate_policies,
     fingerprint,
     lock_work,
@@ -174,8 +175,7 @@ def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset
     out, work = Path(out), Path(work)
     if jobs < 1:
         raise InputError(f"jobs must be a positive integer, got {jobs}.")
-    if not Path(cfg.world_model).is_dir():
-        raise InputError(f"world model {cfg.world_model} is not a checkpoint directory; pass --world-model PATH.")
+    check_study_model(cfg.world_model)
     with lock_work(work, "datagen"):
         return _run_datagen(cfg, out, work, preset, jobs, progress)
 

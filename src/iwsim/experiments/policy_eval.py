@@ -44,6 +44,7 @@ from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import (
     PolicyRun,
     PolicySource,
+    check_study_model,
     checkpoints,
     evaluate_policies,
     lock_work,
@@ -199,10 +200,7 @@ def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path,
     out, work = Path(out), Path(work)
     if not isinstance(jobs, int) or jobs < 1:
         raise InputError(f"--jobs must be a positive integer, got {jobs}.")
-    wm = Path(cfg.world_model)
-    if not (wm / "config.json").is_file():
-        raise InputError(f"world model {wm} is not a checkpoint directory (config.json + model.safetensors); "
-                         "pass --world-model PATH.")
+    check_study_model(cfg.world_model)
     with lock_work(work, "policy-eval"):
         return _run_policy_eval(cfg, out, work, preset, jobs, progress)
 
