@@ -70,7 +70,9 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
         ema_decay=0.995)),
     # Issue 23's coarse codecs: a decoder that holds the objects' shapes in its weights, fed
     # by few latent cells (x8: 8 x 8 x 8 latents; x16: 16 x 4 x 4), trained on latents noised
-    # like stage 2's context (std up to 0.3) and with the small things weighted up.
+    # like stage 2's context (std up to 0.3) and with the small things weighted up. Measured
+    # (bench/results/ablations.md): dynamics steps ~5x cheaper, but at 700 steps the T melts
+    # as on 16 x 16 latents, and at x16 the pushers are lost.
     "conv-x8-64": ConvCodecConfig(
         latent_channels=8, channels=(16, 32, 64, 128), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
