@@ -281,3 +281,20 @@ def test_bf16_autocast_on_the_cpu_trains_reproducibly(play_store, tmp_path, one_
     assert_same(a, b)
     fp32 = load_file(tmp_path / "fp32" / "checkpoints" / "last" / "model.safetensors")
     assert any(not torch.equal(a[k], fp32[k]) for k in a if k.startswith("dynamics."))
+
+
+def test_a_run_from_before_the_task_entry_resumes(tmp_path):
+    """Configs gained a "task" entry (issue 24); runs started before it resume, and a
+    real difference is still refused."""
+    from iwsim.checkpoint import load_json, write_json_atomic
+    from iwsim.errors import InputError
+    from iwsim.training.trainer import prepare_run_dir
+
+    old = {"kind": "world_model", "train": {"steps": 10, "lr": 1e-3}}
+    write_json_atomic(tmp_path / "config.json", old)
+    prepare_run_dir(tmp_path, {**old, "task": {"kind": "pusht"}})
+    assert load_json(tmp_path / "config.json")["task"] == {"kind": "pusht"}
+    with pytest.raises(InputError, match="differs in task"):
+        prepare_run_dir(tmp_path, {**old, "task": {"kind": "generic"}})
+    with pytest.raises(InputError, match="differs in train.lr"):
+        prepare_run_dir(tmp_path, {**old, "train": {"steps": 10, "lr": 1.0}, "task": {"kind": "pusht"}})

@@ -72,6 +72,12 @@ def step_generator(seed: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1_000_003 + step)
 
 
+# Top-level config entries that describe a run without changing its training, added to
+# iwsim after runs were started (a world model's "task"): a run whose config lacks one
+# resumes, and its config gains it.
+ADDED_DESCRIPTIONS = ("task",)
+
+
 def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False) -> None:
     """Create ``run_dir`` with ``config.json``, or check that an existing one holds the
     same config (so rerunning the same command resumes). ``train.steps`` may differ:
@@ -88,8 +94,10 @@ def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False) 
             return {k: ({kk: vv for kk, vv in v.items() if kk != "steps"} if k == "train" and isinstance(v, dict)
                         else comparable(v)) for k, v in c.items()}
 
-        if comparable(old) != comparable(config) and not force:
-            diff = sorted(_diff_keys(comparable(old), comparable(config)))
+        # compared without the descriptions the old config predates
+        new = {k: v for k, v in config.items() if k in old or k not in ADDED_DESCRIPTIONS}
+        if comparable(old) != comparable(new) and not force:
+            diff = sorted(_diff_keys(comparable(old), comparable(new)))
             raise InputError(
                 f"{run_dir} holds a run with a different config (differs in {', '.join(diff)}); "
                 "use another --out, or --force to train it with the new config."
