@@ -84,10 +84,11 @@ class AETask:
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
             self.module = AETrainModule(build_codec(self.kind, to_dict(cfg)))
-        sample = np.linspace(0, len(self.train_frames) - 1, min(1024, len(self.train_frames))).round().astype(int)
-        self.module.codec.prepare(to_model(self.train_frames.frames(sample)))
         if init is not None:
             self.module.codec.load_state_dict(init)
+        else:  # what the codec's loss takes from the training frames (stage 3 has it in init)
+            sample = np.linspace(0, len(self.train_frames) - 1, min(1024, len(self.train_frames))).round().astype(int)
+            self.module.codec.prepare(to_model(self.train_frames.frames(sample)))
         if cfg.freeze_encoder:
             for p in self.module.codec.encoder_parameters():
                 p.requires_grad_(False)
