@@ -465,20 +465,22 @@ def test_server_drops_a_flooding_client_that_never_reads_and_serves_the_others()
 
 
 def test_message_budget_allows_the_page_rate_and_cuts_a_flood():
-    from iwsim.play.server import MAX_MESSAGES_PER_SECOND, MessageBudget
+    from iwsim.play.server import MAX_MESSAGES_PER_STEP, MessageBudget
 
-    now = [0.0]
-    budget = MessageBudget(clock=lambda: now[0])
-    for _ in range(600):  # 60 s of the page's most: two actions per step at 10 Hz, and a command
-        now[0] += 0.1
-        assert all(budget.take() for _ in range(3))
-    flood = [budget.take() for _ in range(5 * MAX_MESSAGES_PER_SECOND)]  # all in one instant
-    assert flood.index(False) == 2 * MAX_MESSAGES_PER_SECOND - 3  # the burst (less this step's 3), no more
+    for hz in (10, 60):  # the page's slowest and fastest step rates
+        now = [0.0]
+        rate = MAX_MESSAGES_PER_STEP * hz
+        budget = MessageBudget(rate, clock=lambda: now[0])
+        for _ in range(60 * hz):  # 60 s of the page's most: two actions per step, and a command
+            now[0] += 1 / hz
+            assert all(budget.take() for _ in range(3))
+        flood = [budget.take() for _ in range(5 * rate)]  # all in one instant
+        assert flood.index(False) == 2 * rate - 3  # the burst (less this step's 3), no more
 
 
 def test_server_drops_a_client_that_sends_too_fast_and_serves_the_others():
     """Issue 26 soak: a flood of messages took the server's time (the others' frames/s 9.9 -> 5.7)."""
-    from iwsim.play.server import RATE_REASON
+    from iwsim.play.server import MAX_MESSAGES_PER_STEP, RATE_REASON
 
     eng = engine(max_sessions=2)
     with running(eng) as srv:
@@ -490,6 +492,7 @@ def test_server_drops_a_client_that_sends_too_fast_and_serves_the_others():
                     flooder.send(msg)
                 while True:
                     flooder.recv(timeout=10)
-        assert closed.value.rcvd.code == 1008 and closed.value.rcvd.reason == RATE_REASON
+        assert closed.value.rcvd.code == 1008 and closed.value.rcvd.reason == RATE_REASON.format(
+            f"{MAX_MESSAGES_PER_STEP * eng.cfg.hz:g}")
         with connect(srv.ws) as ws:
             receive(ws, "frame")

@@ -136,17 +136,18 @@ def _settle(future: asyncio.Future, result: Any, error: BaseException | None) ->
 MAX_UNSENT_EVENTS = 256  # a client that leaves this many messages unread is dropped
 OVERFLOW_REASON = "dropped: the client sent faster than it read the replies"
 # The page sends at most two actions per control step (20/s at 10 Hz) and a few commands;
-# a connection that sends more than this many messages a second, sustained over a burst of
-# twice as many, is dropped, so one client cannot take the server's time from the others.
-MAX_MESSAGES_PER_SECOND = 100
-RATE_REASON = f"dropped: more than {MAX_MESSAGES_PER_SECOND} messages a second"
+# a connection that sends more than this many messages per step (100 a second at 10 Hz),
+# sustained over a burst of twice as many, is dropped, so one client cannot take the
+# server's time from the others.
+MAX_MESSAGES_PER_STEP = 10
+RATE_REASON = "dropped: more than {} messages a second"
 
 
 class MessageBudget:
     """A token bucket: ``take()`` is False once a connection's messages outrun
     ``rate`` a second beyond a burst of ``2 * rate``."""
 
-    def __init__(self, rate: float = MAX_MESSAGES_PER_SECOND, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, rate: float, clock: Callable[[], float] = time.monotonic) -> None:
         self.rate, self.burst, self.clock = rate, 2 * rate, clock
         self.tokens, self.last = self.burst, clock()
 
@@ -269,7 +270,7 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
         out.event(engine.hello(s))
         out.put_frame(await runner.call(engine.frame_message, s))
         sender = asyncio.create_task(out.run())
-        budget = MessageBudget()
+        budget = MessageBudget(MAX_MESSAGES_PER_STEP * engine.cfg.hz)
         try:
             while not sender.done():  # messages -> engine until the client goes
                 try:
@@ -279,7 +280,7 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
                 if msg["type"] == "websocket.disconnect":
                     break
                 if not budget.take():
-                    await _drop(ws, sender, s.id, RATE_REASON)
+                    await _drop(ws, sender, s.id, RATE_REASON.format(f"{budget.rate:g}"))
                     break
                 data = msg.get("text") if msg.get("text") is not None else msg.get("bytes", b"")
                 try:
