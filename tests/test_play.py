@@ -470,7 +470,7 @@ def test_message_budget_allows_the_page_rate_and_cuts_a_flood():
     for hz in (10, 60):  # the page's slowest and fastest step rates
         now = [0.0]
         rate = MAX_MESSAGES_PER_STEP * hz
-        budget = MessageBudget(rate, clock=lambda: now[0])
+        budget = MessageBudget(rate, clock=lambda now=now: now[0])
         for _ in range(60 * hz):  # 60 s of the page's most: two actions per step, and a command
             now[0] += 1 / hz
             assert all(budget.take() for _ in range(3))
