@@ -58,9 +58,9 @@ class Starts:
             raise InputError("reset_source 'store' needs store=<path of an episode store>.")
         self._own = None
         self._store = None if store is None else StoreStarts(task, store, image_size, first=False)
-        self._store_path = store
+        self._store_path = None if store is None else str(store)
         if self.source == task.start_source:
-            self._own = task.initial_frames(image_size, None if store is None else str(store))
+            self._own = task.initial_frames(image_size, self._store_path)
 
     @property
     def has_store(self) -> bool:
