@@ -272,3 +272,24 @@ def test_a_study_killed_at_any_point_and_rerun_ends_as_an_uninterrupted_one(wm_p
         proc.wait()
         subprocess.run(cmd(name), env=env, check=True, capture_output=True)
         assert outcome(name) == want, f"killed after {fraction * duration:.1f} s"
+
+
+def test_dart_recording_executes_noisy_commands_and_stores_the_experts_clean_ones(wm_path, tmp_path):
+    """Issue 25: with dart_noise the executed setpoints are perturbed, and the stored
+    actions are what the expert commanded from the states the noise led to."""
+    clean = record("pusht", tmp_path / "clean.zarr", wm_path, steps=12, episodes=1, batch=1)
+    dart = record("pusht", tmp_path / "dart.zarr", wm_path, steps=12, episodes=1, batch=1, dart_noise=0.01)
+    assert clean.episodes == dart.episodes == 1
+    a, b = EpisodeStore.open(tmp_path / "clean.zarr"), EpisodeStore.open(tmp_path / "dart.zarr")
+    assert a.attrs["dart_noise"] == 0.0 and b.attrs["dart_noise"] == 0.01
+    ep = b.episode(0)
+    assert not np.allclose(ep["state"], a.episode(0)["state"])  # the noise moved the pushers
+    # replaying the expert on the recorded frames and positions gives exactly the stored actions
+    expert = ScriptedBatch("expert")
+    replayed = [expert.predict_action({"image": ep["img"][t][None, None], "agent_pos": ep["state"][t][None, None]})
+                for t in range(len(ep["action"]))]
+    np.testing.assert_array_equal(np.concatenate(replayed)[:, 0], ep["action"])
+    with pytest.raises(ValueError, match="dart_noise=0.01, not dart_noise=0.02"):
+        record("pusht", tmp_path / "dart.zarr", wm_path, steps=12, episodes=2, batch=1, dart_noise=0.02)
+    with pytest.raises(ValueError, match="dart_noise must be a finite number"):
+        DemoRecipe(dart_noise=-1.0)

@@ -2,6 +2,7 @@
 evaluation (MuJoCo and a tiny world model) and its statistics."""
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -147,6 +148,31 @@ def test_train_resume_save_load_and_checkpoints_kept(play_store, tmp_path, capsy
     policy = load_policy(tmp_path / "act")
     assert policy.kind == "act" and policy.predict_action(
         {"image": obs["image"][:, -1:], "agent_pos": obs["agent_pos"][:, -1:]}).shape == (2, 1, 4)
+
+
+@pytest.mark.parametrize("preset", ["tiny-dp", "tiny-act"])
+def test_the_same_command_trains_bit_identical_weights_resumed_or_not(play_store, tmp_path, preset):
+    """Issue 25: two runs of one command give the same weights, and a run stopped and
+    resumed gives the weights of one that was not (model, EMA and optimizer state)."""
+    from safetensors.torch import load_file
+
+    def run(out: Path, killed_after: int | None = None) -> dict[str, torch.Tensor]:
+        args = ["train", "policy", "--policy", preset[5:], "--preset", preset, "--data", f"{play_store}:2",
+                "--out", str(out), "--steps", "20", "--no-progress"]
+        assert main(args) == 0
+        if killed_after is not None:  # as if killed after that checkpoint: later ones never written
+            for ckpt in (out / "checkpoints").iterdir():
+                if ckpt.name.isdigit() and int(ckpt.name) > killed_after:
+                    shutil.rmtree(ckpt)
+            assert main(args) == 0
+            assert f"resuming from {out / 'checkpoints' / f'{killed_after:08d}'}" in (out / "log.txt").read_text()
+        state = out / "checkpoints" / "last" / "training_state"
+        return {f"{f.stem}.{k}": v for f in sorted(state.glob("*.safetensors")) for k, v in load_file(f).items()}
+
+    a, b, c = run(tmp_path / "a"), run(tmp_path / "b"), run(tmp_path / "c", killed_after=10)
+    assert a.keys() == b.keys() == c.keys() and any(k.startswith("ema.") for k in a)
+    for k in a:
+        assert torch.equal(a[k], b[k]) and torch.equal(a[k], c[k]), k
 
 
 class Scripted(torch.nn.Module):

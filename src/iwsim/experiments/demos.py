@@ -94,6 +94,7 @@ class DemoRecipe:
     attempts_per_demo: float = 2.0  # at most this many candidates per demonstration wanted
     batch: int = 16  # candidates recorded in lockstep
     give_up_after: int | None = 32  # stop when this many candidates were tried and none was kept (None: never)
+    dart_noise: float = 0.0  # std (m) of the noise added to the executed commands; the clean ones are recorded
 
     def __post_init__(self) -> None:
         positive = {"demo_steps": self.steps, "demo_batch": self.batch}
@@ -107,6 +108,7 @@ class DemoRecipe:
             raise InputError(f"accept_iou must be a finite number >= 0, got {self.accept_iou!r}.")
         if not (isinstance(self.attempts_per_demo, (int, float)) and self.attempts_per_demo >= 1):
             raise InputError(f"attempts_per_demo must be >= 1, got {self.attempts_per_demo!r}.")
+        _check_noise(self.dart_noise)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,13 +144,14 @@ class DemoStats:
 
 
 def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, seed: int, accept_iou: float,
-               tail: int | None) -> dict[str, Any]:
+               tail: int | None, dart_noise: float = 0.0) -> dict[str, Any]:
     """Root attributes of a demonstration store: ``iwsim collect``'s (the task spec,
     policy, steps, ...) plus the teleoperator, the source and the acceptance rule."""
     return {**store_attrs("pusht", POLICY_NAMES[env], steps, image_size), "source": SOURCES[env],
             "world_model": world_model, "world_model_sha256": None if world_model is None else fingerprint(world_model),
             "teleoperator": "expert (block pose from pixels)",
             "keys": list(EPISODE_KEYS), "first_seed": seed, "accept_iou": accept_iou, "tail_steps": tail,
+            "dart_noise": dart_noise,
             "candidates_tried": 0, "candidate_max_iou": [], "acceptance_rate": None, "record_seconds": 0.0}
 
 
@@ -156,26 +159,53 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                  world_model: str | os.PathLike | None = None, accept_iou: float = PUSHT.success_score,
                  tail: int | None = 10,
                  batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
-                 image_size: int = 64, progress: bool = True, wait_for_lock: bool = False) -> DemoStats:
+                 dart_noise: float = 0.0, image_size: int = 64, progress: bool = True,
+                 wait_for_lock: bool = False) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
     accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried
     (see the module docstring), or, with ``give_up_after``, until the store holds nothing
     after that many candidates: a teleoperator who has kept none of 32 takes concludes
     that the task cannot be done in this model (the acceptance rate's 95% Clopper-Pearson
     upper bound is then 11%) instead of spending the rest of the budget. ``env``: "pusht"
-    (MuJoCo) or "world-model" (needs the checkpoint ``world_model``). Returns the store's :class:`DemoStats`."""
+    (MuJoCo) or "world-model" (needs the checkpoint ``world_model``). ``dart_noise`` > 0
+    records as DART does (Laskey et al. 2017): every executed command gets Gaussian noise
+    of that std (metres, per coordinate, seeded by the candidate's seed), and the store
+    holds the expert's clean commands as the actions, so imitation sees how the expert
+    recovers from the small errors a learned policy makes. Returns the store's :class:`DemoStats`."""
     max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
     _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, image_size)
+    _check_noise(dart_noise)
     model = None
     if env == "world-model":
         model = WorldModel.load(world_model)
         image_size = model.image_size
     wm_name = None if world_model is None or env == "pusht" else os.fspath(world_model)
-    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail)
+    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise))
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs),
                                      wait=wait_for_lock) as store:
         return _record_into(store, env, model, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
-                            give_up_after, progress)
+                            give_up_after, float(dart_noise), progress)
+
+
+class _NoisyExecution:
+    """The pixel expert whose commands are executed with Gaussian noise (std ``noise`` m,
+    candidate ``seeds[i]`` drawing its own), keeping the clean commands in ``clean``."""
+
+    obs_horizon = n_action_steps = 1
+
+    def __init__(self, noise: float, seeds: list[int]) -> None:
+        self.expert, self.noise, self.seeds = ScriptedBatch("expert"), noise, seeds
+
+    def reset(self) -> None:
+        self.expert.reset()
+        self.rngs = [np.random.default_rng([s, 25]) for s in self.seeds]
+        self.clean: list[np.ndarray] = []
+
+    def predict_action(self, obs: dict) -> np.ndarray:
+        clean = self.expert.predict_action(obs)  # (B, 1, A)
+        self.clean.append(clean[:, 0])
+        noise = np.stack([rng.normal(0.0, self.noise, clean.shape[2]) for rng in self.rngs])[:, None]
+        return np.clip(clean + noise, PUSHT.action_low, PUSHT.action_high).astype(np.float32)
 
 
 def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, recipe: DemoRecipe, *,
@@ -185,7 +215,7 @@ def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, reci
     return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, accept_iou=recipe.accept_iou,
                         tail=recipe.tail, batch=recipe.batch,
                         max_attempts=math.ceil(recipe.attempts_per_demo * episodes),
-                        give_up_after=recipe.give_up_after, progress=progress)
+                        give_up_after=recipe.give_up_after, dart_noise=recipe.dart_noise, progress=progress)
 
 
 def simulator_store(work: str | os.PathLike) -> Path:
@@ -204,7 +234,7 @@ def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
 
 def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episodes: int, steps: int, seed: int,
                  accept_iou: float, tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
-                 progress: bool) -> DemoStats:
+                 dart_noise: float, progress: bool) -> DemoStats:
     a = store.attrs
     # the candidates tried; a run killed between an append and the attribute update below
     # re-tries the rejected candidates after the last kept one (deterministic, so harmless)
@@ -228,8 +258,11 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
         seeds = [seed + tried + i for i in range(n)]
         t0 = time.perf_counter()
         scores = _Scores(n, accept_iou, tail)
-        run = rollout(ScriptedBatch("expert"), env, seeds, steps, world_model=model,
+        expert = _NoisyExecution(dart_noise, seeds) if dart_noise else ScriptedBatch("expert")
+        run = rollout(expert, env, seeds, steps, world_model=model,
                       image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores)
+        if dart_noise:
+            run["action"] = np.stack(expert.clean, 1)  # the labels: what the expert meant
         ious = np.stack([PUSHT.score(run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
         for i, s in enumerate(seeds):
             tried += 1
@@ -310,9 +343,17 @@ def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any
         raise InputError(f"image size must be one of {list(IMAGE_SIZES)}, got {image_size!r}.")
 
 
+def _check_noise(noise: float) -> None:
+    if not (isinstance(noise, (int, float)) and math.isfinite(noise) and noise >= 0):
+        raise InputError(f"dart_noise must be a finite number of metres >= 0, got {noise!r}.")
+
+
 def _check_existing(store: EpisodeStore, attrs: dict[str, Any]) -> None:
     """Raise unless this run may append to ``store`` (the same demonstrations)."""
     mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS)
+    noise = float(store.attrs.get("dart_noise", 0.0))  # stores from before DART recording have none
+    if not mismatch and noise != attrs["dart_noise"]:
+        mismatch = f"dart_noise={noise!r}, not dart_noise={attrs['dart_noise']!r}"
     if mismatch:
         raise InputError(f"{store.path} holds demonstrations with {mismatch}; choose another store.")
     if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
