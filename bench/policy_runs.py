@@ -6,8 +6,10 @@ changed, then score chosen checkpoints closed-loop in MuJoCo.
         --set train.lr=1e-4
 
 ``--set`` changes one field of the preset (``model.X``, ``train.X`` or ``shift``; the
-value is JSON, bare words are strings). Runs go to ``runs/pol/NAME`` and resume exactly;
-evaluations are cached beside them (``iwsim.experiments.common.evaluate_policies``).
+value is JSON, bare words are strings); ``--exec FIELD=VALUE`` changes only how the trained
+policy runs (``iwsim.policies.EXECUTION_FIELDS``, e.g. ``n_action_steps=4`` or ACT's
+``temporal_ensemble=null``). Runs go to ``runs/pol/NAME`` and resume exactly; evaluations
+are cached beside them, one file per checkpoint, seeds and execution.
 Validation seeds (200000+) choose; ``--test`` scores on the test seeds (100000+) instead.
 One line per scored checkpoint is printed and appended to ``runs/pol/NAME/scores.jsonl``.
 """
@@ -23,9 +25,11 @@ from pathlib import Path
 
 import torch
 
+from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.config import from_dict, to_dict
-from iwsim.experiments.common import checkpoints, evaluate_policies
-from iwsim.policies import PRESETS, PolicyStageConfig
+from iwsim.eval.policy import rollout, summarize
+from iwsim.experiments.common import checkpoints
+from iwsim.policies import PRESETS, PolicyStageConfig, load_policy
 from iwsim.policies.data import parse_mixture
 from iwsim.training.policy import train_policy
 
@@ -62,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, required=True)
     p.add_argument("--eval-at", default="", help="comma-separated checkpoint steps to score (default: the last)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
+    p.add_argument("--exec", action="append", default=[], metavar="FIELD=VALUE", dest="execution")
     p.add_argument("--bf16", action="store_true")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--episodes", type=int, default=20)
@@ -83,17 +88,26 @@ def main(argv: list[str] | None = None) -> int:
     first = TEST_SEED if args.test else VAL_SEED
     split = "test" if args.test else "val"
     seeds = list(range(first, first + args.episodes))
-    scores = evaluate_policies({f"{split}-{s:08d}": ckpts[s] for s in wanted}, "pusht", seeds=seeds,
-                               steps=args.eval_steps, world_model=None, out=run / "eval" / f"{args.eval_steps}",
-                               progress=sys.stderr.isatty())
+    execution = {k: _value(v) for k, _, v in (e.partition("=") for e in args.execution)}
+    tag = "".join(f"-{k}{v}" for k, v in sorted(execution.items()))
     with open(run / "scores.jsonl", "a") as f:
-        for name, r in scores.items():
-            row = {"run": args.name, "checkpoint": name, "split": split, "episodes": len(seeds),
+        for step in wanted:
+            path = run / "eval" / f"{split}{args.episodes}x{args.eval_steps}{tag}" / f"{step:08d}.json"
+            if path.is_file():
+                r = load_json(path)
+            else:
+                torch.manual_seed(0)  # the policy's sampling noise: the same evaluation gives the same scores
+                result = rollout(load_policy(ckpts[step], **execution), "pusht", seeds, args.eval_steps,
+                                 progress=sys.stderr.isatty())
+                r = {**summarize(result["iou"].max(1), seeds), "seconds": result["seconds"]}
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_json_atomic(path, r)
+            row = {"run": args.name, "step": step, "execution": execution, "split": split, "episodes": len(seeds),
                    "eval_steps": args.eval_steps, "mean_max_iou": round(r["mean_max_iou"], 4),
                    "success_rate": round(r["success_rate"], 4), "train_seconds_this_call": round(train_seconds),
                    "config": {"model": cfg.model, "train": dataclasses.asdict(cfg.train), "shift": cfg.shift}}
             f.write(json.dumps(row) + "\n")
-            print(f"{args.name} {name}: mean max IoU {r['mean_max_iou']:.3f}, success {r['success_rate']:.2f} "
+            print(f"{args.name}{tag} @{step}: mean max IoU {r['mean_max_iou']:.3f}, success {r['success_rate']:.2f} "
                   f"({len(seeds)} {split} seeds x {args.eval_steps} steps)", flush=True)
     return 0
 

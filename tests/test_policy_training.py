@@ -146,8 +146,16 @@ def test_train_resume_save_load_and_checkpoints_kept(play_store, tmp_path, capsy
 
     assert main([*act, "--out", str(tmp_path / "act"), "--steps", "10"]) == 0
     policy = load_policy(tmp_path / "act")
-    assert policy.kind == "act" and policy.predict_action(
-        {"image": obs["image"][:, -1:], "agent_pos": obs["agent_pos"][:, -1:]}).shape == (2, 1, 4)
+    now = {"image": obs["image"][:, -1:], "agent_pos": obs["agent_pos"][:, -1:]}
+    assert policy.kind == "act" and policy.predict_action(now).shape == (2, 1, 4)
+    # execution-only fields: ACT without temporal ensembling executes 4 actions of each chunk
+    chunked = load_policy(tmp_path / "act", n_action_steps=4, temporal_ensemble=None)
+    np.testing.assert_array_equal(chunked.predict_action(now), policy.predict_chunk(now)[:, :4].numpy())
+    assert load_policy(out, inference_steps=2).cfg.inference_steps == 2
+    with pytest.raises(ValueError, match="temporal_ensemble cannot be changed when running a 'dp' policy"):
+        load_policy(out, temporal_ensemble=None)
+    with pytest.raises(ValueError, match="temporal ensembling queries every step"):
+        load_policy(tmp_path / "act", n_action_steps=4)
 
 
 @pytest.mark.parametrize("preset", ["tiny-dp", "tiny-act"])

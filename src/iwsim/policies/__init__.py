@@ -79,12 +79,19 @@ def describe(policy: nn.Module) -> dict[str, Any]:
             "action_dim": policy.action_dim, "state_dim": policy.state_dim}
 
 
-def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_steps: int | None = None) -> nn.Module:
+# Config fields that only change how a trained network is run, not its weights.
+EXECUTION_FIELDS = {"dp": ("n_action_steps", "inference_steps"), "act": ("n_action_steps", "temporal_ensemble")}
+
+
+def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_steps: int | None = None,
+                **execution: Any) -> nn.Module:
     """A trained policy from a checkpoint directory, or from a run (its last checkpoint).
 
     ``n_action_steps`` overrides how many actions of each predicted chunk are executed
     before the policy is queried again (Diffusion Policy's Ta; None: as trained). It only
-    changes execution: the chunk the network predicts is the same."""
+    changes execution: the chunk the network predicts is the same. ``execution`` overrides
+    the policy's other :data:`EXECUTION_FIELDS` the same way (DP's ``inference_steps``;
+    ACT's ``temporal_ensemble``, None to execute ``n_action_steps`` of each chunk)."""
     path = Path(path)
     if (path / "checkpoints" / "last").exists():
         path = (path / "checkpoints" / "last").resolve()
@@ -93,7 +100,14 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_s
                               "iwsim train policy.")
     config, tensors = load_model_dir(path, KIND)
     if n_action_steps is not None:
-        config["model"] = {**config.get("model", {}), "n_action_steps": n_action_steps}
+        execution = {**execution, "n_action_steps": n_action_steps}
+    if execution:
+        allowed = EXECUTION_FIELDS.get(config.get("policy", ""), ())
+        unknown = sorted(set(execution) - set(allowed))
+        if unknown:
+            raise InputError(f"{', '.join(unknown)} cannot be changed when running a {config.get('policy')!r} policy; "
+                             f"these can: {', '.join(allowed)}.")
+        config["model"] = {**config.get("model", {}), **execution}
         from_dict(config_class(config.get("policy", "")), config["model"])  # a bad value: its one-line InputError
     try:
         a, s = int(config["action_dim"]), int(config["state_dim"])
