@@ -106,11 +106,12 @@ def _settable(attrs: Mapping[str, Any]) -> dict[str, Any]:
     return attrs
 
 
-def attrs_mismatch(store: EpisodeStore, attrs: Mapping[str, Any], keys: Iterable[str]) -> str | None:
+def attrs_mismatch(store: EpisodeStore, attrs: Mapping[str, Any], keys: Iterable[str],
+                   absent: Mapping[str, Any] | None = None) -> str | None:
     """How ``store``'s root attributes differ from ``attrs`` on ``keys``, for the message
     that refuses to append to it (``"policy='a', steps=300, not policy='b', steps=100"``);
-    None when they agree."""
-    stored = store.attrs
+    None when they agree. ``absent``: the values a store written before a key existed has."""
+    stored = {**(absent or {}), **store.attrs}
     diffs = [k for k in keys if stored.get(k) != attrs[k]]
     if not diffs:
         return None

@@ -76,7 +76,7 @@ POLICY_NAMES = {"world-model": "world-model-teleop", "pusht": "expert-pixels"}
 SOURCES = {"world-model": "world_model", "pusht": "mujoco"}
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world_model_sha256", "first_seed",
-                  "accept_iou", "tail_steps")
+                  "accept_iou", "tail_steps", "dart_noise")
 EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
 SIM_STORE = "sim_expert.zarr"  # the simulator expert's demonstrations, under work/demos: shared by the studies
 SIM_SEED = 0  # the first candidate's seed in SIM_STORE (disjoint from evaluation seeds, 100000+)
@@ -350,10 +350,7 @@ def _check_noise(noise: float) -> None:
 
 def _check_existing(store: EpisodeStore, attrs: dict[str, Any]) -> None:
     """Raise unless this run may append to ``store`` (the same demonstrations)."""
-    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS)
-    noise = float(store.attrs.get("dart_noise", 0.0))  # stores from before DART recording have none
-    if not mismatch and noise != attrs["dart_noise"]:
-        mismatch = f"dart_noise={noise!r}, not dart_noise={attrs['dart_noise']!r}"
+    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS, absent={"dart_noise": 0.0})
     if mismatch:
         raise InputError(f"{store.path} holds demonstrations with {mismatch}; choose another store.")
     if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
