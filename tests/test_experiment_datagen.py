@@ -12,6 +12,9 @@ import pytest
 from iwsim.cli import main
 from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore
+from iwsim.envs.geometry import wrap_angle
+from iwsim.envs.pixels import estimate_block_pose
+from iwsim.envs.pusht import GOAL_POSE
 from iwsim.eval.policy import rollout
 from iwsim.experiments.common import fingerprint
 from iwsim.experiments.datagen import PRESETS, DatagenConfig, command, plan
@@ -293,3 +296,21 @@ def test_dart_recording_executes_noisy_commands_and_stores_the_experts_clean_one
         record("pusht", tmp_path / "dart.zarr", wm_path, steps=12, episodes=2, batch=1, dart_noise=0.02)
     with pytest.raises(ValueError, match="dart_noise must be a finite number"):
         DemoRecipe(dart_noise=-1.0)
+
+
+def test_goal_turned_recording_starts_from_the_turned_block_and_keeps_to_its_store(wm_path, tmp_path):
+    """Issue 25's recovery demonstrations: a store of takes from the block on the goal's
+    position turned away from it, which only takes of the same start may extend."""
+    stats = record("pusht", tmp_path / "turned.zarr", wm_path, episodes=2, start="goal-turned")
+    store = EpisodeStore.open(tmp_path / "turned.zarr")
+    assert stats.episodes == 2 and store.attrs["start"] == "goal-turned"
+    for i in range(2):
+        pose = estimate_block_pose(store.episode(i)["img"][0]).pose  # read from the first frame
+        assert np.abs(pose[:2] - GOAL_POSE[:2]).max() < 0.025
+        assert abs(wrap_angle(pose[2] - GOAL_POSE[2])) > np.pi / 4 - 0.1
+    with pytest.raises(ValueError, match="start='goal-turned', not start='random'"):
+        record("pusht", tmp_path / "turned.zarr", wm_path, episodes=3)
+    with pytest.raises(ValueError, match="start must be one of"):
+        DemoRecipe(start="turned")
+    with pytest.raises(ValueError, match="the world model starts from random ones"):
+        record("world-model", tmp_path / "wm.zarr", wm_path, start="goal-turned")

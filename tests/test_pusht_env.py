@@ -4,8 +4,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import iwsim  # noqa: F401  (registers the ids)
+from iwsim.envs import geometry as geo
 from iwsim.envs import pixels
-from iwsim.envs.pusht import GOAL_POSE, MAX_STEP, WORKSPACE, BimanualPushTEnv, limit_targets
+from iwsim.envs.pusht import GOAL_POSE, MAX_STEP, PUSHER_RADIUS, WORKSPACE, BimanualPushTEnv, limit_targets
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +74,21 @@ def test_reset_to_state(env):
     np.testing.assert_allclose(info["block_pose"], state[4:], atol=1e-9)
     with pytest.raises(ValueError, match="reset_to_state"):
         env.reset(options={"reset_to_state": [0.0, 1.0]})
+
+
+def test_goal_turned_starts_put_the_block_on_the_goal_turned_away_from_it():
+    """Issue 25's recovery demonstrations start where policies that do not turn end up."""
+    e = BimanualPushTEnv(64, start="goal-turned")
+    for seed in range(20):
+        _, info = e.reset(seed=seed)
+        pose = info["block_pose"]
+        assert np.abs(pose[:2] - GOAL_POSE[:2]).max() <= 0.015 + 1e-6  # settled where it was put
+        assert np.pi / 4 - 1e-3 <= abs(geo.wrap_angle(pose[2] - GOAL_POSE[2])) <= 3 * np.pi / 4 + 1e-3
+        assert info["iou"] < 0.9 and info["n_contacts"] == 0
+        assert all(geo.distance_to_t(p, pose) > PUSHER_RADIUS for p in e.agent_pos.reshape(2, 2))
+    e.close()
+    with pytest.raises(ValueError, match="start must be one of random, goal-turned"):
+        BimanualPushTEnv(64, start="goal")
 
 
 def test_actions_are_clipped_to_the_workspace(env):

@@ -37,6 +37,12 @@ WORKSPACE = WALL_INNER - PUSHER_RADIUS - 0.005  # pusher targets are clipped to 
 # step with a jump a camera-based model cannot predict.
 MAX_STEP = 0.016
 BLOCK_INIT_HALF = 0.12  # initial block centroid is uniform in +-this
+# Initial-state distributions (``start``): "random", the task's (block anywhere in the central
+# region at any angle); "goal-turned", the block on the goal's position (within 1.5 cm) but
+# turned 45-135 degrees either way from it, the state where imitation policies that learned
+# the carry but not the turn end up (recovery demonstrations start there).
+STARTS = ("random", "goal-turned")
+TURNED_OFFSET = 0.015, (np.pi / 4, 3 * np.pi / 4)  # position spread (m), |yaw offset| range (rad)
 GOAL_POSE = np.array([0.0, 0.0, np.pi / 4])
 SUCCESS_IOU = 0.9
 
@@ -184,6 +190,13 @@ def spaces(image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
     return action, obs
 
 
+
+def check_start(start: str) -> str:
+    """``start`` if it names an initial-state distribution (:data:`STARTS`), else a clear error."""
+    if start not in STARTS:
+        raise InputError(f"start must be one of {', '.join(STARTS)}, got {start!r}.")
+    return start
+
 class BimanualPushTEnv(gym.Env):
     """Push the T block onto the goal with two pushers.
 
@@ -194,6 +207,7 @@ class BimanualPushTEnv(gym.Env):
     ``goal_pose``, ``is_success`` (iou >= 0.9), ``n_contacts`` (pusher-block contacts) and
     ``target`` (the rate-limited setpoints the last step executed; the pushers' positions
     after a reset).
+    ``start``: the distribution of :meth:`reset`'s initial states (:data:`STARTS`).
     State for ``reset(options={"reset_to_state": s})``: ``[lx, ly, rx, ry, bx, by, byaw]``.
     """
 
@@ -205,6 +219,7 @@ class BimanualPushTEnv(gym.Env):
         render_mode: str | None = "rgb_array",
         terminate_on_success: bool = False,
         max_step: float = MAX_STEP,
+        start: str = "random",
     ) -> None:
         if image_size not in IMAGE_SIZES:
             raise InputError(f"image_size must be one of {IMAGE_SIZES}, got {image_size!r}.")
@@ -216,6 +231,7 @@ class BimanualPushTEnv(gym.Env):
         if not max_step > 0:
             raise InputError(f"max_step must be a positive distance in metres, got {max_step!r}.")
         self.max_step = float(max_step)
+        self.start = check_start(start)
         self.spec_info = TaskSpec()
         self.goal_pose = GOAL_POSE.copy()
 
@@ -259,9 +275,16 @@ class BimanualPushTEnv(gym.Env):
         mujoco.mj_forward(self.model, self.data)
 
     def sample_state(self, rng: np.random.Generator) -> np.ndarray:
-        """A random initial state: block anywhere in the central region at any angle, the
-        pushers in the workspace clear of the block and of each other."""
-        block = np.array([*rng.uniform(-BLOCK_INIT_HALF, BLOCK_INIT_HALF, 2), rng.uniform(-np.pi, np.pi)])
+        """A random initial state from :attr:`start`'s distribution (the task's: block
+        anywhere in the central region at any angle), the pushers in the workspace clear of
+        the block and of each other."""
+        if self.start == "random":
+            block = np.array([*rng.uniform(-BLOCK_INIT_HALF, BLOCK_INIT_HALF, 2), rng.uniform(-np.pi, np.pi)])
+        else:
+            spread, (lo, hi) = TURNED_OFFSET
+            turn = rng.choice([-1.0, 1.0]) * rng.uniform(lo, hi)
+            block = np.array([*(self.goal_pose[:2] + rng.uniform(-spread, spread, 2)),
+                              geo.wrap_angle(self.goal_pose[2] + turn)])
         pushers = []
         while len(pushers) < 2:
             p = rng.uniform(-WORKSPACE, WORKSPACE, 2)

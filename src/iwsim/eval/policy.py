@@ -39,14 +39,18 @@ PUSHT = get_task("pusht")
 ENVS = ("pusht", "world-model")
 
 
-def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int = 64) -> VectorEnv:
+def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int = 64,
+                    start: str = "random") -> VectorEnv:
     """``n`` environments in lockstep as a Gymnasium vector env: MuJoCo's in a
-    :class:`~gymnasium.vector.SyncVectorEnv`, or the world model's batched
+    :class:`~gymnasium.vector.SyncVectorEnv` (its initial states from the distribution
+    ``start``, :data:`iwsim.envs.pusht.STARTS`), or the world model's batched
     :class:`~iwsim.world_model_env.WorldModelVectorEnv` (one forward pass per step)."""
     if env not in ENVS:
         raise InputError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
     if env == "pusht":
-        return SyncVectorEnv([lambda: make_env("pusht", image_size)] * n)
+        return SyncVectorEnv([lambda: make_env("pusht", image_size, start=start)] * n)
+    if start != "random":
+        raise InputError(f"the world model starts from MuJoCo's random initial states only, not start={start!r}.")
     if world_model is None:
         raise InputError("evaluating inside the world model needs --world-model CHECKPOINT.")
     if world_model.image_size != image_size:
@@ -64,7 +68,7 @@ def env_task(venv: VectorEnv, env: str) -> Task:
 
 def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
             image_size: int = 64, record: int = 0, progress: bool = True,
-            stop: Callable[[dict[str, np.ndarray]], bool] | None = None) -> dict[str, Any]:
+            stop: Callable[[dict[str, np.ndarray]], bool] | None = None, start: str = "random") -> dict[str, Any]:
     """Run ``policy`` for ``steps`` steps from each seed, all episodes together. Returns
     the task's per-step pixel score ``iou`` (E, T + 1) (T-push: the IoU; None when the task
     has no scorer; its name in ``scorer``), ``agent_pos`` (E, T + 1, A) (T-push: the
@@ -72,8 +76,9 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
     for T-push the speed-limited setpoints) of every step (E, T, A) and the frames
     ``frames`` (E', T + 1, H, W, 3) of the first ``record`` episodes; step t's action
     follows frame t. T = ``steps``, or fewer when ``stop(obs)``, called with each step's
-    new observations, returns True."""
-    venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size)
+    new observations, returns True. ``start``: MuJoCo's initial-state distribution
+    (:func:`make_vector_env`)."""
+    venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size, start=start)
     task = env_task(venv, env)
     key = score_key(task)
     want = {"action": getattr(policy, "action_dim", task.action_dim), "state": getattr(policy, "state_dim", None)}

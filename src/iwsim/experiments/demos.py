@@ -60,6 +60,7 @@ from tqdm import tqdm
 from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs import IMAGE_SIZES
+from iwsim.envs.pusht import check_start
 from iwsim.errors import InputError
 from iwsim.eval.policy import ENVS, MAX_SEED, rollout
 from iwsim.experiments.common import fingerprint
@@ -76,7 +77,9 @@ POLICY_NAMES = {"world-model": "world-model-teleop", "pusht": "expert-pixels"}
 SOURCES = {"world-model": "world_model", "pusht": "mujoco"}
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world_model_sha256", "first_seed",
-                  "accept_iou", "tail_steps", "dart_noise")
+                  "accept_iou", "tail_steps", "dart_noise", "start")
+# What stores written before an attribute existed hold.
+OLDER_ATTRS = {"dart_noise": 0.0, "start": "random"}
 EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
 SIM_STORE = "sim_expert.zarr"  # the simulator expert's demonstrations, under work/demos: shared by the studies
 SIM_SEED = 0  # the first candidate's seed in SIM_STORE (disjoint from evaluation seeds, 100000+)
@@ -95,6 +98,7 @@ class DemoRecipe:
     batch: int = 16  # candidates recorded in lockstep
     give_up_after: int | None = 32  # stop when this many candidates were tried and none was kept (None: never)
     dart_noise: float = 0.0  # std (m) of the noise added to the executed commands; the clean ones are recorded
+    start: str = "random"  # MuJoCo's initial states (iwsim.envs.pusht.STARTS): "goal-turned" records recoveries
 
     def __post_init__(self) -> None:
         positive = {"demo_steps": self.steps, "demo_batch": self.batch}
@@ -109,6 +113,7 @@ class DemoRecipe:
         if not (isinstance(self.attempts_per_demo, (int, float)) and self.attempts_per_demo >= 1):
             raise InputError(f"attempts_per_demo must be >= 1, got {self.attempts_per_demo!r}.")
         _check_noise(self.dart_noise)
+        check_start(self.start)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,14 +149,14 @@ class DemoStats:
 
 
 def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, seed: int, accept_iou: float,
-               tail: int | None, dart_noise: float = 0.0) -> dict[str, Any]:
+               tail: int | None, dart_noise: float = 0.0, start: str = "random") -> dict[str, Any]:
     """Root attributes of a demonstration store: ``iwsim collect``'s (the task spec,
     policy, steps, ...) plus the teleoperator, the source and the acceptance rule."""
     return {**store_attrs("pusht", POLICY_NAMES[env], steps, image_size), "source": SOURCES[env],
             "world_model": world_model, "world_model_sha256": None if world_model is None else fingerprint(world_model),
             "teleoperator": "expert (block pose from pixels)",
             "keys": list(EPISODE_KEYS), "first_seed": seed, "accept_iou": accept_iou, "tail_steps": tail,
-            "dart_noise": dart_noise,
+            "dart_noise": dart_noise, "start": start,
             "candidates_tried": 0, "candidate_max_iou": [], "acceptance_rate": None, "record_seconds": 0.0}
 
 
@@ -159,7 +164,7 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                  world_model: str | os.PathLike | None = None, accept_iou: float = PUSHT.success_score,
                  tail: int | None = 10,
                  batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
-                 dart_noise: float = 0.0, image_size: int = 64, progress: bool = True,
+                 dart_noise: float = 0.0, start: str = "random", image_size: int = 64, progress: bool = True,
                  wait_for_lock: bool = False) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
     accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried
@@ -171,20 +176,27 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     records as DART does (Laskey et al. 2017): every executed command gets Gaussian noise
     of that std (metres, per coordinate, seeded by the candidate's seed), and the store
     holds the expert's clean commands as the actions, so imitation sees how the expert
-    recovers from the small errors a learned policy makes. Returns the store's :class:`DemoStats`."""
+    recovers from the small errors a learned policy makes. ``start`` chooses MuJoCo's
+    initial states (:data:`iwsim.envs.pusht.STARTS`; "goal-turned": the block on the goal's
+    position but turned, so the takes show the turn a policy that only carries is missing;
+    MuJoCo only). Returns the store's :class:`DemoStats`."""
     max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
     _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, image_size)
     _check_noise(dart_noise)
+    check_start(start)
+    if env != "pusht" and start != "random":
+        raise InputError(f"start={start!r} chooses MuJoCo's initial states; the world model starts from random ones.")
     model = None
     if env == "world-model":
         model = WorldModel.load(world_model)
         image_size = model.image_size
     wm_name = None if world_model is None or env == "pusht" else os.fspath(world_model)
-    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise))
+    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise),
+                       start)
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs),
                                      wait=wait_for_lock) as store:
         return _record_into(store, env, model, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
-                            give_up_after, float(dart_noise), progress)
+                            give_up_after, float(dart_noise), start, progress)
 
 
 class _NoisyExecution:
@@ -215,7 +227,8 @@ def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, reci
     return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, accept_iou=recipe.accept_iou,
                         tail=recipe.tail, batch=recipe.batch,
                         max_attempts=math.ceil(recipe.attempts_per_demo * episodes),
-                        give_up_after=recipe.give_up_after, dart_noise=recipe.dart_noise, progress=progress)
+                        give_up_after=recipe.give_up_after, dart_noise=recipe.dart_noise, start=recipe.start,
+                progress=progress)
 
 
 def simulator_store(work: str | os.PathLike) -> Path:
@@ -234,7 +247,7 @@ def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
 
 def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episodes: int, steps: int, seed: int,
                  accept_iou: float, tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
-                 dart_noise: float, progress: bool) -> DemoStats:
+                 dart_noise: float, start: str, progress: bool) -> DemoStats:
     a = store.attrs
     # the candidates tried; a run killed between an append and the attribute update below
     # re-tries the rejected candidates after the last kept one (deterministic, so harmless)
@@ -260,7 +273,7 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
         scores = _Scores(n, accept_iou, tail)
         expert = _NoisyExecution(dart_noise, seeds) if dart_noise else ScriptedBatch("expert")
         run = rollout(expert, env, seeds, steps, world_model=model,
-                      image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores)
+                      image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores, start=start)
         if dart_noise:
             run["action"] = np.stack(expert.clean, 1)  # the labels: what the expert meant
         ious = np.stack([PUSHT.score(run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
@@ -350,7 +363,7 @@ def _check_noise(noise: float) -> None:
 
 def _check_existing(store: EpisodeStore, attrs: dict[str, Any]) -> None:
     """Raise unless this run may append to ``store`` (the same demonstrations)."""
-    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS, absent={"dart_noise": 0.0})
+    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS, absent=OLDER_ATTRS)
     if mismatch:
         raise InputError(f"{store.path} holds demonstrations with {mismatch}; choose another store.")
     if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
