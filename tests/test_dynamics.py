@@ -136,6 +136,18 @@ def test_unknown_objective_is_rejected():
         WorldModel(Autoencoder(AE_PRESETS["tiny"]), Dynamics(cfg.dynamics), cfg, LOW, HIGH)
     with pytest.raises(ValueError, match="unknown variant"):
         variant(cfg, "best")
+    with pytest.raises(ValueError, match="unknown variant 'best'"):
+        variant(cfg, "long-unroll+best")
+
+
+def test_variants_joined_by_plus_apply_in_turn():
+    """A baseline trained like ours (``long-unroll+deterministic``) changes both."""
+    cfg = DYNAMICS_PRESETS["pusht-64"]
+    both = variant(cfg, "long-unroll+deterministic")
+    assert both.unroll == variant(cfg, "long-unroll").unroll != cfg.unroll
+    assert both.objective == "regression" and both.unroll_grad_every == 8
+    assert variant(cfg, "window-6+no-points").dynamics == dataclasses.replace(
+        cfg.dynamics, context=6, positional_actions=False)
 
 
 def action_world(n: int, g: torch.Generator, positional: bool) -> tuple[torch.Tensor, torch.Tensor]:

@@ -93,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "autoencoder, normalisation and network are kept")
     q.add_argument("--variant", default="ours",
                    help="ours, or a benchmark baseline or ablation: deterministic, diffusion, no-context-noise, "
-                        "film-actions, no-points, no-unroll, no-delta, window-6, long-unroll (default: %(default)s)")
+                        "film-actions, no-points, no-unroll, no-delta, window-6, long-unroll; several joined by '+' "
+                        "apply in turn, e.g. long-unroll+deterministic (default: %(default)s)")
     q.add_argument("--latent-cache", help="file for the encoded latents, shareable by runs on the same store "
                                           "and autoencoder (default: in the run directory)")
     _train_flags(q, "tiny, pusht-64")

@@ -170,10 +170,14 @@ VARIANTS: dict[str, dict[str, Any]] = {
 
 
 def variant(cfg: DynamicsStageConfig, name: str) -> DynamicsStageConfig:
-    """``cfg`` changed into the named benchmark variant (see VARIANTS)."""
-    if name not in VARIANTS:
-        raise InputError(f"unknown variant {name!r}; expected one of {', '.join(VARIANTS)}.")
-    changes = dict(VARIANTS[name])
-    if "dynamics" in changes:
-        changes["dynamics"] = dataclasses.replace(cfg.dynamics, **changes["dynamics"])
-    return dataclasses.replace(cfg, **changes)
+    """``cfg`` changed into the named benchmark variant (see VARIANTS); ``"a+b"`` applies
+    variant a, then b (e.g. ``long-unroll+deterministic``: a baseline trained like ours)."""
+    for part in name.split("+"):
+        if part not in VARIANTS:
+            raise InputError(f"unknown variant {part!r}; expected one of {', '.join(VARIANTS)} (or several "
+                             "joined by '+').")
+        changes = dict(VARIANTS[part])
+        if "dynamics" in changes:
+            changes["dynamics"] = dataclasses.replace(cfg.dynamics, **changes["dynamics"])
+        cfg = dataclasses.replace(cfg, **changes)
+    return cfg
