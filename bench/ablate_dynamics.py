@@ -57,7 +57,8 @@ def budget(name: str, steps: int, preset: str = "pusht-64"):
 def train(args: argparse.Namespace) -> None:
     for name in args.variants.split(","):
         t0 = time.time()
-        train_dynamics(budget(name, args.steps, args.preset), args.data, args.ae, Path(args.out) / name,
+        out = Path(args.out) / name.replace("+", "_")  # "+" in --models marks eval's options
+        train_dynamics(budget(name, args.steps, args.preset), args.data, args.ae, out,
                        device=torch.device("cpu"), latent_cache=args.latent_cache, progress=False)
         logging.info("%s: %d steps in %.1f min", name, args.steps, (time.time() - t0) / 60)
 
