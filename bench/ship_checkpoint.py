@@ -8,6 +8,8 @@
 - ``open_loop_192``: copied from an ``iwsim bench`` result, when given.
 - ``fidelity``: copied from a ``bench/ablate_dynamics.py eval`` result, when given (action
   gap, one-step error against copy-previous, pusher and block tracking, T found).
+- ``yardstick``: the model's row of a ``bench/yardstick.py`` result, when given (T kept,
+  teleoperated takes, the scripted policies' ranking, the 2000-step run, speed).
 - ``training``: steps and wall-clock of both stages, from the runs named in the provenance.
 """
 
@@ -50,6 +52,8 @@ def main() -> None:
     ap.add_argument("--bench-model", default="shipped", help="the checkpoint's name in that result")
     ap.add_argument("--ablate", type=Path, help="a bench/ablate_dynamics.py eval results.json holding it")
     ap.add_argument("--ablate-model", default="shipped", help="the checkpoint's name in that result")
+    ap.add_argument("--yardstick", type=Path, help="a bench/yardstick.py results.json holding it")
+    ap.add_argument("--yardstick-model", default="shipped", help="the checkpoint's name in that result")
     args = ap.parse_args()
     wm = WorldModel.load(args.checkpoint)
     config = json.loads((args.checkpoint / "config.json").read_text())
@@ -64,6 +68,10 @@ def main() -> None:
                                     **{k: v for k, v in m["accuracy"].items()}, "speed": m.get("speed")}
     if args.ablate:
         metrics["fidelity"] = json.loads(args.ablate.read_text())[args.ablate_model]
+    if args.yardstick:
+        r = json.loads(args.yardstick.read_text())
+        metrics["yardstick"] = {"results": str(args.yardstick), "model": args.yardstick_model,
+                                **r["models"][args.yardstick_model]}
     write_json_atomic(args.checkpoint / "metrics.json", metrics, sort_keys=False)
     print(json.dumps(metrics["mujoco_rollout"]))
 
