@@ -39,6 +39,7 @@ GROUND_TRUTH_TOOLING = {
     "iwsim.policies.scripted": "T-push's scripted experts behind the policy interface",
     "iwsim.eval.rollout": "against_mujoco: a scripted expert's take in MuJoCo beside the model's",
     "iwsim.eval.profiling": "the yardstick's measures of T-push's objects (block pose, pushers)",
+    "iwsim.experiments.demos": "the studies' MuJoCo takes from T-push's initial-state distributions (start=)",
 }
 
 
