@@ -190,12 +190,12 @@ def spaces(image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
     return action, obs
 
 
-
 def check_start(start: str) -> str:
     """``start`` if it names an initial-state distribution (:data:`STARTS`), else a clear error."""
     if start not in STARTS:
         raise InputError(f"start must be one of {', '.join(STARTS)}, got {start!r}.")
     return start
+
 
 class BimanualPushTEnv(gym.Env):
     """Push the T block onto the goal with two pushers.

@@ -191,8 +191,7 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
         model = WorldModel.load(world_model)
         image_size = model.image_size
     wm_name = None if world_model is None or env == "pusht" else os.fspath(world_model)
-    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise),
-                       start)
+    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise), start)
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs),
                                      wait=wait_for_lock) as store:
         return _record_into(store, env, model, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
@@ -228,7 +227,7 @@ def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, reci
                         tail=recipe.tail, batch=recipe.batch,
                         max_attempts=math.ceil(recipe.attempts_per_demo * episodes),
                         give_up_after=recipe.give_up_after, dart_noise=recipe.dart_noise, start=recipe.start,
-                progress=progress)
+                        progress=progress)
 
 
 def simulator_store(work: str | os.PathLike) -> Path:
