@@ -147,16 +147,18 @@ def cell(r: dict, key: str, fmt: str) -> str:
     return text
 
 
-def markdown(report: dict, command: str) -> str:
+def markdown(report: dict, strip_rows: list[str]) -> str:
     m = report["mujoco"]
-    lines = ["# The world model's yardstick (`bench/yardstick.py`)", "", f"`{command}`", "",
+    lines = ["# The world model's yardstick (`bench/yardstick.py`)", "", "Commands, in the order they were run:", "",
+             *(f"    {c}" for c in report["commands"]), "",
              f"Held-out play: {report['episodes']} episodes of `{report['data']}`, {report['horizon']} steps "
              "open loop. "
              f"Teleoperation: the pixel expert from {report['candidates']} MuJoCo first frames (seeds from "
              f"{TELEOP_SEED}), kept at pixel IoU 0.9. Ranking: 8 scripted policies x {report['episodes']} "
              f"episodes x {report['steps']} steps from seed {RANK_SEED}. Stability: {report['stability_steps']} "
              f"play steps, every {STABILITY_EVERY}th frame decoded. Speed at the thread count in brackets. "
-             "`expert_strip.png`: the pixel expert's first 100 steps, one row per model, MuJoCo last.", "",
+             f"`expert_strip.png`: the pixel expert's first 100 steps, one row per model ({', '.join(strip_rows)}), "
+             "MuJoCo last.", "",
              "| model | " + " | ".join(c for c, *_ in COLUMNS) + " | minutes |",
              "|---" * (len(COLUMNS) + 2) + "|",
              "| target | " + " | ".join(t for *_, t in COLUMNS) + " | ~20 |"]
@@ -210,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report_path = out / "results.json"
     report = load_json(report_path) if report_path.is_file() else {"models": {}}
+    command = " ".join(["python", *sys.argv])
+    report["commands"] = [c for c in report.get("commands", []) if c != command] + [command]
     report.update(data=args.data, horizon=args.horizon, episodes=args.episodes, steps=args.steps,
                   candidates=args.candidates, stability_steps=args.stability_steps, mujoco=mujoco)
     for name, ckpt in models.items():
@@ -224,8 +228,13 @@ def main(argv: list[str] | None = None) -> int:
         if missing:
             p.error(f"--curve names models not evaluated: {', '.join(missing)}")
         scaling_figure(out / "scaling.png", {n: report["models"][n] for n in curve}, report["mujoco"])
-    strip(out / "expert_strip.png", [r["checkpoint"] for r in report["models"].values()] + [None], RANK_SEED)
-    write_text_atomic(out / "results.md", markdown(report, " ".join(["python", *sys.argv])))
+    # The strip needs the weights: models evaluated on an earlier machine whose runs are gone drop out of it.
+    present = {n: r["checkpoint"] for n, r in report["models"].items() if Path(r["checkpoint"]).is_dir()}
+    if len(present) < len(report["models"]):
+        print("expert_strip.png leaves out (checkpoint not on this machine): "
+              + ", ".join(n for n in report["models"] if n not in present), flush=True)
+    strip(out / "expert_strip.png", [*present.values(), None], RANK_SEED)
+    write_text_atomic(out / "results.md", markdown(report, list(present)))
     print((out / "results.md").read_text())
     return 0
 

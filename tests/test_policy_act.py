@@ -71,6 +71,15 @@ def test_loss_ignores_padded_actions():
     assert a == pytest.approx(b, rel=1e-6)
 
 
+def test_observe_state_false_acts_from_the_image_alone():
+    obs = make_obs(3)
+    moved = {**obs, "agent_pos": make_obs(3, seed=1)["agent_pos"]}  # the same images, other pusher positions
+    blind = make_policy(dataclasses.replace(TINY, observe_state=False))
+    np.testing.assert_array_equal(blind.predict_chunk(obs).numpy(), blind.predict_chunk(moved).numpy())
+    seeing = make_policy()
+    assert not np.allclose(seeing.predict_chunk(obs).numpy(), seeing.predict_chunk(moved).numpy())
+
+
 @pytest.mark.parametrize("m, steps", [(0.01, 1), (None, 1), (None, 3)])
 def test_predict_action_returns_ta_actions_in_bounds(m, steps):
     policy = make_policy(dataclasses.replace(TINY, temporal_ensemble=m, n_action_steps=steps))

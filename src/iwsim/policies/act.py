@@ -52,6 +52,7 @@ class ACTConfig:
     dropout: float = 0.1
     latent_dim: int = 32  # as the paper
     kl_weight: float = 10.0  # beta, as the paper
+    observe_state: bool = True  # False: act from the image alone (the agent_pos token is blanked)
 
     @property
     def horizon(self) -> int:
@@ -222,6 +223,8 @@ class ACTPolicy(Policy):
     def decode(self, image: torch.Tensor, agent_pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """image (B, 3, H, W) in [-1, 1], agent_pos (B, S) normalised, z (B, L) ->
         normalised action chunk (B, k, A)."""
+        if not self.cfg.observe_state:
+            agent_pos = torch.zeros_like(agent_pos)  # the token stays, carrying no information
         feat = self.backbone(image)  # (B, D, h, w)
         b, d, h, w = feat.shape
         tokens = torch.cat([self.latent_proj(z)[:, None], self.state_proj(agent_pos)[:, None],
