@@ -102,6 +102,25 @@ def test_stage2_cli_end_to_end(play_store, tmp_path, capsys):
     assert before.keys() == after.keys()
     changed = {k.split(".")[0] + "." + k.split(".")[1] for k in before if not torch.equal(before[k], after[k])}
     assert changed == {"codec.decoder"}
+    # the fine-tuned decoder on another dynamics run of the same encoder; a codec of other
+    # encoder weights is refused in one line and writes nothing
+    dyn2 = tmp_path / "dyn2"
+    assert main(["train", "dynamics", "--init", str(wm_dir), "--data", str(play_store), "--preset", "tiny",
+                 "--steps", "2", "--out", str(dyn2), "--no-progress"]) == 0
+    assert main(["export-model", "--run", str(dyn2), "--decoder", str(ft), "--out", str(tmp_path / "wm2")]) == 0
+    joined, dec, dyn2_wm = (WorldModel.load(p).state_dict() for p in (tmp_path / "wm2", tmp_path / "wm_ft",
+                                                                       dyn2 / "checkpoints" / "last"))
+    assert all(torch.equal(v, dec[k] if k.startswith("codec.") else dyn2_wm[k]) for k, v in joined.items())
+    assert json.loads((tmp_path / "wm2" / "config.json").read_text())["provenance"]["decoder"].startswith(str(ft))
+    ae2 = tmp_path / "ae2"
+    assert main(["train", "ae", "--data", str(play_store), "--preset", "tiny", "--seed", "1", "--out", str(ae2),
+                 "--no-progress"]) == 0
+    dyn3 = tmp_path / "dyn3"
+    assert main(["train", "dynamics", "--data", str(play_store), "--ae", str(ae2), "--preset", "tiny",
+                 "--steps", "2", "--out", str(dyn3), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["export-model", "--run", str(dyn3), "--decoder", str(ft), "--out", str(tmp_path / "wm3")]) == 1
+    assert "encodes differently" in capsys.readouterr().err and not (tmp_path / "wm3").exists()
     video = tmp_path / "r.mp4"
     capsys.readouterr()
     assert main(["rollout", "--checkpoint", str(wm_dir), "--data", str(play_store), "--episode", "3",

@@ -144,6 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run directory of train dynamics or train decoder-finetune, or one of its checkpoints")
     p.add_argument("--out", required=True, help="checkpoint directory to write (e.g. checkpoints/NAME)")
     p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.add_argument("--decoder", help="take the codec of this world model (a train decoder-finetune run or "
+                   "checkpoint; its encoder must be --run's)")
     p.set_defaults(func=_export_model)
 
     p = sub.add_parser("rollout", help="open-loop rollout of a recorded episode: truth | prediction video")
@@ -578,7 +580,7 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
 def _export_model(args: argparse.Namespace) -> int:
     from iwsim.world_model import export_model
 
-    path = export_model(args.run, args.out, force=args.force)
+    path = export_model(args.run, args.out, force=args.force, decoder=args.decoder)
     print(path)
     return 0
 

@@ -456,11 +456,29 @@ class WorldModel(nn.Module):
         return wm.to(device).eval()
 
 
-def export_model(run: str | Path, out: str | Path, force: bool = False) -> Path:
+def export_model(run: str | Path, out: str | Path, force: bool = False, decoder: str | Path | None = None) -> Path:
     """A standalone world-model checkpoint (``model.safetensors`` + ``config.json``) from a
     run of ``train dynamics`` or ``train decoder-finetune`` (its last checkpoint) or from
-    one of its checkpoints (``iwsim export-model``)."""
+    one of its checkpoints (``iwsim export-model``).
+
+    With ``decoder`` (another world model whose codec has the same encoder weights, e.g. a
+    ``train decoder-finetune`` run), the checkpoint takes that model's codec: its latents
+    are the ones the dynamics was trained on, only their rendering differs."""
     src = resolve_checkpoint(run)
     config = load_json(src / "config.json")
     provenance = {k: config[k] for k in ("data", "ae_checkpoint", "finetuned_from") if k in config}
-    return WorldModel.load(src).save(out, {"provenance": {"source": str(src), **provenance}}, force)
+    wm = WorldModel.load(src)
+    if decoder is not None:
+        dec_src = resolve_checkpoint(decoder)
+        codec = WorldModel.load(dec_src).codec
+        theirs, mine = codec.encoder_parameters(), wm.codec.encoder_parameters()
+        same = type(codec) is type(wm.codec) and len(theirs) == len(mine) and all(
+            a.shape == b.shape and torch.equal(a, b) for a, b in zip(theirs, mine))
+        if not same:
+            raise InputError(f"{dec_src}'s codec encodes differently from {src}'s (other encoder weights); "
+                             "its decoder renders other latents.")
+        task = wm.task
+        wm = WorldModel(codec, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean, wm.latent_scale)
+        wm.task = task
+        provenance["decoder"] = str(dec_src)
+    return wm.save(out, {"provenance": {"source": str(src), **provenance}}, force)
