@@ -91,15 +91,21 @@ def reconstruction_scores(wm: WorldModel, frames: np.ndarray) -> np.ndarray:
                                             for i in range(0, len(frames), 256)]))
 
 
-def codec_ceiling(wm: WorldModel, goal_frames: np.ndarray) -> float:
+def codec_ceiling(wm: WorldModel, goal_frames: np.ndarray | None) -> float | None:
     """The share of ``goal_frames``, each scoring >= the success IoU, whose reconstruction
-    by the model's codec still does."""
+    by the model's codec still does (None without frames)."""
+    if goal_frames is None:
+        return None
     return float((reconstruction_scores(wm, goal_frames) >= PUSHT.success_score).mean())
 
 
-def goal_frames(work: Path) -> np.ndarray:
-    """The frames of MuJoCo's kept teleoperation takes that score as a success."""
-    img = EpisodeStore.open(work / "teleop" / "mujoco.zarr", "r").array("img")[:]
+def goal_frames(work: Path) -> np.ndarray | None:
+    """The frames of MuJoCo's kept teleoperation takes that score as a success (None when
+    MuJoCo kept no take, as in a run with very short takes)."""
+    store = EpisodeStore.open(work / "teleop" / "mujoco.zarr", "r")
+    if store.n_episodes == 0:
+        return None
+    img = store.array("img")[:]
     return img[pixels.pixel_iou(img) >= PUSHT.success_score]
 
 

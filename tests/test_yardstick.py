@@ -33,6 +33,7 @@ def test_yardstick_runs_on_a_tiny_model(tmp_path):
         assert 0 <= m[key] <= 1, key
     assert m["teleop_kept"].endswith("/2") and len(m["ranking"]) == 8 and m["steps_per_s"] > 0
     assert m["action_gap_5"] > 0 and m["psnr_play"] > 0 and m["psnr_play_first"] > 0
+    assert m["codec_goal"] is None  # MuJoCo keeps no 6-step take: no success frames to reconstruct
     md = (out / "results.md").read_text()
     assert "| tiny |" in md and "| MuJoCo |" in md and "| target |" in md
     assert (out / "expert_strip.png").stat().st_size > 0 and (out / "scaling.png").stat().st_size > 0
