@@ -12,10 +12,10 @@ score of the reconstructions against that of the originals.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from yardstick import reconstruction_scores
+from yardstick import goal_frames, reconstruction_scores
 
-from iwsim.data.store import EpisodeStore
 from iwsim.envs import pixels
 from iwsim.experiments.demos import PUSHT
 from iwsim.resources import set_threads
@@ -29,12 +29,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
     args = p.parse_args(argv)
     set_threads(args.threads)
-    img = EpisodeStore.open(args.data, "r").array("img")[:]
-    score = pixels.pixel_iou(img)
-    goal = img[score >= PUSHT.success_score]
-    if not len(goal):
+    goal = goal_frames(Path(args.data))
+    if goal is None:
         p.error(f"{args.data} holds no frame scoring >= {PUSHT.success_score}")
-    print(f"{args.data}: {len(goal)} success frames, mean pixel IoU {score[score >= PUSHT.success_score].mean():.3f}")
+    print(f"{args.data}: {len(goal)} success frames, mean pixel IoU {pixels.pixel_iou(goal).mean():.3f}")
     for item in args.models:
         name, sep, path = item.partition("=")
         if not sep:

@@ -91,22 +91,23 @@ def reconstruction_scores(wm: WorldModel, frames: np.ndarray) -> np.ndarray:
                                             for i in range(0, len(frames), 256)]))
 
 
-def codec_ceiling(wm: WorldModel, goal_frames: np.ndarray | None) -> float | None:
-    """The share of ``goal_frames``, each scoring >= the success IoU, whose reconstruction
-    by the model's codec still does (None without frames)."""
-    if goal_frames is None:
+def codec_ceiling(wm: WorldModel, frames: np.ndarray | None) -> float | None:
+    """The share of ``frames`` (success frames, :func:`goal_frames`) whose reconstruction
+    by the model's codec still scores as a success (None without frames)."""
+    if frames is None:
         return None
-    return float((reconstruction_scores(wm, goal_frames) >= PUSHT.success_score).mean())
+    return float((reconstruction_scores(wm, frames) >= PUSHT.success_score).mean())
 
 
-def goal_frames(work: Path) -> np.ndarray | None:
-    """The frames of MuJoCo's kept teleoperation takes that score as a success (None when
-    MuJoCo kept no take, as in a run with very short takes)."""
-    store = EpisodeStore.open(work / "teleop" / "mujoco.zarr", "r")
+def goal_frames(path: Path) -> np.ndarray | None:
+    """The frames of a store that score as a success (None when it has none, e.g. MuJoCo's
+    teleoperation store after a run whose takes were too short to succeed)."""
+    store = EpisodeStore.open(path, "r")
     if store.n_episodes == 0:
         return None
     img = store.array("img")[:]
-    return img[pixels.pixel_iou(img) >= PUSHT.success_score]
+    img = img[pixels.pixel_iou(img) >= PUSHT.success_score]
+    return img if len(img) else None
 
 
 def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco: dict) -> dict:
@@ -118,7 +119,7 @@ def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco:
     if cached.is_file() and (saved := load_json(cached))["key"] == key:
         result = saved["result"]
         if "codec_goal" not in result:  # a row from before the ceiling was measured
-            result["codec_goal"] = codec_ceiling(WorldModel.load(ckpt), goal_frames(work))
+            result["codec_goal"] = codec_ceiling(WorldModel.load(ckpt), goal_frames(work / "teleop" / "mujoco.zarr"))
             write_json_atomic(cached, {"key": key, "result": result})
         return result
     t0 = time.perf_counter()
@@ -141,7 +142,7 @@ def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco:
         "ranking": scores, "pearson": agree["pearson"], "spearman": agree["spearman"], "mmrv": agree["mmrv"],
         "spread": float(np.ptp(list(scores.values()))), "stable_t": float(runs[name]["detected"].mean()),
         "stable_t_mujoco": float(runs["mujoco"]["detected"].mean()), **fast, "threads": args.threads,
-        "codec_goal": codec_ceiling(wm, goal_frames(work)),
+        "codec_goal": codec_ceiling(wm, goal_frames(work / "teleop" / "mujoco.zarr")),
         "minutes": {"play": t_play / 60, "studies": t_studies / 60,
                     "total": (time.perf_counter() - t0) / 60}}
     cached.parent.mkdir(parents=True, exist_ok=True)
