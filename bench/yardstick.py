@@ -110,8 +110,10 @@ def goal_frames(path: Path) -> np.ndarray | None:
     return img if len(img) else None
 
 
-def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco: dict) -> dict:
-    """Every yardstick measure of one model (cached under ``work`` by its weights)."""
+def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco: dict,
+             goals: np.ndarray | None) -> dict:
+    """Every yardstick measure of one model (cached under ``work`` by its weights); ``goals``:
+    the success frames of MuJoCo's takes (:func:`goal_frames`)."""
     key = {"model": fingerprint(ckpt), "data": args.data, "episodes": args.episodes, "steps": args.steps,
            "horizon": args.horizon, "speed_calls": args.speed_calls,
            "candidates": args.candidates, "stability": args.stability_steps, "threads": args.threads}
@@ -119,7 +121,7 @@ def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco:
     if cached.is_file() and (saved := load_json(cached))["key"] == key:
         result = saved["result"]
         if "codec_goal" not in result:  # a row from before the ceiling was measured
-            result["codec_goal"] = codec_ceiling(WorldModel.load(ckpt), goal_frames(work / "teleop" / "mujoco.zarr"))
+            result["codec_goal"] = codec_ceiling(WorldModel.load(ckpt), goals)
             write_json_atomic(cached, {"key": key, "result": result})
         return result
     t0 = time.perf_counter()
@@ -142,7 +144,7 @@ def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco:
         "ranking": scores, "pearson": agree["pearson"], "spearman": agree["spearman"], "mmrv": agree["mmrv"],
         "spread": float(np.ptp(list(scores.values()))), "stable_t": float(runs[name]["detected"].mean()),
         "stable_t_mujoco": float(runs["mujoco"]["detected"].mean()), **fast, "threads": args.threads,
-        "codec_goal": codec_ceiling(wm, goal_frames(work / "teleop" / "mujoco.zarr")),
+        "codec_goal": codec_ceiling(wm, goals),
         "minutes": {"play": t_play / 60, "studies": t_studies / 60,
                     "total": (time.perf_counter() - t0) / 60}}
     cached.parent.mkdir(parents=True, exist_ok=True)
@@ -247,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         models[name] = str(resolve_checkpoint(path))
     mujoco = {"ranking": ranking("mujoco", None, work, args.episodes, args.steps),
               "teleop": teleop("mujoco", None, work, args.candidates, TELEOP_SEED, args.steps)}
+    goals = goal_frames(work / "teleop" / "mujoco.zarr")  # the store teleop("mujoco") recorded
     mujoco["teleop"]["kept_text"] = f"{mujoco['teleop']['kept']}/{mujoco['teleop']['candidates']}"
     out.mkdir(parents=True, exist_ok=True)
     report_path = out / "results.json"
@@ -256,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     report.update(data=args.data, horizon=args.horizon, episodes=args.episodes, steps=args.steps,
                   candidates=args.candidates, stability_steps=args.stability_steps, mujoco=mujoco)
     for name, ckpt in models.items():
-        r = evaluate(name, ckpt, args, work, mujoco)
+        r = evaluate(name, ckpt, args, work, mujoco, goals)
         report["mujoco"]["stable_t"] = r["stable_t_mujoco"]
         report["models"][name] = r
         write_json_atomic(report_path, report)
