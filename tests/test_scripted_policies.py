@@ -96,3 +96,17 @@ def test_noisy_expert_is_seeded_and_stays_near_the_expert():
     assert not np.array_equal(a["action"], c["action"])
     first = np.abs(a["action"][0] - clean["action"][0])  # same state: the difference is the noise
     assert 0 < first.max() < 0.06
+
+
+def test_lagged_expert_executes_noisy_commands_late():
+    lags = []
+    for seed in range(4):
+        lagged = record_episode("pusht", "expert-lagged", seed=seed, steps=12)
+        clean = record_episode("pusht", "expert", seed=seed, steps=1)
+        k = int(np.argmax(np.any(lagged["action"] != lagged["state"][0], axis=1)))
+        np.testing.assert_array_equal(lagged["action"][:k], np.repeat(lagged["state"][:1], k, 0))
+        assert np.abs(lagged["action"][k] - clean["action"][0]).max() < 0.06  # the first command, k steps late
+        lags.append(k)
+    assert all(0 <= k <= 5 for k in lags) and len(set(lags)) > 1
+    again = record_episode("pusht", "expert-lagged", seed=1, steps=12)
+    assert np.array_equal(again["action"], record_episode("pusht", "expert-lagged", seed=1, steps=12)["action"])

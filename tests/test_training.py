@@ -298,3 +298,35 @@ def test_a_run_from_before_the_task_entry_resumes(tmp_path):
         prepare_run_dir(tmp_path, {**old, "task": {"kind": "generic"}})
     with pytest.raises(InputError, match="differs in train.lr"):
         prepare_run_dir(tmp_path, {**old, "train": {"steps": 10, "lr": 1.0}, "task": {"kind": "pusht"}})
+
+
+def test_the_latent_cache_serves_a_store_that_extends_its_own(play_store, tmp_path, one_thread):
+    from safetensors.torch import save_file
+
+    from iwsim.data.frames import to_model
+    from iwsim.data.store import EpisodeStore
+    from iwsim.world_model.codecs import build_codec
+    from iwsim.world_model.dynamics_data import encode_store
+
+    codec = build_codec("conv-ae", to_dict(AE_PRESETS["tiny-conv"])).eval()
+    calls = []
+    encode = codec.encode
+    codec.encode = lambda x: calls.append(len(x)) or encode(x)
+    cache, cpu = tmp_path / "latents.safetensors", torch.device("cpu")
+    base = encode_store(codec, EpisodeStore.open(play_store), cpu, False, cache, chunk=16)
+    assert sum(calls) == len(base) == 48
+    more, merged = tmp_path / "more.zarr", tmp_path / "merged.zarr"
+    collect("pusht", "play", 1, out=more, steps=12, image_size=64, workers=1, seed=9, progress=False)
+    assert main(["data", "merge", str(play_store), str(more), "--out", str(merged), "--no-progress"]) == 0
+    calls.clear()
+    both = encode_store(codec, EpisodeStore.open(merged), cpu, False, cache, chunk=16)
+    assert sum(calls) == 12 and torch.equal(both[:48], base)  # only the new episode's frames are encoded
+    torch.testing.assert_close(both[48:], encode(to_model(EpisodeStore.open(more).array("img")[:])))
+    calls.clear()
+    encode_store(codec, EpisodeStore.open(merged), cpu, False, cache, chunk=16)
+    assert not calls
+    weights = ",".join(f"{v.double().sum().item():.10e}" for v in codec.encoder_parameters())
+    old_key = f"{EpisodeStore.open(play_store).path}|48|{weights}"
+    save_file({"latents": base.contiguous()}, cache, metadata={"key": old_key})
+    assert torch.equal(encode_store(codec, EpisodeStore.open(play_store), cpu, False, cache, chunk=16), base)
+    assert not calls  # a cache from before the chunk hashes still serves its own store

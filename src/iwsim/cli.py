@@ -95,8 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ours, or a benchmark baseline or ablation: deterministic, diffusion, no-context-noise, "
                         "film-actions, no-points, no-unroll, no-delta, window-6, long-unroll; several joined by '+' "
                         "apply in turn, e.g. long-unroll+deterministic (default: %(default)s)")
-    q.add_argument("--latent-cache", help="file for the encoded latents, shareable by runs on the same store "
-                                          "and autoencoder (default: in the run directory)")
+    q.add_argument("--latent-cache", help="file for the encoded latents, shareable by runs with the same encoder; "
+                                          "a store that extends the cached one (a merge of it and more) encodes "
+                                          "only its new frames (default: in the run directory)")
     _train_flags(q, "tiny, pusht-64")
     q.set_defaults(func=_train_dynamics)
     q = train_sub.add_parser("policy", help="an imitation policy (Diffusion Policy or ACT) on a mixture of stores")

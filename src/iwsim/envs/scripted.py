@@ -16,6 +16,7 @@ T grown by the pusher radius, computed in the block's frame.
 from __future__ import annotations
 
 import heapq
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -351,14 +352,34 @@ class NoisyExpertPolicy(ExpertPolicy):
         return np.clip(targets + self._drift, -WORKSPACE, WORKSPACE).astype(np.float32)
 
 
+class LaggedExpertPolicy(NoisyExpertPolicy):
+    """The noisy expert whose commands also execute late: each episode draws a latency
+    of 0-``MAX_LATENCY`` steps (the pushers hold their first positions until the first
+    command arrives), for world-model data holding the overshoots and corrections of a
+    slow controller, which a noisy expert that corrects at once never shows."""
+
+    MAX_LATENCY = 5
+
+    def reset(self, obs: dict, info: dict) -> None:
+        super().reset(obs, info)
+        latency = int(self.rng.integers(0, self.MAX_LATENCY + 1))
+        self._queue = deque([obs["agent_pos"].astype(np.float32)] * latency, maxlen=latency + 1)
+
+    def __call__(self, obs: dict, info: dict) -> np.ndarray:
+        self._queue.append(super().__call__(obs, info))
+        return self._queue.popleft()
+
+
 def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
     """A scripted policy by name: ``play`` (randomised by ``seed``), ``expert``
-    (deterministic, block pose from state) or ``expert-noisy`` (the expert with command
-    noise drawn from ``seed``)."""
+    (deterministic, block pose from state), ``expert-noisy`` (the expert with command
+    noise drawn from ``seed``) or ``expert-lagged`` (that, executed 0-5 steps late)."""
     if name not in POLICIES:
         raise InputError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
     if name == "expert":
         return ExpertPolicy()
+    if name == "expert-lagged":
+        return LaggedExpertPolicy(seed)
     return NoisyExpertPolicy(seed) if name == "expert-noisy" else PlayPolicy(seed)
 
 

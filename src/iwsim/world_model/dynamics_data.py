@@ -8,6 +8,7 @@ windows of training episodes with everything random a training step needs.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -170,23 +171,42 @@ class DynamicsData:
 
 @torch.no_grad()
 def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
-             chunk: int = 512) -> torch.Tensor:
-    """Latents of every frame of the store, reused from ``cache`` when it was written
-    for the same frames and the same encoder weights."""
+                 chunk: int = 512) -> torch.Tensor:
+    """Latents of every frame of the store. A chunk of frames whose bytes and encoder
+    weights match what ``cache`` was written for is not encoded again, so a cache made
+    for a store serves a store that extends it (``iwsim data merge`` of it and more)."""
     img = store.array("img")
-    key = f"{store.path}|{img.shape[0]}|" + ",".join(
-        f"{v.double().sum().item():.10e}" for v in codec.encoder_parameters())
-    if cache is not None and cache.is_file():
-        with safe_open(cache, "pt") as f:
-            if (f.metadata() or {}).get("key") == key:
-                return f.get_tensor("latents")
-    out = []
-    for i in tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress):
-        out.append(codec.encode(to_model(img[i:i + chunk]).to(device)).cpu())
+    weights = ",".join(f"{v.double().sum().item():.10e}" for v in codec.encoder_parameters())
+    cached, old = _read_cache(cache, weights, store, img.shape[0], chunk)
+    out, hashes = [], []
+    for k, i in enumerate(tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress)):
+        frames = np.ascontiguousarray(img[i:i + chunk])
+        hashes.append(hashlib.blake2b(frames.tobytes(), digest_size=12).hexdigest())
+        if k < len(old) and old[k] in (hashes[-1], "*"):
+            out.append(cached[i:i + len(frames)])
+        else:
+            out.append(codec.encode(to_model(frames).to(device)).cpu())
     latents = torch.cat(out)
-    if cache is not None:
+    if cache is not None and hashes != old:
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_name(f".{cache.name}.tmp")
-        save_file({"latents": latents.contiguous()}, tmp, metadata={"key": key})
+        meta = {"weights": weights, "chunk": str(chunk), "hashes": ",".join(hashes)}
+        save_file({"latents": latents.contiguous()}, tmp, metadata=meta)
         os.replace(tmp, cache)
     return latents
+
+
+def _read_cache(cache: Path | None, weights: str, store: EpisodeStore, frames: int,
+                chunk: int) -> tuple[torch.Tensor | None, list[str]]:
+    """A latent cache's latents and per-chunk frame hashes, if written for these encoder
+    weights (none otherwise). A cache written before the hashes, keyed by the store's path
+    and frame count, counts for that store with every chunk matching ("*")."""
+    if cache is None or not cache.is_file():
+        return None, []
+    with safe_open(cache, "pt") as f:
+        meta = f.metadata() or {}
+        if meta.get("weights") == weights and meta.get("chunk") == str(chunk):
+            return f.get_tensor("latents"), meta["hashes"].split(",")
+        if meta.get("key") == f"{store.path}|{frames}|{weights}":
+            return f.get_tensor("latents"), ["*"] * -(-frames // chunk)
+    return None, []
