@@ -176,7 +176,7 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
     weights match what ``cache`` was written for is not encoded again, so a cache made
     for a store serves a store that extends it (``iwsim data merge`` of it and more)."""
     img = store.array("img")
-    weights = ",".join(f"{v.double().sum().item():.10e}" for v in codec.encoder_parameters())
+    weights = encoder_key(codec)
     cached, old = _read_cache(cache, weights, store, img.shape[0], chunk)
     out, hashes = [], []
     for k, i in enumerate(tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress)):
@@ -194,6 +194,11 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
         save_file({"latents": latents.contiguous()}, tmp, metadata=meta)
         os.replace(tmp, cache)
     return latents
+
+
+def encoder_key(codec: Codec) -> str:
+    """What a latent cache records of the encoder weights it was written with."""
+    return ",".join(f"{v.double().sum().item():.10e}" for v in codec.encoder_parameters())
 
 
 def _read_cache(cache: Path | None, weights: str, store: EpisodeStore, frames: int,
