@@ -11,6 +11,9 @@
 - ``yardstick``: the model's row of a ``bench/yardstick.py`` result, when given (T kept,
   teleoperated takes, the scripted policies' ranking, the 2000-step run, speed).
 - ``training``: steps and wall-clock of both stages, from the runs named in the provenance.
+  With ``--extends "WHAT"`` the new model is a fine-tune of the one it replaces: the chain
+  already in its metrics.json is kept and this run is appended to it as the next
+  ``stage2_finetuneN`` (``WHAT`` says how it was trained, e.g. ``--init contactmore2, lr 2e-4``).
 """
 
 from __future__ import annotations
@@ -45,6 +48,15 @@ def run_info(checkpoint: Path) -> dict:
     return {"steps": info["train_steps"], "minutes": round(info["train_minutes"], 1)} if info else {}
 
 
+def extended_chain(old: dict, source: Path, what: str) -> dict:
+    """The replaced model's training chain with the fine-tune run ``source`` appended."""
+    if not old:
+        raise SystemExit("--extends: the replaced checkpoint's metrics.json holds no training chain to extend.")
+    n = 1 + sum(k.startswith("stage2_finetune") for k in old)
+    run = source.parent.parent if source.parent.name == "checkpoints" else source
+    return {**old, f"stage2_finetune{n if n > 1 else ''}": {**run_info(source), "run": f"{run} ({what})"}}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", type=Path, default=Path("checkpoints/pusht-64"))
@@ -54,13 +66,18 @@ def main() -> None:
     ap.add_argument("--ablate-model", default="shipped", help="the checkpoint's name in that result")
     ap.add_argument("--yardstick", type=Path, help="a bench/yardstick.py results.json holding it")
     ap.add_argument("--yardstick-model", default="shipped", help="the checkpoint's name in that result")
+    ap.add_argument("--extends", metavar="WHAT", help="the model is a fine-tune of the replaced one: keep its "
+                    "training chain and append this run, described as WHAT")
     args = ap.parse_args()
+    old_metrics = args.checkpoint / "metrics.json"
+    old_chain = json.loads(old_metrics.read_text()).get("training", {}) if old_metrics.is_file() else {}
     wm = WorldModel.load(args.checkpoint)
     config = json.loads((args.checkpoint / "config.json").read_text())
     prov = config.get("provenance", {})
-    metrics = {"mujoco_rollout": mujoco_rollout(wm),
-               "training": {"stage1": run_info(Path(prov.get("ae_checkpoint", "-"))),
-                            "stage2": run_info(Path(prov.get("source", "-")))}}
+    source = Path(prov.get("source", "-"))
+    chain = (extended_chain(old_chain, source, args.extends) if args.extends else
+             {"stage1": run_info(Path(prov.get("ae_checkpoint", "-"))), "stage2": run_info(source)})
+    metrics = {"mujoco_rollout": mujoco_rollout(wm), "training": chain}
     if args.bench:
         r = json.loads(args.bench.read_text())
         m = r["models"][args.bench_model]
