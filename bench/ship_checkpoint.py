@@ -14,6 +14,7 @@
   With ``--extends "WHAT"`` the new model is a fine-tune of the one it replaces: the chain
   already in its metrics.json is kept and this run is appended to it as the next
   ``stage2_finetuneN`` (``WHAT`` says how it was trained, e.g. ``--init contactmore2, lr 2e-4``).
+  Recording the same model again keeps its chain as it is.
 """
 
 from __future__ import annotations
@@ -48,13 +49,20 @@ def run_info(checkpoint: Path) -> dict:
     return {"steps": info["train_steps"], "minutes": round(info["train_minutes"], 1)} if info else {}
 
 
-def extended_chain(old: dict, source: Path, what: str) -> dict:
-    """The replaced model's training chain with the fine-tune run ``source`` appended."""
+def training_chain(old: dict, prov: dict, extends: str | None) -> dict:
+    """The training chain of the model whose provenance is ``prov``. ``old`` is the chain in
+    the metrics.json being replaced: kept as it is when it already ends with this model's
+    run (the same model recorded again), extended by that run with ``extends``."""
+    source = Path(prov.get("source", "-"))
+    run = source.parent.parent if source.parent.name == "checkpoints" else source
+    if old and str(list(old.values())[-1].get("run", "")).split(" ")[0] == str(run):
+        return old
+    if not extends:
+        return {"stage1": run_info(Path(prov.get("ae_checkpoint", "-"))), "stage2": run_info(source)}
     if not old:
         raise SystemExit("--extends: the replaced checkpoint's metrics.json holds no training chain to extend.")
     n = 1 + sum(k.startswith("stage2_finetune") for k in old)
-    run = source.parent.parent if source.parent.name == "checkpoints" else source
-    return {**old, f"stage2_finetune{n if n > 1 else ''}": {**run_info(source), "run": f"{run} ({what})"}}
+    return {**old, f"stage2_finetune{n if n > 1 else ''}": {**run_info(source), "run": f"{run} ({extends})"}}
 
 
 def main() -> None:
@@ -74,10 +82,7 @@ def main() -> None:
     wm = WorldModel.load(args.checkpoint)
     config = json.loads((args.checkpoint / "config.json").read_text())
     prov = config.get("provenance", {})
-    source = Path(prov.get("source", "-"))
-    chain = (extended_chain(old_chain, source, args.extends) if args.extends else
-             {"stage1": run_info(Path(prov.get("ae_checkpoint", "-"))), "stage2": run_info(source)})
-    metrics = {"mujoco_rollout": mujoco_rollout(wm), "training": chain}
+    metrics = {"mujoco_rollout": mujoco_rollout(wm), "training": training_chain(old_chain, prov, args.extends)}
     if args.bench:
         r = json.loads(args.bench.read_text())
         m = r["models"][args.bench_model]
