@@ -10,15 +10,13 @@ UNet. Scores on 20 validation seeds x 600 steps go to runs/pol/NAME/proto_scores
 """
 import argparse
 import dataclasses
-import json
 import time
 from pathlib import Path
 
 import torch
+from probe_scores import score_checkpoints
 from torch import nn
 
-from iwsim.checkpoint import load_tensors
-from iwsim.eval.policy import rollout, summarize
 from iwsim.policies import PRESETS
 from iwsim.policies.common import random_shift
 from iwsim.policies.data import parse_mixture
@@ -121,19 +119,5 @@ run = Path("runs/pol") / args.name
 t0 = time.time()
 trainer.train(task, cfg.train, run, task.config(), device=torch.device("cpu"), progress=False)
 print(f"trained in {(time.time() - t0) / 60:.1f} min", flush=True)
-seeds = list(range(200000, 200020))
-for s in [int(x) for x in args.eval_at.split(",") if x]:
-    ck = run / "checkpoints" / f"{s:08d}"
-    tensors = load_tensors(ck / "model.safetensors")
-    pol = task.module
-    pol.load_state_dict(tensors)
-    pol.eval()
-    pol.image_size = 64
-    torch.manual_seed(0)
-    t1 = time.time()
-    r = rollout(pol, "pusht", seeds, 600, progress=False)
-    s_ = summarize(r["iou"].max(1), seeds)
-    print(f"{args.name} @{s}: mean max IoU {s_['mean_max_iou']:.3f} success {s_['success_rate']:.2f} "
-          f"({time.time() - t1:.0f}s)", flush=True)
-    with open(run / "proto_scores.jsonl", "a") as f:
-        f.write(json.dumps({"step": s, "mean_max_iou": s_["mean_max_iou"], "success": s_["success_rate"]}) + "\n")
+score_checkpoints(task.module, run, args.name, [int(x) for x in args.eval_at.split(",") if x],
+                  out="proto_scores.jsonl")

@@ -81,6 +81,38 @@ def test_random_shift_moves_whole_windows_with_the_border_repeated():
                                               for b in range(2))  # both frames of a window move together
 
 
+@pytest.mark.parametrize("policy", ["dp", "act"])
+def test_relative_actions_train_on_offsets_and_act_in_absolute_units(play_store, policy, monkeypatch):
+    data = PolicyData([Source(play_store, 2)], obs_horizon=2 if policy == "dp" else 1, horizon=8)
+    action_norm, state_norm = data.normalizers(relative=True)
+    t = torch.arange(0, data.n_frames, 3)
+    obs, act, _ = data.windows(t)
+    offsets = data.action[act] - data.state[obs[:, -1]][:, None]
+    batch = data.batch(t, action_norm, state_norm, relative=True)
+    assert torch.allclose(action_norm.unnormalize(batch.action), offsets, atol=1e-6)
+    every = data.actions(*data.windows(torch.arange(data.n_frames))[:2], relative=True).flatten(0, 1)
+    assert torch.allclose(action_norm.low, every.min(0).values)
+    assert torch.allclose(action_norm.high, every.max(0).values)
+    model = {**PRESETS[f"tiny-{policy}"].model, "relative_actions": True}
+    if policy == "act":
+        model["temporal_ensemble"] = None
+    net = make_policy(policy, model, action_norm, state_norm).eval()
+    # A network whose normalised output is 0 predicts the middle of the offsets' range: the
+    # policy must return that offset from each episode's current agent_pos.
+    if policy == "dp":
+        monkeypatch.setattr(net, "sample", lambda cond, generator=None: torch.zeros(len(cond), 8, 4))
+    else:
+        monkeypatch.setattr(net, "decode", lambda image, pos, z: torch.zeros(len(image), 8, 4))
+    pos = data.state[obs].numpy()
+    out = net.predict_action({"image": data.img[obs].numpy(), "agent_pos": pos})
+    middle = ((action_norm.low + action_norm.high) / 2).numpy()
+    assert np.allclose(out, pos[:, -1:, :] + middle, atol=1e-6)
+    small = PolicyData([Source(play_store, 1)], 2, 8)
+    small.state = small.state[:, :3]  # agent_pos of another size than the action
+    with pytest.raises(ValueError, match="relative actions need actions and agent_pos of one size"):
+        small.normalizers(relative=True)
+
+
 @pytest.mark.slow
 def test_diffusion_policy_overfits_and_acts(play_store):
     """The noise-prediction loss on 4 fixed windows falls by 2.5x in 300 steps."""

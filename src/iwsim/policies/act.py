@@ -53,6 +53,7 @@ class ACTConfig:
     latent_dim: int = 32  # as the paper
     kl_weight: float = 10.0  # beta, as the paper
     observe_state: bool = True  # False: act from the image alone (the agent_pos token is blanked)
+    relative_actions: bool = False  # predict offsets from the current agent_pos (same size as the action)
 
     @property
     def horizon(self) -> int:
@@ -278,7 +279,7 @@ class ACTPolicy(Policy):
         finally:
             self.train(was_training)
         # Training targets lie in [-1, 1] by min-max construction: keep targets in the demonstrated range.
-        return self.action_norm.unnormalize(chunk.clamp(-1, 1))
+        return self.to_absolute(self.action_norm.unnormalize(chunk.clamp(-1, 1)), obs)
 
     def reset(self) -> None:
         """Forget the ensembled predictions: call when an episode starts."""

@@ -7,7 +7,9 @@ Observations, as the policies take them (LeRobot's names)::
     obs["agent_pos"]  (B, To, S) float, in the data's units
 
 ``predict_action(obs) -> (B, Ta, A)`` returns the actions to execute next, in the data's
-units; the caller executes them in order and asks again. ``reset()`` forgets what the
+units; the caller executes them in order and asks again. A policy trained with
+``relative_actions`` predicts offsets from the current agent_pos and adds it back, so its
+callers see absolute actions all the same. ``reset()`` forgets what the
 policy remembers between calls (an action queue, the ensembling buffer).
 """
 
@@ -59,6 +61,20 @@ class Policy(nn.Module):
     @property
     def horizon(self) -> int:
         return self.cfg.horizon
+
+    @property
+    def relative(self) -> bool:
+        """Whether the network predicts actions as offsets from the current agent_pos."""
+        return self.cfg.relative_actions
+
+    def to_absolute(self, action: torch.Tensor, obs: dict) -> torch.Tensor:
+        """Unnormalised predicted actions (B, T, A) -> actions in the data's units: with
+        relative actions, plus the agent_pos of the current (last observed) step."""
+        if not self.relative:
+            return action
+        pos = torch.as_tensor(np.asarray(obs["agent_pos"]) if not torch.is_tensor(obs["agent_pos"])
+                              else obs["agent_pos"], dtype=action.dtype, device=action.device)
+        return action + pos[:, -1:, :]
 
 
 def random_shift(image: torch.Tensor, pad: int, offsets: torch.Tensor | None = None) -> torch.Tensor:

@@ -99,9 +99,29 @@ class PolicyData:
     def image_size(self) -> int:
         return int(self.img.shape[1])
 
-    def normalizers(self) -> tuple[Normalizer, Normalizer]:
-        """Min-max bounds of the actions and agent positions of the training data."""
-        return (Normalizer(self.action.min(0).values, self.action.max(0).values),
+    def check_relative(self) -> None:
+        """Relative actions are offsets from agent_pos: both must be the same quantity."""
+        if self.action.shape[1] != self.state.shape[1]:
+            raise InputError(f"relative actions need actions and agent_pos of one size (offsets from the current "
+                             f"position); the data has {self.action.shape[1]}-D actions and {self.state.shape[1]}-D "
+                             "agent_pos. Train with absolute actions (relative_actions false).")
+
+    def actions(self, obs: torch.Tensor, act: torch.Tensor, relative: bool) -> torch.Tensor:
+        """The windows' actions (B, Tp, A) in the data's units, or with ``relative`` their
+        offsets from the agent_pos of each window's current (last observed) step."""
+        if not relative:
+            return self.action[act]
+        self.check_relative()
+        return self.action[act] - self.state[obs[:, -1]][:, None]
+
+    def normalizers(self, relative: bool = False) -> tuple[Normalizer, Normalizer]:
+        """Min-max bounds of the actions (with ``relative``, of their offsets over every
+        window) and of the agent positions of the training data."""
+        action = self.action
+        if relative:
+            obs, act, _ = self.windows(torch.arange(self.n_frames))
+            action = self.actions(obs, act, True).flatten(0, 1)
+        return (Normalizer(action.min(0).values, action.max(0).values),
                 Normalizer(self.state.min(0).values, self.state.max(0).values))
 
     def windows(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -114,10 +134,11 @@ class PolicyData:
         act = first + torch.arange(self.horizon)
         return obs, act.clamp(lo, hi), act > hi
 
-    def batch(self, t: torch.Tensor, action_norm: Normalizer, state_norm: Normalizer) -> PolicyBatch:
-        """The windows at global steps t (B,), normalised."""
+    def batch(self, t: torch.Tensor, action_norm: Normalizer, state_norm: Normalizer,
+              relative: bool = False) -> PolicyBatch:
+        """The windows at global steps t (B,), normalised (see :meth:`actions`)."""
         obs, act, pad = self.windows(t)
         image = self.img[obs].permute(0, 1, 4, 2, 3).float() / 127.5 - 1
         with torch.no_grad():
-            return PolicyBatch(image, state_norm.normalize(self.state[obs]), action_norm.normalize(self.action[act]),
-                               pad)
+            return PolicyBatch(image, state_norm.normalize(self.state[obs]),
+                               action_norm.normalize(self.actions(obs, act, relative)), pad)

@@ -42,6 +42,7 @@ class DiffusionConfig:
     step_embed_dim: int = 64
     train_steps: int = 100  # DDPM timesteps
     inference_steps: int = 10  # DDIM steps
+    relative_actions: bool = False  # predict offsets from the current agent_pos (same size as the action)
 
     def __post_init__(self) -> None:
         if not 1 <= self.n_action_steps <= self.horizon - self.obs_horizon + 1:
@@ -154,4 +155,4 @@ class DiffusionPolicy(Policy):
         chunk = self.sample(self.condition(image, pos), generator)
         start = self.cfg.obs_horizon - 1
         act = self.action_norm.unnormalize(chunk[:, start:start + self.cfg.n_action_steps])
-        return act.cpu().numpy()
+        return self.to_absolute(act, obs).cpu().numpy()

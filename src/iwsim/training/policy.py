@@ -25,10 +25,11 @@ class PolicyTask:
     def __init__(self, cfg: PolicyStageConfig, sources: list[Source]) -> None:
         model = from_dict(config_class(cfg.policy), cfg.model)
         self.data = PolicyData(sources, model.obs_horizon, model.horizon)
-        self.action_norm, self.state_norm = self.data.normalizers()
+        self.relative = model.relative_actions
+        self.action_norm, self.state_norm = self.data.normalizers(self.relative)
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
-            self.module = make_policy(cfg.policy, cfg.model, *self.data.normalizers())
+            self.module = make_policy(cfg.policy, cfg.model, self.action_norm, self.state_norm)
         self.cfg, self.sources = cfg, sources
         g = torch.Generator().manual_seed(12345)
         self.eval_steps = torch.randint(0, self.data.n_frames, (min(EVAL_WINDOWS, self.data.n_frames),), generator=g)
@@ -39,7 +40,7 @@ class PolicyTask:
         # The policies draw their noise (diffusion steps, CVAE samples, dropout) from torch's
         # global generator; seeding it from the step's generator keeps resumption exact.
         torch.manual_seed(int(torch.randint(2**62, (1,), generator=generator)))
-        batch = self.data.batch(t[part], self.action_norm, self.state_norm)
+        batch = self.data.batch(t[part], self.action_norm, self.state_norm, self.relative)
         batch.image = random_shift(batch.image, self.cfg.shift, shifts[:, part])
         return batch.to(device)
 
@@ -47,14 +48,16 @@ class PolicyTask:
     def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
         """The training loss and the error of the chunk the policy would sample, on fixed
         windows of the training data (closed-loop success is ``iwsim eval policy``'s job)."""
-        batch = self.data.batch(self.eval_steps, self.action_norm, self.state_norm).to(module.action_norm.low.device)
+        batch = self.data.batch(self.eval_steps, self.action_norm, self.state_norm,
+                                self.relative).to(module.action_norm.low.device)
         torch.manual_seed(step)
         loss, _ = module(batch)
         obs = {"image": batch.image, "agent_pos": module.state_norm.unnormalize(batch.agent_pos)}
         pred = torch.as_tensor(module.predict_action(obs))
         module.reset()
         start = module.obs_horizon - 1
-        truth = module.action_norm.unnormalize(batch.action[:, start:start + pred.shape[1]]).cpu()
+        truth = module.to_absolute(module.action_norm.unnormalize(batch.action[:, start:start + pred.shape[1]]),
+                                   obs).cpu()
         return {"loss": loss.item(), "action_mae": (pred - truth).abs().mean().item()}
 
     def export(self, module: nn.Module) -> dict[str, torch.Tensor]:

@@ -1,0 +1,137 @@
+"""Issue 25's scaling curve: each policy trained on the first 25 / 50 / 100 / 200 of the
+simulator expert's demonstrations with the chosen recipe, its checkpoint chosen on
+validation seeds (200000+) among those saved within the training budget, then scored on
+the test seeds (100000+). Every run is a ``bench/policy_runs.py`` run (``runs/pol/NAME``,
+NAME = scale-POLICY-N), so it resumes exactly and its evaluations are cached: run one
+process per policy side by side, then once more to write the report from the cache.
+
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_scaling.py --policies dp &
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_scaling.py --policies act
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_scaling.py --policies dp,act --report
+
+Writes scaling.md and scaling.png to ``--out`` (with ``--report``, or when a process has
+every run of the policies it was given).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import policy_runs  # noqa: E402
+
+from iwsim.checkpoint import load_json, write_text_atomic  # noqa: E402
+from iwsim.eval.figures import pyplot, save_figure  # noqa: E402
+
+DATA = "runs/experiments/demos/sim_expert.zarr"
+SIZES = (25, 50, 100, 200)
+# The recipe of each policy: steps and the checkpoints scored on validation seeds.
+RECIPES = {"dp": (6000, (2000, 3000, 4000, 5000, 6000)), "act": (10000, (4000, 6000, 8000, 10000))}
+EXPERT = 0.989  # the state expert's mean max IoU on the 50 test seeds x 600 steps (results.md)
+
+
+def run_name(policy: str, n: int) -> str:
+    return f"scale-{policy}-{n}"
+
+
+def minutes(run: Path) -> dict[int, float]:
+    """Training minutes at each logged step (the trainer's elapsed time, resumptions included)."""
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    return {r["step"]: r["elapsed_s"] / 60 for r in rows if "elapsed_s" in r}
+
+
+def cached(run: Path, split: str, episodes: int, step: int) -> dict | None:
+    path = run / "eval" / f"{split}{episodes}x600" / f"{step:08d}.json"
+    return load_json(path) if path.is_file() else None
+
+
+def one(policy: str, n: int, root: Path, budget: float, test_episodes: int, train: bool) -> dict | None:
+    """Train and score one size (or, with ``train`` False, read what is cached)."""
+    name, (steps, evals) = run_name(policy, n), RECIPES[policy]
+    run = root / name
+    common = ["--name", name, "--policy", policy, "--data", f"{DATA}:{n}", "--steps", str(steps), "--root", str(root)]
+    if train:
+        policy_runs.main([*common, "--eval-at", ",".join(map(str, evals))])
+    if not (run / "metrics.jsonl").is_file():
+        return None
+    mins = minutes(run)
+    val = {s: cached(run, "val", 20, s) for s in evals}
+    within = [s for s in evals if val[s] is not None and mins.get(s, np.inf) <= budget]
+    if not within:
+        return None
+    best = max(within, key=lambda s: val[s]["mean_max_iou"])
+    if train and cached(run, "test", test_episodes, best) is None:
+        policy_runs.main([*common, "--eval-at", str(best), "--test", "--episodes", str(test_episodes)])
+    test = cached(run, "test", test_episodes, best)
+    return {"n": n, "step": best, "minutes": mins[best], "val": {s: v["mean_max_iou"] for s, v in val.items() if v},
+            "test": test}
+
+
+def report(rows: dict[str, list[dict]], out: Path, test_episodes: int) -> None:
+    lines = ["# Imitation policies: the scaling curve over demonstrations", "",
+             "`MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_scaling.py --policies dp,act --report` (the runs: "
+             "see its docstring). Demonstrations: the first N of `runs/experiments/demos/sim_expert.zarr`. "
+             f"Score: mean max IoU over {test_episodes} test seeds (100000 + i) x 600 steps, the checkpoint chosen "
+             "on 20 validation seeds (200000 + i) among those saved within the budget; success: IoU >= 0.9, "
+             f"95% Beta-posterior interval. The expert: {EXPERT:.3f}.", "",
+             "| policy | demos | chosen step | train min | val mean max IoU by step | test mean max IoU | of expert "
+             "| success (95%) |", "|---|---|---|---|---|---|---|---|"]
+    fig, ax = pyplot().subplots(figsize=(5, 3.5))
+    for policy, rs in rows.items():
+        done = [r for r in rs if r["test"] is not None]
+        for r in rs:
+            vals = ", ".join(f"{s}: {v:.3f}" for s, v in sorted(r["val"].items()))
+            if r["test"] is None:
+                lines.append(f"| {policy} | {r['n']} | {r['step']} | {r['minutes']:.1f} | {vals} | (pending) | | |")
+                continue
+            t = r["test"]
+            lo, hi = t["success_beta_posterior"]["low"], t["success_beta_posterior"]["high"]
+            lines.append(f"| {policy} | {r['n']} | {r['step']} | {r['minutes']:.1f} | {vals} | "
+                         f"{t['mean_max_iou']:.3f} | {100 * t['mean_max_iou'] / EXPERT:.0f}% | "
+                         f"{t['success_rate']:.2f} ({lo:.2f}-{hi:.2f}) |")
+        if done:
+            ns = [r["n"] for r in done]
+            means = np.array([r["test"]["mean_max_iou"] for r in done])
+            sems = np.array([r["test"]["std_max_iou"] / np.sqrt(len(r["test"]["episodes"])) for r in done])
+            ax.errorbar(ns, means, yerr=1.96 * sems, marker="o", capsize=3, label=policy)
+    ax.axhline(EXPERT, color="k", ls="--", lw=1, label="expert")
+    ax.set(xscale="log", xticks=list(SIZES), xticklabels=[str(s) for s in SIZES], xlabel="demonstrations",
+           ylabel="mean max IoU (test)", ylim=(0, 1.05))
+    ax.legend()
+    out.mkdir(parents=True, exist_ok=True)
+    save_figure(fig, out / "scaling.png")
+    write_text_atomic(out / "scaling.md", "\n".join(lines + ["", "![scaling](scaling.png)", ""]))
+    print("\n".join(lines))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--policies", default="dp,act")
+    p.add_argument("--sizes", default=",".join(map(str, SIZES)))
+    p.add_argument("--budget-min", type=float, default=60.0)
+    p.add_argument("--test-episodes", type=int, default=50)
+    p.add_argument("--root", default="runs/pol")
+    p.add_argument("--out", default="bench/results/policies")
+    p.add_argument("--report", action="store_true", help="only read the cached runs and write the report")
+    args = p.parse_args(argv)
+    policies = [s for s in args.policies.split(",") if s]
+    unknown = sorted(set(policies) - set(RECIPES))
+    if unknown:
+        raise SystemExit(f"unknown policies {unknown}; expected some of {sorted(RECIPES)}.")
+    rows = {}
+    for policy in policies:
+        found = [one(policy, int(n), Path(args.root), args.budget_min, args.test_episodes, not args.report)
+                 for n in args.sizes.split(",")]
+        rows[policy] = sorted((r for r in found if r is not None), key=lambda r: r["n"])
+    if args.report or all(len(r) == len(args.sizes.split(",")) for r in rows.values()):
+        report(rows, Path(args.out), args.test_episodes)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
