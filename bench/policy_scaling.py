@@ -50,11 +50,11 @@ def cached(run: Path, split: str, episodes: int, step: int) -> dict | None:
     return load_json(path) if path.is_file() else None
 
 
-def one(policy: str, n: int, root: Path, budget: float, test_episodes: int, train: bool) -> dict | None:
+def one(policy: str, n: int, data: str, root: Path, budget: float, test_episodes: int, train: bool) -> dict | None:
     """Train and score one size (or, with ``train`` False, read what is cached)."""
     name, (steps, evals) = run_name(policy, n), RECIPES[policy]
     run = root / name
-    common = ["--name", name, "--policy", policy, "--data", f"{DATA}:{n}", "--steps", str(steps), "--root", str(root)]
+    common = ["--name", name, "--policy", policy, "--data", f"{data}:{n}", "--steps", str(steps), "--root", str(root)]
     if train:
         policy_runs.main([*common, "--eval-at", ",".join(map(str, evals))])
     if not (run / "metrics.jsonl").is_file():
@@ -75,7 +75,7 @@ def one(policy: str, n: int, root: Path, budget: float, test_episodes: int, trai
 def report(rows: dict[str, list[dict]], out: Path, test_episodes: int) -> None:
     lines = ["# Imitation policies: the scaling curve over demonstrations", "",
              "`MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_scaling.py --policies dp,act --report` (the runs: "
-             "see its docstring). Demonstrations: the first N of `runs/experiments/demos/sim_expert.zarr`. "
+             "see its docstring). Demonstrations: the first N of the store each run's config.json names. "
              f"Score: mean max IoU over {test_episodes} test seeds (100000 + i) x 600 steps, the checkpoint chosen "
              "on 20 validation seeds (200000 + i) among those saved within the budget; success: IoU >= 0.9, "
              f"95% Beta-posterior interval. The expert: {EXPERT:.3f}.", "",
@@ -113,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--policies", default="dp,act")
     p.add_argument("--sizes", default=",".join(map(str, SIZES)))
+    p.add_argument("--data", default=DATA, help="the demonstration store (its first N takes for size N)")
     p.add_argument("--budget-min", type=float, default=60.0)
     p.add_argument("--test-episodes", type=int, default=50)
     p.add_argument("--root", default="runs/pol")
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"unknown policies {unknown}; expected some of {sorted(RECIPES)}.")
     rows = {}
     for policy in policies:
-        found = [one(policy, int(n), Path(args.root), args.budget_min, args.test_episodes, not args.report)
+        found = [one(policy, int(n), args.data, Path(args.root), args.budget_min, args.test_episodes, not args.report)
                  for n in args.sizes.split(",")]
         rows[policy] = sorted((r for r in found if r is not None), key=lambda r: r["n"])
     if args.report or all(len(r) == len(args.sizes.split(",")) for r in rows.values()):
