@@ -100,9 +100,12 @@ def report(rows: dict[str, list[dict]], out: Path, test_episodes: int) -> None:
             sems = np.array([r["test"]["std_max_iou"] / np.sqrt(len(r["test"]["episodes"])) for r in done])
             ax.errorbar(ns, means, yerr=1.96 * sems, marker="o", capsize=3, label=policy)
     ax.axhline(EXPERT, color="k", ls="--", lw=1, label="expert")
-    ax.set(xscale="log", xticks=list(SIZES), xticklabels=[str(s) for s in SIZES], xlabel="demonstrations",
-           ylabel="mean max IoU (test)", ylim=(0, 1.05))
+    ax.set(xscale="log", xlim=(SIZES[0] / 1.25, SIZES[-1] * 1.25), ylim=(0, 1.05), xlabel="demonstrations",
+           ylabel="mean max IoU (test)")
+    ax.minorticks_off()
+    ax.set(xticks=list(SIZES), xticklabels=[str(s) for s in SIZES])
     ax.legend()
+    fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
     save_figure(fig, out / "scaling.png")
     write_text_atomic(out / "scaling.md", "\n".join(lines + ["", "![scaling](scaling.png)", ""]))
