@@ -43,6 +43,11 @@ def _value(text: str):
         return text
 
 
+def eval_path(run: Path, split: str, episodes: int, eval_steps: int, step: int, tag: str = "") -> Path:
+    """Where a checkpoint's evaluation is cached: one file per checkpoint, seeds and execution."""
+    return run / "eval" / f"{split}{episodes}x{eval_steps}{tag}" / f"{step:08d}.json"
+
+
 def stage_config(preset: str, steps: int, sets: list[str], bf16: bool, seed: int) -> PolicyStageConfig:
     """The preset with ``sets`` (``section.field=value``) applied, trained ``steps`` steps."""
     data = to_dict(PRESETS[preset])
@@ -92,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     tag = "".join(f"-{k}{v}" for k, v in sorted(execution.items()))
     with open(run / "scores.jsonl", "a") as f:
         for step in wanted:
-            path = run / "eval" / f"{split}{args.episodes}x{args.eval_steps}{tag}" / f"{step:08d}.json"
+            path = eval_path(run, split, args.episodes, args.eval_steps, step, tag)
             if path.is_file():
                 r = load_json(path)
             else:

@@ -16,7 +16,6 @@ every run of the policies it was given).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import policy_runs  # noqa: E402
+from bench_policies import training_minutes  # noqa: E402
 
 from iwsim.checkpoint import load_json, write_text_atomic  # noqa: E402
 from iwsim.eval.figures import pyplot, save_figure  # noqa: E402
@@ -39,14 +39,8 @@ def run_name(policy: str, n: int) -> str:
     return f"scale-{policy}-{n}"
 
 
-def minutes(run: Path) -> dict[int, float]:
-    """Training minutes at each logged step (the trainer's elapsed time, resumptions included)."""
-    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line.strip()]
-    return {r["step"]: r["elapsed_s"] / 60 for r in rows if "elapsed_s" in r}
-
-
 def cached(run: Path, split: str, episodes: int, step: int) -> dict | None:
-    path = run / "eval" / f"{split}{episodes}x600" / f"{step:08d}.json"
+    path = policy_runs.eval_path(run, split, episodes, 600, step)
     return load_json(path) if path.is_file() else None
 
 
@@ -59,7 +53,7 @@ def one(policy: str, n: int, data: str, root: Path, budget: float, test_episodes
         policy_runs.main([*common, "--eval-at", ",".join(map(str, evals))])
     if not (run / "metrics.jsonl").is_file():
         return None
-    mins = minutes(run)
+    mins = training_minutes(run)
     val = {s: cached(run, "val", 20, s) for s in evals}
     within = [s for s in evals if val[s] is not None and mins.get(s, np.inf) <= budget]
     if not within:

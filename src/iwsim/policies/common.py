@@ -72,8 +72,7 @@ class Policy(nn.Module):
         relative actions, plus the agent_pos of the current (last observed) step."""
         if not self.relative:
             return action
-        pos = torch.as_tensor(np.asarray(obs["agent_pos"]) if not torch.is_tensor(obs["agent_pos"])
-                              else obs["agent_pos"], dtype=action.dtype, device=action.device)
+        pos = torch.as_tensor(obs["agent_pos"], dtype=action.dtype, device=action.device)
         return action + pos[:, -1:, :]
 
 
