@@ -48,7 +48,8 @@ def pose_features(frames: np.ndarray, kind: str) -> np.ndarray:
 
 
 class PoseDP(DiffusionPolicy):
-    """The condition: per observed step, its pose features (4) and normalised agent_pos."""
+    """The condition: per observed step, its pose features (4, or 16 keypoint coordinates) and
+    normalised agent_pos."""
 
     def __init__(self, cfg, action_norm, state_norm, kind="pose"):
         super().__init__(dataclasses.replace(cfg, image_features=FEATURES[kind]), action_norm, state_norm)
@@ -105,6 +106,7 @@ def main() -> None:
     trainer.train(task, cfg.train, run, task.config(), device=torch.device("cpu"), progress=False)
     print(f"trained in {(time.time() - t0) / 60:.1f} min", flush=True)
     score_checkpoints(task.module, run, args.name, [int(x) for x in args.eval_at.split(",") if x], args.episodes)
+
 
 if __name__ == "__main__":
     main()
