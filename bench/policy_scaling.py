@@ -10,7 +10,7 @@ process per policy side by side, then once more to write the report from the cac
     MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_scaling.py --policies dp,act --report
 
 Writes scaling.md and scaling.png to ``--out`` (with ``--report``, or when a process has
-every run of the policies it was given).
+every run of the policies it was given), with every policy's cached runs.
 """
 
 from __future__ import annotations
@@ -121,13 +121,17 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(policies) - set(RECIPES))
     if unknown:
         raise SystemExit(f"unknown policies {unknown}; expected some of {sorted(RECIPES)}.")
-    rows = {}
-    for policy in policies:
-        found = [one(policy, int(n), args.data, Path(args.root), args.budget_min, args.test_episodes, not args.report)
-                 for n in args.sizes.split(",")]
-        rows[policy] = sorted((r for r in found if r is not None), key=lambda r: r["n"])
-    if args.report or all(len(r) == len(args.sizes.split(",")) for r in rows.values()):
-        report(rows, Path(args.out), args.test_episodes)
+    sizes = [int(n) for n in args.sizes.split(",")]
+
+    def rows_of(policy: str, train: bool) -> list[dict]:
+        found = [one(policy, n, args.data, Path(args.root), args.budget_min, args.test_episodes, train) for n in sizes]
+        return sorted((r for r in found if r is not None), key=lambda r: r["n"])
+
+    rows = {policy: rows_of(policy, not args.report) for policy in policies}
+    if args.report or all(len(r) == len(sizes) for r in rows.values()):
+        # The report is shared by both policies: a process training one keeps the other's cached rows.
+        every = {policy: rows[policy] if policy in rows else rows_of(policy, False) for policy in RECIPES}
+        report({policy: r for policy, r in every.items() if r}, Path(args.out), args.test_episodes)
     return 0
 
 
