@@ -175,6 +175,25 @@ def test_plan_shares_runs_between_the_sweeps():
     with pytest.raises(ValueError, match="unknown policy"):
         DatagenConfig(policy="ppo")
     assert PRESETS["tiny"].preset == "tiny-dp"
+    # The paper's protocol: mixtures of 100 at 0-100% world model, sizes 5-100 of both sources.
+    for name, policy, n_runs in (("default", "dp", 9), ("act", "act", 5)):
+        cfg = PRESETS[name]
+        assert (cfg.policy, cfg.total, cfg.wm_fractions, cfg.steps, cfg.episodes) == (
+            policy, 100, (0.0, 0.25, 0.5, 0.75, 1.0), 600, 50)
+        assert len(plan(cfg)) == n_runs
+    sizes = {(r.n_wm, r.n_sim): r.sweeps for r in plan(PRESETS["default"])}
+    assert sizes[(100, 0)] == sizes[(0, 100)] == ("mixture", "size") and (5, 0) in sizes and (0, 5) in sizes
+    cfg = dataclasses.replace(PRESETS["act"], wm_fractions=(0.0, 1.0), wm_sizes=(10,))
+    assert command(cfg, "act", Path("o"), Path("w")) == (
+        "iwsim experiment datagen --preset act --fractions 0.0,1.0 --wm-sizes 10 --out o --work w")
+
+
+def test_sweep_flags_are_parsed(tmp_path, capsys):
+    for flag, value, kind in (("--fractions", "0,half", "floats"), ("--wm-sizes", "5,x", "ints")):
+        assert main(["experiment", "datagen", "--preset", "tiny", flag, value, "--out", str(tmp_path / "o"),
+                     "--work", str(tmp_path / "w"), "--no-progress"]) == 1
+        assert capsys.readouterr().err.strip() == f"iwsim: error: {flag} must be comma-separated {kind}, got {value!r}."
+    assert not (tmp_path / "w").exists()
 
 
 @pytest.mark.slow

@@ -118,7 +118,7 @@ def test_first_frames_are_identical_in_both_simulators():
 def test_the_default_preset_is_the_study_asked_for():
     cfg = PRESETS["default"]
     names = cfg.policy_names()
-    assert len(names) >= 8 and cfg.episodes >= 20 and cfg.seed == 100000
+    assert len(names) >= 14 and cfg.episodes >= 20 and cfg.seed == 100000 and cfg.steps == 600
     assert sum(n.startswith("dp-100demos") for n in names) >= 3 and sum(n.startswith("act-") for n in names) >= 2
     assert {"expert", "play"} <= set(names) and any("noise" in n for n in names) and any("latency" in n for n in names)
     run, steps = cfg.runs("store.zarr")[0]  # every evaluated step is kept

@@ -215,20 +215,25 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("experiment", help="the robot-learning studies: data generation, policy evaluation")
     exp_sub = p.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
     q = exp_sub.add_parser("datagen", help="policies trained on world-model demonstrations vs simulator ones")
-    q.add_argument("--preset", default="default", choices=("default", "tiny"), help="scale (default: %(default)s)")
+    q.add_argument("--preset", default="default", choices=("default", "act", "tiny"),
+                   help="default: Diffusion Policy, mixtures and sizes; act: ACT, mixtures (default: %(default)s)")
     q.add_argument("--world-model", help="world-model checkpoint (default: checkpoints/pusht-64)")
-    q.add_argument("--policy", choices=("dp", "act"), help="policy type (default: dp)")
+    q.add_argument("--policy", choices=("dp", "act"), help="policy type (default: the preset's)")
     q.add_argument("--episodes", type=int, help="MuJoCo evaluation episodes per policy (default: the preset's, 50)")
-    q.add_argument("--steps", type=int, help="steps per evaluation episode (default: the preset's, 300)")
-    q.add_argument("--total", type=int, help="demonstrations per mixture run (default: the preset's)")
+    q.add_argument("--steps", type=int, help="steps per evaluation episode (default: the preset's, 600)")
+    q.add_argument("--total", type=int, help="demonstrations per mixture run (default: the preset's, 100)")
+    q.add_argument("--fractions", help="world-model shares of the mixture runs, comma-separated (default: the "
+                                       "preset's, 0,0.25,0.5,0.75,1)")
     q.add_argument("--sizes", help="simulator dataset sizes, comma-separated (default: the preset's)")
-    q.add_argument("--train-steps", type=int, help="training steps per policy (default: the preset's, 5000)")
+    q.add_argument("--wm-sizes", help="world-model dataset sizes, comma-separated (default: the preset's)")
+    q.add_argument("--train-steps", type=int, help="training steps per policy (default: the preset's)")
     q.add_argument("--accept-iou", type=float,
                    help="keep takes whose max pixel IoU reaches this (default: the preset's, 0.9)")
     q.add_argument("--demo-steps", type=int, help="horizon of a demonstration take (default: the preset's)")
     q.add_argument("--jobs", type=int, default=min(2, available_cores()),
                    help="trainings/evaluations at once, one thread each (default: %(default)s)")
-    q.add_argument("--out", default="bench/results/experiments/datagen", help="report directory (default: %(default)s)")
+    q.add_argument("--out", help="report directory (default: bench/results/experiments/datagen, or datagen-act "
+                                 "for --preset act)")
     q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations (default: %(default)s)")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     q.set_defaults(func=_experiment_datagen)
@@ -236,13 +241,14 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--preset", default="default", choices=("default", "tiny"), help="scale (default: %(default)s)")
     q.add_argument("--world-model", help="world-model checkpoint (default: checkpoints/pusht-64)")
     q.add_argument("--episodes", type=int, help="episodes per policy and simulator (default: the preset's, 20)")
-    q.add_argument("--steps", type=int, help="steps per episode (default: the preset's, 300)")
+    q.add_argument("--steps", type=int, help="steps per episode (default: the preset's, 600)")
     q.add_argument("--seed", type=int, help="episode i starts from MuJoCo seed SEED + i (default: 100000)")
     q.add_argument("--demos", help="demonstration store the policies train on, e.g. from iwsim collect --policy "
                                    "expert (default: the simulator expert's, recorded under --work when missing)")
     q.add_argument("--demo-episodes", type=int, help="demonstrations of the full-data runs (default: 100)")
     q.add_argument("--small-demos", type=int, help="demonstrations of the small-data run (default: 25)")
-    q.add_argument("--jobs", type=int, default=1, help="trainings/evaluations at once (default: %(default)s)")
+    q.add_argument("--jobs", type=int, default=min(2, available_cores()),
+                   help="trainings/evaluations at once, one thread each (default: %(default)s)")
     q.add_argument("--out", default="bench/results/experiments/policy_eval",
                    help="report directory (default: %(default)s)")
     q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations (default: %(default)s)")
@@ -707,20 +713,26 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
 
     from iwsim.experiments.datagen import PRESETS, run_datagen
 
-    sizes = None
-    if args.sizes is not None:
+    def numbers(flag: str, text: str | None, kind: type) -> tuple | None:
+        if text is None:
+            return None
         try:
-            sizes = tuple(int(n) for n in args.sizes.split(",") if n.strip())
+            return tuple(kind(n) for n in text.split(",") if n.strip())
         except ValueError:
-            raise InputError(f"--sizes must be comma-separated integers, got {args.sizes!r}.") from None
+            raise InputError(f"{flag} must be comma-separated {kind.__name__}s, got {text!r}.") from None
+
     base = PRESETS[args.preset]
     recipe = {"accept_iou": args.accept_iou, "steps": args.demo_steps}
     overrides = {"world_model": args.world_model, "policy": args.policy, "episodes": args.episodes,
-                 "steps": args.steps, "total": args.total, "sim_sizes": sizes, "train_steps": args.train_steps,
+                 "steps": args.steps, "total": args.total, "train_steps": args.train_steps,
+                 "wm_fractions": numbers("--fractions", args.fractions, float),
+                 "sim_sizes": numbers("--sizes", args.sizes, int),
+                 "wm_sizes": numbers("--wm-sizes", args.wm_sizes, int),
                  "recipe": dataclasses.replace(base.recipe, **{k: v for k, v in recipe.items() if v is not None})}
     cfg = dataclasses.replace(base, **{k: v for k, v in overrides.items() if v is not None})
-    run_datagen(cfg, out=args.out, work=args.work, preset=args.preset, jobs=args.jobs, progress=not args.no_progress)
-    print(f"{args.out}/results.md")
+    out = args.out or ("bench/results/experiments/datagen" + ("-act" if args.preset == "act" else ""))
+    run_datagen(cfg, out=out, work=args.work, preset=args.preset, jobs=args.jobs, progress=not args.no_progress)
+    print(f"{out}/results.md")
     return 0
 
 

@@ -55,8 +55,9 @@ PUSHT = get_task("pusht")  # the study is of T-push (its success threshold)
 POLICIES = ("dp", "act")
 BOOTSTRAP = 2000  # resamples of the evaluation episodes for the parity ratio's interval
 # The config fields the command's flags override, and the recipe fields.
-FLAGS = {"world_model": "--world-model", "policy": "--policy", "total": "--total", "sim_sizes": "--sizes",
-         "train_steps": "--train-steps", "episodes": "--episodes", "steps": "--steps"}
+FLAGS = {"world_model": "--world-model", "policy": "--policy", "total": "--total", "wm_fractions": "--fractions",
+         "sim_sizes": "--sizes", "wm_sizes": "--wm-sizes", "train_steps": "--train-steps", "episodes": "--episodes",
+         "steps": "--steps"}
 RECIPE_FLAGS = {"accept_iou": "--accept-iou", "steps": "--demo-steps"}
 
 
@@ -102,11 +103,21 @@ class DatagenConfig:
 
 
 PRESETS: dict[str, DatagenConfig] = {
-    # Sized for <= 2.5 h on a 2-core CPU with two jobs, all included: simulator
-    # demonstrations ~5 min (2.6 s per 300-step candidate), world-model takes ~14 s per
-    # candidate, five Diffusion Policy trainings of 5000 steps (~0.35 s per step on one
-    # thread) two at a time ~75 min, six evaluations of 50 x 300 steps ~10 min.
-    "default": DatagenConfig(train_steps=5000, checkpoint_every=1000),
+    # The paper's protocol for Diffusion Policy, sized for <= 3 h on a 2-core CPU with two
+    # jobs, all included: 100 world-model demonstrations (~14 s per candidate), nine
+    # trainings of 3000 steps (~0.42 s per step on one thread, ~21 min each; the step the
+    # scaling curve of bench/policy_scaling.py chose at 25, 100 and 200 demonstrations) two
+    # at a time ~105 min, ten evaluations of 50 x 600 steps (~3.3 min each) ~17 min.
+    # Sizes 5, 25, 100 (not also 50) keep it within the budget.
+    "default": DatagenConfig(train_steps=3000, checkpoint_every=1000, total=100,
+                             wm_fractions=(0.0, 0.25, 0.5, 0.75, 1.0), sim_sizes=(5, 25, 100),
+                             wm_sizes=(5, 25, 100), steps=600),
+    # ACT on the same demonstrations, the mixtures only (its scaling curve is flat over 25-100
+    # demonstrations, bench/results/policies/scaling.md): five trainings of 4000 steps (the
+    # step chosen at 100 demonstrations, ~0.33 s per step, ~22 min each) ~66 min, six
+    # evaluations ~10 min.
+    "act": DatagenConfig(policy="act", train_steps=4000, checkpoint_every=1000, total=100,
+                         wm_fractions=(0.0, 0.25, 0.5, 0.75, 1.0), sim_sizes=(), steps=600),
     # Seconds, for tests: tiny policies, a few short takes, every take kept (a random tiny
     # world model never places the T).
     "tiny": DatagenConfig(policy_preset="tiny-", train_steps=4, checkpoint_every=2, total=2, sim_sizes=(1, 2),

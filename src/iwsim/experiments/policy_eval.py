@@ -70,13 +70,15 @@ class PolicyEvalConfig:
     world_model: str = "checkpoints/pusht-64"
     episodes: int = 20  # evaluation episodes per policy and environment
     seed: int = 100000  # episode i starts from MuJoCo seed seed + i in both environments
-    steps: int = 300  # steps per evaluation episode
+    steps: int = 600  # steps per evaluation episode (the paper's T-push horizon)
     demos: str | None = None  # a demonstration store; None: the simulator expert's under work/demos
     demo_episodes: int = 100  # demonstrations of the full-data runs (their first N)
     small_demos: int = 25  # demonstrations of the small-data Diffusion Policy run
     policy_preset: str = ""  # prefix of the policies' training presets: "" (dp, act) or "tiny-"
-    dp_steps: tuple[int, ...] = (500, 2000, 5000)  # Diffusion Policy checkpoints (one run, full data)
-    dp_small_steps: int = 2500  # Diffusion Policy on small_demos
+    # Diffusion Policy checkpoints (one run, full data); 3000 steps is where the scaling curve
+    # of bench/policy_scaling.py chose to stop at 25 and 100 demonstrations.
+    dp_steps: tuple[int, ...] = (500, 1500, 3000)
+    dp_small_steps: int = 3000  # Diffusion Policy on small_demos
     act_steps: tuple[int, ...] = (1000, 4000)  # ACT checkpoints (one run, full data)
     # Degradations of the expert that spread its MuJoCo score between the play policy's and
     # its own (measured on 10 seeds x 300 steps, mean max IoU; the expert 0.97, play 0.22):
@@ -130,7 +132,9 @@ class PolicyEvalConfig:
 
 
 PRESETS: dict[str, PolicyEvalConfig] = {
-    # <= 2.5 h on a 2-core CPU with --jobs 2, demonstrations and training included (README, Experiments).
+    # <= 3 h on a 2-core CPU with --jobs 2, demonstrations included: three trainings (~65 min of
+    # one core), 14 policies x 20 episodes x 600 steps in MuJoCo (~65 min) and in the world
+    # model (~95 min), two jobs at a time (README, Experiments).
     "default": PolicyEvalConfig(),
     # Seconds, for tests: tiny policies trained a few steps, 2 short episodes.
     "tiny": PolicyEvalConfig(episodes=2, steps=6, demo_episodes=2, small_demos=1, policy_preset="tiny-",
