@@ -395,7 +395,7 @@ def _mean_interval(score: dict[str, Any], n: int) -> str:
 def figure(r: dict[str, Any], path: Path) -> None:
     """Score against the world-model share of the mixtures, and against dataset size."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), sharey=True)
     n = r["scale"]["eval_episodes"]
     trained = [run for run in r["runs"] if "skipped" not in run]
     sweeps = (("mixture", "wm_fraction", "world-model share of the demonstrations",
@@ -427,8 +427,13 @@ def figure(r: dict[str, Any], path: Path) -> None:
     axes[0].set_xlim(-0.05, 1.05)  # the whole range of shares, also when runs of it were not trained
     axes[0].set_xticks([0, 0.25, 0.5, 0.75, 1])
     axes[0].set_title(f"mixtures of {r['config']['total']} demonstrations")
+    sizes = sorted({t["n_wm"] + t["n_sim"] for t in trained if "size" in t["sweeps"]})
+    if sizes:
+        axes[1].set_xscale("log")
+        axes[1].set_xticks(sizes, [str(n) for n in sizes])
+        axes[1].minorticks_off()
     axes[1].set_title("dataset size")
     axes[0].set_ylabel("score in MuJoCo (95% intervals)")
-    axes[1].legend(fontsize=7, loc="center right")
+    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1))
     fig.tight_layout()
     save_figure(fig, path)
