@@ -22,10 +22,13 @@ import json
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import imageio.v2 as imageio
 import numpy as np
+import torch
 
 from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.eval.policy import rollout
@@ -58,16 +61,20 @@ def teleop(name: str, model: str | None, work: Path, candidates: int, seed: int,
     return result
 
 
-def strip(path: Path, models: list[str | None], seed: int, steps: int = 100, every: int = 10) -> None:
-    """One row per model (None: MuJoCo): the pixel expert's episode from ``seed``, a frame
-    every ``every`` steps."""
-    rows = []
+def strip(path: Path, models: list[str | None], seed: int, steps: int = 100, every: int = 10,
+          policy: Callable[[], Any] = lambda: ScriptedBatch("expert")) -> list[float]:
+    """One row per model (None: MuJoCo): the episode of a fresh ``policy()`` (default: the
+    pixel expert) from ``seed``, a frame every ``every`` steps. Returns each row's max IoU."""
+    rows, best = [], []
     for model in models:
         wm = None if model is None else WorldModel.load(model)
-        run = rollout(ScriptedBatch("expert"), "pusht" if model is None else "world-model", [seed], steps,
+        torch.manual_seed(0)  # a learned policy's sampling noise
+        run = rollout(policy(), "pusht" if model is None else "world-model", [seed], steps,
                       world_model=wm, image_size=64, record=1, progress=False)
         rows.append(np.concatenate(list(run["frames"][0, :steps:every]), axis=1))
+        best.append(float(run["iou"][0].max()))
     imageio.imwrite(path, np.concatenate(rows, axis=0))
+    return best
 
 
 def main(argv: list[str] | None = None) -> int:

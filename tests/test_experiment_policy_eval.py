@@ -71,11 +71,21 @@ def test_tiny_study_end_to_end_and_resumed(inputs, tmp_path, capsys, caplog):
                 assert a[name] == pytest.approx(fn(real, proxy))
             else:
                 assert a[name] is None and "constant" in a["undefined"][name]
+        assert a["mean_offset"] == pytest.approx(np.mean(np.subtract(proxy, real)))
+    # The same statistics within the 4 scripted and the 4 learned policies.
+    assert report["scale"]["groups"] == {"scripted": 4, "learned": 4}
+    for group, members in (("scripted", [p for p in report["policies"] if p["kind"] == "scripted"]),
+                           ("learned", [p for p in report["policies"] if p["kind"] != "scripted"])):
+        real = [p["pusht"]["mean_max_iou"] for p in members]
+        proxy = [p["world-model"]["mean_max_iou"] for p in members]
+        a = report["agreement_within"][group]["mean_max_iou"]
+        assert a["mmrv"] == pytest.approx(mmrv(real, proxy))
+        assert a["mean_offset"] == pytest.approx(np.mean(np.subtract(proxy, real)))
     # No policy places the T in 6 steps: constant success rates, so no correlation.
     assert report["agreement"]["success_rate"]["pearson"] is None
     md = (out / "results.md").read_text()
     assert report["command"] in md and "iwsim experiment policy-eval --preset tiny" in report["command"]
-    assert all(f"| {n} |" in md for n in names) and "undefined" in md
+    assert all(f"| {n} |" in md for n in names) and "undefined" in md and "Within each group" in md
     assert (out / "scatter.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     # A rerun trains nothing and evaluates nothing: the cached evaluations are reused.

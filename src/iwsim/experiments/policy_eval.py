@@ -132,9 +132,10 @@ class PolicyEvalConfig:
 
 
 PRESETS: dict[str, PolicyEvalConfig] = {
-    # <= 3 h on a 2-core CPU with --jobs 2, demonstrations included: three trainings (~65 min of
-    # one core), 14 policies x 20 episodes x 600 steps in MuJoCo (~65 min) and in the world
-    # model (~95 min), two jobs at a time (README, Experiments).
+    # <= 3 h on a 2-core CPU with --jobs 2; measured 1 h 22 min with the demonstrations reused
+    # (recording them takes ~5 min): three trainings (62 min of one core; the last one runs
+    # alone, 21 min), 14 policies x 20 episodes x 600 steps in MuJoCo (36 min of one core) and
+    # in the world model (42 min), two jobs at a time (README, Experiments).
     "default": PolicyEvalConfig(),
     # Seconds, for tests: tiny policies trained a few steps, 2 short episodes.
     "tiny": PolicyEvalConfig(episodes=2, steps=6, demo_episodes=2, small_demos=1, policy_preset="tiny-",
@@ -260,12 +261,12 @@ def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, 
         "config": to_dict(cfg),
         "scale": {"policies": len(policies), "episodes": cfg.episodes, "steps": cfg.steps,
                   "seeds": [seeds[0], seeds[-1]], "world_model": cfg.world_model, "demos": demo_info,
-                  "jobs": jobs},
+                  "jobs": jobs, "groups": {g: len(m) for g, m in _groups(policies).items()}},
         "policies": policies,
-        "agreement": {score: agreement([p["pusht"][score] for p in policies],
-                                       [p["world-model"][score] for p in policies],
-                                       labels=(f"MuJoCo {label}s", f"world-model {label}s"))
-                      for score, label in SCORES.items()},
+        "agreement": _agreement(policies),
+        # the same within the scripted and the learned policies: a world model can order
+        # each group well yet be biased for one of them, which the pooled figures hide
+        "agreement_within": {group: _agreement(members) for group, members in _groups(policies).items()},
         "timings": {k: round(v, 1) for k, v in timings.items()},
         "note": ("timings are this invocation's, so a rerun that reuses cached work shows less; the *_measured_s "
                  "entries sum the trainings' and evaluations' own times (one process each), whenever they ran."),
@@ -278,6 +279,25 @@ def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, 
     log.info("policy-eval: mean max IoU Pearson r %s, Spearman rho %s, MMRV %s over %d policies -> %s",
              _fmt(a["pearson"]), _fmt(a["spearman"]), _fmt(a["mmrv"]), len(policies), out)
     return report
+
+
+def _agreement(policies: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per score: :func:`agreement` of the world model's scores with MuJoCo's, and the mean
+    offset (world model minus MuJoCo)."""
+    out = {}
+    for score, label in SCORES.items():
+        real = [p["pusht"][score] for p in policies]
+        sim = [p["world-model"][score] for p in policies]
+        out[score] = {**agreement(real, sim, labels=(f"MuJoCo {label}s", f"world-model {label}s")),
+                      "mean_offset": float(np.mean(np.subtract(sim, real)))}
+    return out
+
+
+def _groups(policies: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """The scripted and the learned policies, each when it has at least three."""
+    groups = {"scripted": [p for p in policies if p["kind"] == "scripted"],
+              "learned": [p for p in policies if p["kind"] != "scripted"]}
+    return {k: v for k, v in groups.items() if len(v) >= 3}
 
 
 def _fmt(v: float | None, digits: int = 3) -> str:
@@ -307,9 +327,9 @@ def markdown(report: dict[str, Any]) -> str:
         f"{s['policies']} policies, each evaluated from the same {s['episodes']} initial states (MuJoCo seeds "
         f"{lo}-{hi}) for {s['steps']} steps in MuJoCo and in the world model `{s['world_model']}` (which starts from "
         "MuJoCo's rendering of the same seed). Score: the maximum IoU an episode reaches; success: IoU >= 0.9. "
-        f"Learned policies trained on `{demos['path']}` ({demos['episodes']} demonstrations, policy "
-        f"`{demos['policy']}`). Intervals: 95%; mean max IoU by a bootstrap over episodes, success by "
-        "Clopper-Pearson.",
+        f"Learned policies trained on the first N (the demos column) of the {demos['episodes']} demonstrations "
+        f"in `{demos['path']}` (policy `{demos['policy']}`). Intervals: 95%; mean max IoU by a bootstrap over "
+        "episodes, success by Clopper-Pearson.",
         "",
         "## Agreement (world model against MuJoCo)",
         "",
@@ -323,6 +343,17 @@ def markdown(report: dict[str, Any]) -> str:
         notes += [f"- {label}, {k}: {why}" for k, why in a["undefined"].items()]
     if notes:
         lines += ["", "Undefined statistics:", "", *notes]
+    within = report.get("agreement_within", {})
+    if within:
+        lines += ["", "Within each group of policies (the pooled figures above also compare across groups):", "",
+                  "| group | policies | score | Pearson r | Spearman rho | MMRV | mean offset (world model - MuJoCo) |",
+                  "|---|---|---|---|---|---|---|"]
+        sizes = report["scale"].get("groups", {})
+        for group, by_score in within.items():
+            for score, label in SCORES.items():
+                a = by_score[score]
+                lines.append(f"| {group} | {sizes.get(group, '')} | {label} | {_fmt(a['pearson'])} | "
+                             f"{_fmt(a['spearman'])} | {_fmt(a['mmrv'])} | {a['mean_offset']:+.3f} |")
     lines += [
         "",
         "MMRV (mean maximum rank violation, SIMPLER): for each policy, the largest MuJoCo-score gap to a policy the "
