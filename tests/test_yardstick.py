@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from PIL import Image
 
 from iwsim.data.collect import collect
 from tests.test_dynamics import tiny_world_model
@@ -40,3 +41,15 @@ def test_yardstick_runs_on_a_tiny_model(tmp_path):
     # a second run reuses the cached evaluation
     again = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert again.returncode == 0 and json.loads((out / "results.json").read_text())["models"]["tiny"] == m
+
+
+def test_wm_strip_shows_a_policy_in_the_model_above_mujoco(tmp_path):
+    ckpt = tiny_world_model().save(tmp_path / "wm", {})
+    out = tmp_path / "strip.png"
+    cmd = [sys.executable, str(ROOT / "bench" / "wm_strip.py"), "--policy", "expert", "--world-model", str(ckpt),
+           "--steps", "6", "--every", "2", "--threads", "1", "--out", str(out)]
+    run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "in the world model" in run.stdout and "in MuJoCo" in run.stdout
+    image = Image.open(out)
+    assert image.size == (3 * 64, 2 * 64)  # frames 0, 2, 4; rows: the model, MuJoCo

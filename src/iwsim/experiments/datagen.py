@@ -114,8 +114,8 @@ PRESETS: dict[str, DatagenConfig] = {
                              wm_sizes=(5, 25, 100), steps=600),
     # ACT on the same demonstrations, the mixtures only (its scaling curve is flat over 25-100
     # demonstrations, bench/results/policies/scaling.md): five trainings of 4000 steps (the
-    # step chosen at 100 demonstrations, ~0.33 s per step, ~22 min each) ~66 min, six
-    # evaluations ~10 min.
+    # step chosen at 100 demonstrations; measured 21-27 min each on one thread beside another
+    # job) ~65 min two at a time, five evaluations of ~4 min; about 1 h 15 min.
     "act": DatagenConfig(policy="act", train_steps=4000, checkpoint_every=1000, total=100,
                          wm_fractions=(0.0, 0.25, 0.5, 0.75, 1.0), sim_sizes=(), steps=600),
     # Seconds, for tests: tiny policies, a few short takes, every take kept (a random tiny
@@ -393,23 +393,23 @@ def _mean_interval(score: dict[str, Any], n: int) -> str:
 
 
 def figure(r: dict[str, Any], path: Path) -> None:
-    """Score against the world-model share of the mixtures, and against dataset size."""
+    """Score against the world-model share of the mixtures, and against dataset size (a
+    panel per sweep the study ran), each panel with its legend below it."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), sharey=True)
     n = r["scale"]["eval_episodes"]
     trained = [run for run in r["runs"] if "skipped" not in run]
-    sweeps = (("mixture", "wm_fraction", "world-model share of the demonstrations",
-               [("mixture", trained)]),
-              ("size", "total", "demonstrations",
-               [("simulator", [t for t in trained if t["n_wm"] == 0]),
-                ("world model", [t for t in trained if t["n_sim"] == 0])]))
-    for ax, (sweep, x_key, xlabel, series) in zip(axes, sweeps):
+    sweeps = [("mixture", "world-model share of the demonstrations", [("mixture", trained)]),
+              ("size", "demonstrations", [("simulator", [t for t in trained if t["n_wm"] == 0]),
+                                          ("world model", [t for t in trained if t["n_sim"] == 0])])]
+    sweeps = [s for s in sweeps if any(s[0] in t["sweeps"] for t in trained)] or sweeps[:1]
+    fig, axes = plt.subplots(1, len(sweeps), figsize=(6 * len(sweeps), 4.6), sharey=True, squeeze=False)
+    for ax, (sweep, xlabel, series) in zip(axes[0], sweeps):
         for label, rows in series:
             rows = sorted((t for t in rows if sweep in t["sweeps"]),
-                          key=lambda t: t["wm_fraction"] if x_key == "wm_fraction" else t["n_wm"] + t["n_sim"])
+                          key=lambda t: t["wm_fraction"] if sweep == "mixture" else t["n_wm"] + t["n_sim"])
             if not rows:
                 continue
-            x = np.array([t["wm_fraction"] if x_key == "wm_fraction" else t["n_wm"] + t["n_sim"] for t in rows])
+            x = np.array([t["wm_fraction"] if sweep == "mixture" else t["n_wm"] + t["n_sim"] for t in rows])
             iou = np.array([t["mean_max_iou"] for t in rows])
             half = np.array([1.96 * t["std_max_iou"] / math.sqrt(n) for t in rows])
             succ = np.array([t["success_rate"] for t in rows])
@@ -424,16 +424,17 @@ def figure(r: dict[str, Any], path: Path) -> None:
         ax.set_xlabel(xlabel)
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
-    axes[0].set_xlim(-0.05, 1.05)  # the whole range of shares, also when runs of it were not trained
-    axes[0].set_xticks([0, 0.25, 0.5, 0.75, 1])
-    axes[0].set_title(f"mixtures of {r['config']['total']} demonstrations")
-    sizes = sorted({t["n_wm"] + t["n_sim"] for t in trained if "size" in t["sweeps"]})
-    if sizes:
-        axes[1].set_xscale("log")
-        axes[1].set_xticks(sizes, [str(n) for n in sizes])
-        axes[1].minorticks_off()
-    axes[1].set_title("dataset size")
-    axes[0].set_ylabel("score in MuJoCo (95% intervals)")
-    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1))
+        if sweep == "mixture":
+            ax.set_xlim(-0.05, 1.05)  # the whole range of shares, also when runs of it were not trained
+            ax.set_xticks([0, 0.25, 0.5, 0.75, 1])
+            ax.set_title(f"mixtures of {r['config']['total']} demonstrations")
+        else:
+            sizes = sorted({t["n_wm"] + t["n_sim"] for t in trained if "size" in t["sweeps"]})
+            ax.set_xscale("log")
+            ax.set_xticks(sizes, [str(k) for k in sizes])
+            ax.minorticks_off()
+            ax.set_title("dataset size")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
+    axes[0][0].set_ylabel("score in MuJoCo (95% intervals)")
     fig.tight_layout()
     save_figure(fig, path)
