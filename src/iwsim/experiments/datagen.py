@@ -404,12 +404,14 @@ def figure(r: dict[str, Any], path: Path) -> None:
     sweeps = [s for s in sweeps if any(s[0] in t["sweeps"] for t in trained)] or sweeps[:1]
     fig, axes = plt.subplots(1, len(sweeps), figsize=(6 * len(sweeps), 4.6), sharey=True, squeeze=False)
     for ax, (sweep, xlabel, series) in zip(axes[0], sweeps):
+        def x_of(t: dict[str, Any], sweep: str = sweep) -> float:
+            return t["wm_fraction"] if sweep == "mixture" else t["n_wm"] + t["n_sim"]
+
         for label, rows in series:
-            rows = sorted((t for t in rows if sweep in t["sweeps"]),
-                          key=lambda t: t["wm_fraction"] if sweep == "mixture" else t["n_wm"] + t["n_sim"])
+            rows = sorted((t for t in rows if sweep in t["sweeps"]), key=x_of)
             if not rows:
                 continue
-            x = np.array([t["wm_fraction"] if sweep == "mixture" else t["n_wm"] + t["n_sim"] for t in rows])
+            x = np.array([x_of(t) for t in rows])
             iou = np.array([t["mean_max_iou"] for t in rows])
             half = np.array([1.96 * t["std_max_iou"] / math.sqrt(n) for t in rows])
             succ = np.array([t["success_rate"] for t in rows])
@@ -429,7 +431,7 @@ def figure(r: dict[str, Any], path: Path) -> None:
             ax.set_xticks([0, 0.25, 0.5, 0.75, 1])
             ax.set_title(f"mixtures of {r['config']['total']} demonstrations")
         else:
-            sizes = sorted({t["n_wm"] + t["n_sim"] for t in trained if "size" in t["sweeps"]})
+            sizes = sorted({x_of(t) for t in trained if "size" in t["sweeps"]})
             ax.set_xscale("log")
             ax.set_xticks(sizes, [str(k) for k in sizes])
             ax.minorticks_off()
