@@ -22,6 +22,15 @@ For each model, on one thread by default (about 20 minutes a model on this CPU):
 6. The codec's ceiling: the frames of MuJoCo's kept takes that score as a success (pixel
    IoU >= 0.9), encoded and decoded; the share whose reconstruction still scores >= 0.9.
    A take in the model can only be kept if its frames can be, so this bounds item 2.
+7. Generalisation (issue 41, ``bench/families.py``): operator families from first states
+   never used for training, scored in MuJoCo and in the model; per family the offset
+   (model - MuJoCo) with its 95% interval, marked seen when the model's training data
+   held its kind of motion (``--trained-on``); pooled r and MMRV over all (family,
+   episode) pairs and over the unseen families'. And the idle measure: the pushers held
+   still, the share of frames that keep the block crisp and in place.
+
+``--parts`` picks which of these to run (``families,idle`` alone: about 20 minutes a
+model); a model's row keeps the parts measured before.
 
 Results are cached per model under ``--work`` (keyed by the model's weights), so adding a
 model evaluates only that one; ``--out`` gets results.json and results.md with every
@@ -37,6 +46,7 @@ import sys
 import time
 from pathlib import Path
 
+import families as fam
 import numpy as np
 import torch
 from ablate_dynamics import Episodes, score
@@ -110,10 +120,23 @@ def goal_frames(path: Path) -> np.ndarray | None:
     return img if len(img) else None
 
 
+PARTS = ("core", "families", "idle")  # core: items 1-6 of the docstring
+
+
+def generalisation(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco: dict, seen: list[str]
+                   ) -> dict:
+    """Item 7 for one model: its families beside MuJoCo's (:func:`families.compare`)."""
+    t0 = time.perf_counter()
+    scores, novelty = fam.family_scores(ckpt, work, args.families, args.family_seeds, args.steps, args.zoo)
+    result = fam.compare(mujoco["families"], scores, seen, novelty)
+    result.update(seen=seen, scores=scores, minutes=(time.perf_counter() - t0) / 60)
+    return result
+
+
 def evaluate(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco: dict,
              goals: np.ndarray | None) -> dict:
-    """Every yardstick measure of one model (cached under ``work`` by its weights); ``goals``:
-    the success frames of MuJoCo's takes (:func:`goal_frames`)."""
+    """Items 1-6 for one model (cached under ``work`` by its weights); ``goals``: the
+    success frames of MuJoCo's takes (:func:`goal_frames`)."""
     key = {"model": fingerprint(ckpt), "data": args.data, "episodes": args.episodes, "steps": args.steps,
            "horizon": args.horizon, "speed_calls": args.speed_calls,
            "candidates": args.candidates, "stability": args.stability_steps, "threads": args.threads}
@@ -188,11 +211,67 @@ def cell(r: dict, key: str, fmt: str) -> str:
     return text
 
 
-def markdown(report: dict, strip_rows: list[str]) -> str:
+def generalisation_markdown(report: dict) -> list[str]:
+    """Item 7's tables: one row per model for the pooled figures and the idle measure, then
+    each model's families."""
+    rows = {n: r for n, r in report["models"].items() if "generalisation" in r or "idle" in r}
+    if not rows:
+        return []
     m = report["mujoco"]
+    lines = ["", "## Generalisation: operator families and the idle measure (issue 41)", "",
+             f"Families from {report.get('family_seeds')} MuJoCo first states (seeds from {fam.SEED}, never used "
+             f"for training), {report['steps']} steps; the score of an episode is its max pixel IoU. A family is "
+             "*seen* when the model's training data held its kind of motion; the targets count the unseen ones. "
+             "The learned family's policies are trained on MuJoCo demonstrations of the expert, none of whose "
+             "rollouts any world model here trains on. Idle: the pushers held still for "
+             f"{fam.IDLE_STEPS} steps from {report.get('idle_episodes')} fresh starts; a frame keeps the block "
+             f"when the T fits >= {fam.CRISP} and lies within {fam.IN_PLACE_PX:g} px and {fam.IN_PLACE_DEG:g} "
+             "degrees of MuJoCo's.", "",
+             "| model | unseen: max abs offset | unseen: r | unseen: MMRV | all: r | all: MMRV | idle: block kept "
+             "| idle: T fit @10/@20/@50 | trust: rho(novelty, abs error) | minutes |",
+             "|---|---|---|---|---|---|---|---|---|---|",
+             "| target | <= 0.10 | >= 0.9 | - | - | - | >= 95% | - | > 0 | - |"]
+    if "idle" in m:
+        i = m["idle"]
+        lines.append(f"| MuJoCo | 0 | 1 | 0 | 1 | 0 | 100% | {i['fit_10']:.3f} / {i['fit_20']:.3f} / "
+                     f"{i[f'fit_{fam.IDLE_STEPS}']:.3f} | - | - |")
+    for n, r in rows.items():
+        g, i = r.get("generalisation"), r.get("idle")
+        u, a = (g or {}).get("pooled", {}).get("unseen"), (g or {}).get("pooled", {}).get("all")
+        cells = [f"{u['max_abs_offset']:.2f}", f"{u['pearson']:.2f}", f"{u['mmrv']:.3f}"] if u else ["-"] * 3
+        cells += [f"{a['pearson']:.2f}", f"{a['mmrv']:.3f}"] if a else ["-"] * 2
+        cells += [f"{i['kept']:.0%}", f"{i['fit_10']:.3f} / {i['fit_20']:.3f} / {i[f'fit_{fam.IDLE_STEPS}']:.3f}"] \
+            if i else ["-"] * 2
+        rho = (g or {}).get("trust", {}).get("spearman_error")
+        cells.append("no signal" if rho is None else f"{rho:.2f}")
+        lines.append(f"| {n} | " + " | ".join(cells) + f" | {(g or {}).get('minutes', 0):.0f} |")
+    for n, r in rows.items():
+        g = r.get("generalisation")
+        if not g:
+            continue
+        lines += ["", f"`{n}` (seen: {', '.join(g['seen']) or 'none'}):", "",
+                  "| family | what | MuJoCo | model | offset [95%] | seen | novelty |", "|---|---|---|---|---|---|---|"]
+        for f, row in g["families"].items():
+            lo, hi = row["offset_interval"]
+            nov = f"{row['novelty']:.2f}" if "novelty" in row else "-"
+            lines.append(f"| {f} | {fam.FAMILIES[f][1]} | {row['mujoco']:.3f} | {row['model']:.3f} | "
+                         f"{row['offset']:+.3f} [{lo:+.2f}, {hi:+.2f}] | {'seen' if row['seen'] else 'unseen'} "
+                         f"| {nov} |")
+    return lines
+
+
+def markdown(report: dict, strip_rows: list[str]) -> str:
     lines = ["# The world model's yardstick (`bench/yardstick.py`)", "", "Commands, in the order they were run:", "",
-             *(f"    {c}" for c in report["commands"]), "",
-             f"Held-out play: {report['episodes']} episodes of `{report['data']}`, {report['horizon']} steps "
+             *(f"    {c}" for c in report["commands"])]
+    if "ranking" in report["mujoco"]:
+        lines += core_markdown(report, strip_rows)
+    return "\n".join(lines + generalisation_markdown(report)) + "\n"
+
+
+def core_markdown(report: dict, strip_rows: list[str]) -> list[str]:
+    """Items 1-6's tables: one row per model, then the scripted policies' scores."""
+    m = report["mujoco"]
+    lines = ["", f"Held-out play: {report['episodes']} episodes of `{report['data']}`, {report['horizon']} steps "
              "open loop. "
              f"Teleoperation: the pixel expert from {report['candidates']} MuJoCo first frames (seeds from "
              f"{TELEOP_SEED}), kept at pixel IoU 0.9. Ranking: 8 scripted policies x {report['episodes']} "
@@ -208,36 +287,66 @@ def markdown(report: dict, strip_rows: list[str]) -> str:
           "stable_t": m.get("stable_t")}
     lines.append("| MuJoCo | " + " | ".join("-" if mj.get(k) is None else cell(mj, k, f) for _, k, f, _ in COLUMNS)
                  + " | - |")
-    for name, r in report["models"].items():
+    core = {n: r for n, r in report["models"].items() if "t_found" in r}
+    for name, r in core.items():
         speed_cells = {"steps_per_s", "frames_per_s_batch64"}
         row = [cell(r, k, f) + (f" ({r['threads']})" if k in speed_cells else "") for _, k, f, _ in COLUMNS]
         lines.append(f"| {name} | " + " | ".join(row) + f" | {r['minutes']['total']:.0f} |")
     lines += ["", "Scripted policies' mean max IoU (MuJoCo, then each model):", "",
-              "| policy | MuJoCo | " + " | ".join(report["models"]) + " |", "|---" * (len(report["models"]) + 2) + "|"]
+              "| policy | MuJoCo | " + " | ".join(core) + " |", "|---" * (len(core) + 2) + "|"]
     for n in sorted(m["ranking"], key=lambda n: -m["ranking"][n]):
         lines.append(f"| {n} | {m['ranking'][n]:.3f} | "
-                     + " | ".join(f"{r['ranking'][n]:.3f}" for r in report["models"].values()) + " |")
-    return "\n".join(lines) + "\n"
+                     + " | ".join(f"{r['ranking'][n]:.3f}" for r in core.values()) + " |")
+    return lines
+
+
+def parse_seen(items: list[str], models: dict[str, str]) -> dict[str, list[str]]:
+    """``--trained-on NAME=POLICY,POLICY`` (the policies ``iwsim collect`` recorded its
+    training data with) -> the families each model has seen. A model not named has seen
+    the shipped model's (play and the noisy expert)."""
+    seen = {n: fam.seen_families(["play", "expert-noisy"]) for n in models}
+    for item in items:
+        name, sep, policies = item.partition("=")
+        if not sep or name not in models:
+            raise ValueError(f"--trained-on takes NAME=POLICY,... for a model of --models, got {item!r}.")
+        seen[name] = fam.seen_families([p for p in policies.split(",") if p])
+    return seen
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--models", nargs="+", required=True, help="NAME=CHECKPOINT_OR_RUN world models")
+    p.add_argument("--parts", default=",".join(PARTS), help=f"which parts to run, of {', '.join(PARTS)} "
+                   "(default: all)")
     p.add_argument("--data", default="data/play_eval.zarr", help="held-out play store (default: %(default)s)")
     p.add_argument("--episodes", type=int, default=20,
                    help="held-out episodes, and ranking episodes per policy (default: %(default)s)")
-    p.add_argument("--steps", type=int, default=300, help="steps of a teleop take / ranking episode "
-                   "(default: %(default)s)")
+    p.add_argument("--steps", type=int, default=300, help="steps of a teleop take / ranking episode / family "
+                   "episode (default: %(default)s)")
     p.add_argument("--candidates", type=int, default=32, help="teleoperation takes (default: %(default)s)")
     p.add_argument("--stability-steps", type=int, default=2000, help="(default: %(default)s)")
     p.add_argument("--horizon", type=int, default=192, help="open-loop steps on held-out play (default: %(default)s)")
     p.add_argument("--speed-calls", type=int, default=100, help="timed steps per speed test (default: %(default)s)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
+    p.add_argument("--families", default=",".join(fam.FAMILIES), help="operator families (default: all)")
+    p.add_argument("--family-seeds", type=int, default=24, help="first states per family (default: %(default)s)")
+    p.add_argument("--idle-episodes", type=int, default=20, help="fresh starts of the idle measure "
+                   "(default: %(default)s)")
+    p.add_argument("--zoo", nargs="*", default=[], help="policy runs or checkpoints of the learned family "
+                   "(default: none, and no learned family)")
+    p.add_argument("--trained-on", nargs="*", default=[], help="NAME=POLICY,...: the collect policies of a "
+                   "model's training data, for its seen families (default: play,expert-noisy)")
     p.add_argument("--curve", help="NAME,NAME,...: models of one run (checkpoints named by their step) to plot "
                    "against training steps in scaling.png")
     p.add_argument("--work", default="runs/yardstick", help="cache (default: %(default)s)")
     p.add_argument("--out", default="bench/results/yardstick", help="report directory (default: %(default)s)")
     args = p.parse_args(argv)
+    parts = [x for x in args.parts.split(",") if x]
+    args.families = [f for f in args.families.split(",") if f]
+    if bad := [x for x in parts if x not in PARTS] + [f for f in args.families if f not in fam.FAMILIES]:
+        p.error(f"unknown parts or families {bad}; parts: {', '.join(PARTS)}; families: {', '.join(fam.FAMILIES)}")
+    if not args.zoo and fam.LEARNED in args.families:
+        args.families.remove(fam.LEARNED)
     set_threads(args.threads)
     torch.manual_seed(0)
     work, out = Path(args.work), Path(args.out)
@@ -247,35 +356,59 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or not name:
             p.error(f"--models takes NAME=CHECKPOINT, got {item!r}")
         models[name] = str(resolve_checkpoint(path))
-    mujoco = {"ranking": ranking("mujoco", None, work, args.episodes, args.steps),
-              "teleop": teleop("mujoco", None, work, args.candidates, TELEOP_SEED, args.steps)}
-    goals = goal_frames(work / "teleop" / "mujoco.zarr")  # the store teleop("mujoco") recorded
-    mujoco["teleop"]["kept_text"] = f"{mujoco['teleop']['kept']}/{mujoco['teleop']['candidates']}"
+    try:
+        seen = parse_seen(args.trained_on, models)
+    except ValueError as e:
+        p.error(str(e))
     out.mkdir(parents=True, exist_ok=True)
     report_path = out / "results.json"
     report = load_json(report_path) if report_path.is_file() else {"models": {}}
     command = " ".join(["python", *sys.argv])
     report["commands"] = [c for c in report.get("commands", []) if c != command] + [command]
-    report.update(data=args.data, horizon=args.horizon, episodes=args.episodes, steps=args.steps,
-                  candidates=args.candidates, stability_steps=args.stability_steps, mujoco=mujoco)
+    mujoco = report.setdefault("mujoco", {})
+    goals = None
+    if "core" in parts:
+        mujoco.update(ranking=ranking("mujoco", None, work, args.episodes, args.steps),
+                      teleop=teleop("mujoco", None, work, args.candidates, TELEOP_SEED, args.steps))
+        goals = goal_frames(work / "teleop" / "mujoco.zarr")  # the store teleop("mujoco") recorded
+        mujoco["teleop"]["kept_text"] = f"{mujoco['teleop']['kept']}/{mujoco['teleop']['candidates']}"
+        report.update(data=args.data, horizon=args.horizon, episodes=args.episodes, candidates=args.candidates,
+                      stability_steps=args.stability_steps)
+    if "families" in parts:
+        mujoco["families"] = fam.family_scores(None, work, args.families, args.family_seeds, args.steps, args.zoo)[0]
+        report.update(family_seeds=args.family_seeds)
+    if "idle" in parts:
+        mujoco["idle"] = fam.idle(None, work, args.idle_episodes)
+        report.update(idle_episodes=args.idle_episodes)
+    report["steps"] = args.steps
     for name, ckpt in models.items():
-        r = evaluate(name, ckpt, args, work, mujoco, goals)
-        report["mujoco"]["stable_t"] = r["stable_t_mujoco"]
+        r = report["models"].get(name, {}) if report["models"].get(name, {}).get("checkpoint") == ckpt else {}
+        r["checkpoint"] = ckpt
+        if "core" in parts:
+            r.update(evaluate(name, ckpt, args, work, mujoco, goals))
+            report["mujoco"]["stable_t"] = r["stable_t_mujoco"]
+            print(f"{name}: " + ", ".join(f"{c} {cell(r, k, f)}" for c, k, f, _ in COLUMNS), flush=True)
+        if "families" in parts:
+            r["generalisation"] = generalisation(name, ckpt, args, work, mujoco, seen[name])
+            print(f"{name}: generalisation {r['generalisation']['pooled']}", flush=True)
+        if "idle" in parts:
+            r["idle"] = fam.idle(ckpt, work, args.idle_episodes)
+            print(f"{name}: idle block kept {r['idle']['kept']:.0%}", flush=True)
         report["models"][name] = r
         write_json_atomic(report_path, report)
-        print(f"{name}: " + ", ".join(f"{c} {cell(r, k, f)}" for c, k, f, _ in COLUMNS), flush=True)
     if args.curve:
         curve = [n.strip() for n in args.curve.split(",")]
-        missing = [n for n in curve if n not in report["models"]]
+        missing = [n for n in curve if "t_found" not in report["models"].get(n, {})]
         if missing:
-            p.error(f"--curve names models not evaluated: {', '.join(missing)}")
+            p.error(f"--curve names models without the core part: {', '.join(missing)}")
         scaling_figure(out / "scaling.png", {n: report["models"][n] for n in curve}, report["mujoco"])
     # The strip needs the weights: models evaluated on an earlier machine whose runs are gone drop out of it.
     present = {n: r["checkpoint"] for n, r in report["models"].items() if Path(r["checkpoint"]).is_dir()}
     if len(present) < len(report["models"]):
         print("expert_strip.png leaves out (checkpoint not on this machine): "
               + ", ".join(n for n in report["models"] if n not in present), flush=True)
-    strip(out / "expert_strip.png", [*present.values(), None], RANK_SEED)
+    if "core" in parts:
+        strip(out / "expert_strip.png", [*present.values(), None], RANK_SEED)
     write_text_atomic(out / "results.md", markdown(report, list(present)))
     print((out / "results.md").read_text())
     return 0

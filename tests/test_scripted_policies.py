@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from iwsim.envs.pusht import BimanualPushTEnv
-from iwsim.envs.scripted import ExpertPolicy, make_policy, record_episode, run_scripted
+from iwsim.envs.scripted import PAUSE_STEPS, ExpertPolicy, Hand, make_policy, record_episode, run_scripted
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
 
 
@@ -110,3 +110,48 @@ def test_lagged_expert_executes_noisy_commands_late():
     assert all(0 <= k <= 5 for k in lags) and len(set(lags)) > 1
     again = record_episode("pusht", "expert-lagged", seed=1, steps=12)
     assert np.array_equal(again["action"], record_episode("pusht", "expert-lagged", seed=1, steps=12)["action"])
+
+
+def test_a_hand_passes_lags_pauses_and_overshoots():
+    rng = np.random.default_rng(0)
+    a, b = np.zeros(4), np.full(4, 0.1)
+    plain = Hand(rng, a)
+    assert np.array_equal(plain(b), b)  # every field 0: unchanged
+    slow = Hand(rng, a, lag=4.0)
+    first = slow(b)
+    np.testing.assert_allclose(first, b / 4)  # a quarter of the way
+    for _ in range(40):
+        last = slow(b)
+    np.testing.assert_allclose(last, b, atol=1e-4)
+    pausing = Hand(np.random.default_rng(1), a, pause=0.999)
+    held = [pausing(b + 0.01 * k) for k in range(PAUSE_STEPS[0])]
+    assert all(np.array_equal(h, a) for h in held)  # a pause holds where the hand is
+    over = Hand(rng, a, overshoot=2.0)
+    over(a)
+    np.testing.assert_allclose(over(b), b + 2.0 * b)  # leads the motion by two steps' travel
+
+
+def test_scripted_config_names_the_hand_and_still_holds():
+    cfg = ScriptedConfig("expert", lag=3, pause=0.05, miss=0.05)
+    assert cfg.name == "expert-lag3-pause0.05-miss0.05"
+    with pytest.raises(ValueError, match="miss displaces"):
+        ScriptedConfig("play", miss=0.05)
+    with pytest.raises(ValueError, match="pause must be"):
+        ScriptedConfig("expert", pause=1.0)
+    env = BimanualPushTEnv(64)
+    obs = _batch_obs([env.reset(seed=s)[0] for s in (100000, 100001)])
+    env.close()
+    still = ScriptedBatch("still")
+    for _ in range(3):
+        np.testing.assert_array_equal(still.predict_action(obs)[:, 0], obs["agent_pos"][:, 0])
+    missing = ScriptedBatch(ScriptedConfig("expert", miss=0.05)).predict_action(obs)
+    assert not np.allclose(missing, ScriptedBatch("expert").predict_action(obs))
+
+
+@pytest.mark.parametrize("name", ["play-broad", "expert-hands"])
+def test_broad_play_and_the_hands_expert_are_seeded_and_touch_the_block(name):
+    a = record_episode("pusht", name, seed=5, steps=120)
+    assert all(np.array_equal(a[k], record_episode("pusht", name, seed=5, steps=120)[k]) for k in a)
+    assert not np.array_equal(a["action"], record_episode("pusht", name, seed=6, steps=120)["action"])
+    assert (a["n_contacts"] > 0).mean() >= 0.05
+    assert np.abs(np.diff(a["block_pose"], axis=0)).sum() > 0.02  # the block moved

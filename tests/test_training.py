@@ -321,10 +321,19 @@ def test_the_latent_cache_serves_a_store_that_extends_its_own(play_store, tmp_pa
     calls.clear()
     both = encode_store(codec, EpisodeStore.open(merged), cpu, False, cache, chunk=16)
     assert sum(calls) == 12 and torch.equal(both[:48], base)  # only the new episode's frames are encoded
-    torch.testing.assert_close(both[48:], encode(to_model(EpisodeStore.open(more).array("img")[:])))
+    assert both.dtype == torch.float16  # stored in half precision
+    torch.testing.assert_close(both[48:].float(), encode(to_model(EpisodeStore.open(more).array("img")[:])),
+                               atol=5e-3, rtol=5e-3)
     calls.clear()
     encode_store(codec, EpisodeStore.open(merged), cpu, False, cache, chunk=16)
     assert not calls
+    # latents encoded in bf16 are another cache's: they neither serve nor are served by float32's
+    fast = encode_store(codec, EpisodeStore.open(merged), cpu, False, cache, chunk=16, bf16=True)
+    assert sum(calls) == 60 and (fast.float() - both.float()).abs().max() < 0.2
+    calls.clear()
+    encode_store(codec, EpisodeStore.open(merged), cpu, False, cache, chunk=16)
+    assert sum(calls) == 60
+    calls.clear()
     old_key = f"{EpisodeStore.open(play_store).path}|48|{encoder_key(codec)}"
     save_file({"latents": base.contiguous()}, cache, metadata={"key": old_key})
     assert torch.equal(encode_store(codec, EpisodeStore.open(play_store), cpu, False, cache, chunk=16), base)

@@ -12,6 +12,9 @@ from PIL import Image
 from iwsim.data.collect import collect
 from tests.test_dynamics import tiny_world_model
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from families import FAMILIES  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -53,3 +56,35 @@ def test_wm_strip_shows_a_policy_in_the_model_above_mujoco(tmp_path):
     assert "in the world model" in run.stdout and "in MuJoCo" in run.stdout
     image = Image.open(out)
     assert image.size == (3 * 64, 2 * 64)  # frames 0, 2, 4; rows: the model, MuJoCo
+
+
+@pytest.mark.slow
+def test_yardstick_families_and_idle_run_on_a_tiny_model(play_store, tmp_path):
+    """Item 7: every operator family (the learned one from a tiny policy zoo) in MuJoCo and
+    in a tiny model, the pooled agreement, and the idle measure; no quality asserted."""
+    from iwsim.cli import main as iwsim
+
+    zoo = tmp_path / "dp"
+    assert iwsim(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", f"{play_store}:2",
+                  "--steps", "2", "--out", str(zoo), "--no-progress"]) == 0
+    ckpt = tiny_world_model().save(tmp_path / "wm", {})
+    out = tmp_path / "out"
+    cmd = [sys.executable, str(ROOT / "bench" / "yardstick.py"), "--models", f"tiny={ckpt}",
+           "--parts", "families,idle", "--steps", "4", "--family-seeds", "3", "--idle-episodes", "2",
+           "--zoo", str(zoo), "--trained-on", "tiny=play", "--work", str(tmp_path / "work"), "--out", str(out)]
+    run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    r = json.loads((out / "results.json").read_text())
+    g = r["models"]["tiny"]["generalisation"]
+    assert set(g["families"]) == set(FAMILIES) and g["seen"] == ["play"]
+    for name, row in g["families"].items():
+        assert row["episodes"] == 3 and row["seen"] == (name == "play")
+        assert 0 <= row["mujoco"] <= 1 and 0 <= row["model"] <= 1
+        lo, hi = row["offset_interval"]
+        assert lo <= row["offset"] <= hi
+    assert set(g["pooled"]) == {"all", "unseen"} and -1 <= g["pooled"]["unseen"]["pearson"] <= 1
+    idle = r["models"]["tiny"]["idle"]
+    assert 0 <= idle["kept"] <= 1 and len(idle["fit_per_step"]) == 51
+    assert r["mujoco"]["idle"]["fit_first"] > 0.8  # MuJoCo's own frames fit the T
+    md = (out / "results.md").read_text()
+    assert "## Generalisation" in md and "| tiny |" in md and "| miss |" in md

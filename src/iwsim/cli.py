@@ -147,6 +147,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.add_argument("--decoder", help="take the codec of this world model (a train decoder-finetune run or "
                    "checkpoint; its encoder must be --run's)")
+    p.add_argument("--novelty-data", metavar="STORE", help="the model's training data: fit the trust signal "
+                   "(how unlike this data a step's inputs are) into the checkpoint")
+    p.add_argument("--latent-cache", help="latent cache of --novelty-data (as train dynamics's)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_export_model)
 
     p = sub.add_parser("rollout", help="open-loop rollout of a recorded episode: truth | prediction video")
@@ -558,6 +562,13 @@ def _eval_policy(args: argparse.Namespace) -> int:
     print(f"{args.env}: mean max IoU {result['mean_max_iou']:.3f}; success {result['success_rate']:.2f} "
           f"(Beta posterior mean {post['mean']:.2f}, 95% {post['low']:.2f}-{post['high']:.2f}; "
           f"Clopper-Pearson {lo:.2f}-{hi:.2f}); {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
+    if "novelty" in result:
+        nov = result["novelty"]
+        print(f"trust: mean novelty {nov['mean']:.2f} (about 1 on the model's training data); "
+              f"{100 * nov['above_warn']:.0f}% of episodes above {nov['warn']:g}, where the model's score is "
+              "least to be trusted")
+    elif args.env == "world-model":
+        print("trust: this world model carries no novelty statistics (iwsim export-model --novelty-data adds them)")
     return 0
 
 
@@ -585,9 +596,19 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
 
 
 def _export_model(args: argparse.Namespace) -> int:
-    from iwsim.world_model import export_model
+    from iwsim.checkpoint import resolve_checkpoint
+    from iwsim.world_model import WorldModel, export_model
 
-    path = export_model(args.run, args.out, force=args.force, decoder=args.decoder)
+    novelty = None
+    if args.novelty_data is not None:
+        from pathlib import Path
+
+        from iwsim.world_model.dynamics_data import fit_store_novelty
+
+        cache = Path(args.latent_cache) if args.latent_cache else None
+        novelty = fit_store_novelty(WorldModel.load(resolve_checkpoint(args.run)), args.novelty_data,
+                                    progress=not args.no_progress, cache=cache)
+    path = export_model(args.run, args.out, force=args.force, decoder=args.decoder, novelty=novelty)
     print(path)
     return 0
 

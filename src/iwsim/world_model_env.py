@@ -243,10 +243,13 @@ class WorldModelVectorEnv(VectorEnv):
             return obs, np.zeros(self.num_envs), zeros, zeros.copy(), info
         task = self.task
         self._setpoint = task.executed(self._setpoint, task.check_actions(actions, (self.num_envs, task.action_dim)))
+        novelty = self.model.novelty_of(self.model.state, self._setpoint.astype(np.float32))
         self._frames = self.model.step(self._setpoint.astype(np.float32))
         score, self._agent_pos = task.observe(self._frames, self._setpoint, self._agent_pos)
         self._t += 1
         info = {**self._info(score), "target": self._setpoint.astype(np.float32)}
+        if novelty is not None:  # the trust signal: how unlike the training data this step's inputs are
+            info["novelty"] = novelty
         truncated = np.full(self.num_envs, self._t >= self.max_episode_steps)
         self._needs_reset = bool(truncated.all())
         reward = np.zeros(self.num_envs) if score is None else np.asarray(score, np.float64)

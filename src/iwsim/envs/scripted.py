@@ -205,6 +205,49 @@ class Pinch:
         return np.stack([plan_step(p, t, pose, self.speed) for p, t in zip(pushers, pre)])
 
 
+PAUSE_STEPS = (5, 20)  # a pause of the hand holds its command this many steps (inclusive)
+JITTER_CORRELATION = 0.8  # the tremor's AR(1) coefficient: correlated over ~5 steps
+
+
+class Hand:
+    """A human-like hand between a policy and the robot: ``hand(command) -> command``, one
+    call per step, its randomness from ``rng``, starting at ``start`` (the pushers).
+
+    ``lag``: a slow hand, a first-order low-pass of the commands with that time constant
+    (steps; <= 1: none). ``pause``: the chance per step of holding the command still for
+    :data:`PAUSE_STEPS` steps. ``jitter``: a tremor, stationary AR(1) noise of that std
+    (m), correlated over ~5 steps. ``overshoot``: the hand leads its motion by that many
+    steps (command + overshoot x its last change), so every stop overshoots and comes back.
+    A hand with every field 0 passes commands through unchanged.
+    """
+
+    def __init__(self, rng: np.random.Generator, start: np.ndarray, lag: float = 0.0, pause: float = 0.0,
+                 jitter: float = 0.0, overshoot: float = 0.0) -> None:
+        self.rng, self.lag, self.pause, self.jitter, self.overshoot = rng, lag, pause, jitter, overshoot
+        self.out = np.asarray(start, dtype=np.float64).copy()  # where the hand is (lag's state)
+        self.prev: np.ndarray | None = None  # the previous command (overshoot's velocity)
+        self.held = 0  # steps of the current pause still to hold
+        self.tremor = np.zeros_like(self.out)
+
+    def __call__(self, command: np.ndarray) -> np.ndarray:
+        a = np.asarray(command, dtype=np.float64)
+        if self.overshoot:
+            lead = 0.0 if self.prev is None else self.overshoot * (a - self.prev)
+            self.prev, a = a, a + lead
+        if self.held > 0:
+            self.held -= 1
+            return self.out.copy()
+        if self.pause and self.rng.random() < self.pause:
+            self.held = int(self.rng.integers(PAUSE_STEPS[0], PAUSE_STEPS[1] + 1)) - 1
+            return self.out.copy()
+        self.out = self.out + (a - self.out) / self.lag if self.lag > 1 else a
+        if self.jitter:
+            c = JITTER_CORRELATION
+            self.tremor = c * self.tremor + self.rng.normal(0.0, self.jitter * np.sqrt(1 - c * c), a.shape)
+            return self.out + self.tremor
+        return self.out.copy()
+
+
 class ExpertPolicy:
     """Goal-directed pushing: pinch the stem, carry the block onto the goal pose.
 
@@ -284,7 +327,11 @@ class PlayPolicy:
             self.pinch.speed = self.speed
             self.target_pose = np.array([*rng.uniform(-0.1, 0.1, 2), rng.uniform(-np.pi, np.pi)])
             return
-        self.tasks = []
+        self.tasks = self._solo_tasks(pushers, pose)
+
+    def _solo_tasks(self, pushers: np.ndarray, pose: np.ndarray) -> list[dict]:
+        """Each pusher's task of a solo segment: poke the block (90%) or wander (10%)."""
+        rng, tasks = self.rng, []
         mids = (_OUTLINE + np.roll(_OUTLINE, -1, axis=0)) / 2
         for p in pushers:
             if rng.random() < 0.9:
@@ -295,13 +342,14 @@ class PlayPolicy:
                 a, b = _OUTLINE[e], _OUTLINE[(e + 1) % len(_OUTLINE)]
                 normal = np.array([b[1] - a[1], a[0] - b[0]]) / _EDGE_LENGTHS[e]
                 contact = a + rng.uniform(0.1, 0.9) * (b - a)
-                self.tasks.append({
+                tasks.append({
                     "kind": "poke", "stage": "approach",
                     "pre": contact + normal * (PUSHER_RADIUS + 0.015),
                     "through": contact - normal * rng.uniform(0.02, 0.08),
                 })
             else:
-                self.tasks.append({"kind": "wander", "target": rng.uniform(-WORKSPACE, WORKSPACE, 2)})
+                tasks.append({"kind": "wander", "target": rng.uniform(-WORKSPACE, WORKSPACE, 2)})
+        return tasks
 
     def _solo(self, p: np.ndarray, pose: np.ndarray, task: dict) -> np.ndarray:
         if task["kind"] == "wander":
@@ -319,13 +367,124 @@ class PlayPolicy:
         if self._segment_left <= 0:
             self._new_segment(pushers, pose)
         self._segment_left -= 1
+        return self._command(self._targets(pushers, pose))
+
+    def _targets(self, pushers: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """The segment's pusher targets (2, 2) this step."""
         if self.mode == "pinch":
-            targets = self.pinch(pushers, pose, self.target_pose)
-        else:
-            targets = np.stack([self._solo(p, pose, t) for p, t in zip(pushers, self.tasks)])
+            return self.pinch(pushers, pose, self.target_pose)
+        return np.stack([self._solo(p, pose, t) for p, t in zip(pushers, self.tasks)])
+
+    def _command(self, targets: np.ndarray) -> np.ndarray:
+        """The command (4,) float32 for ``targets``: with the drift, in the workspace."""
         self._drift = 0.9 * self._drift + self.rng.normal(0.0, 0.0007, 4)
-        targets = targets.reshape(4) + self._drift
-        return np.clip(targets, -WORKSPACE, WORKSPACE).astype(np.float32)
+        return np.clip(targets.reshape(4) + self._drift, -WORKSPACE, WORKSPACE).astype(np.float32)
+
+
+class BroadPlayPolicy(PlayPolicy):
+    """Play of the breadth that people and policies show (issue 41), for world-model data.
+
+    Segments of 30-80 steps, each with its own speed (3-16 mm a step) and its own hand
+    (:class:`Hand`: half lag with a time constant of 1.5-5 steps, half start a pause at
+    0.5-3% of steps,
+    half a tremor of 1-5 mm), of one of four kinds: rest (8%: both pushers hold still for
+    5-30 steps), pinch-and-carry (30%: to a random pose, a third of them near the goal;
+    a quarter of the pinches let go of the block part-way), sweeps (12%: each pusher
+    strokes along a line through the block's neighbourhood), or, as :class:`PlayPolicy`,
+    each pusher on its own poking the block or wandering (50%). A hand that overshoots
+    and commands that execute late are left out on purpose: the yardstick holds those
+    families out of training (``bench/families.py``).
+    """
+
+    def reset(self, obs: dict, info: dict) -> None:
+        super().reset(obs, info)
+        self._last_command = np.asarray(obs["agent_pos"], dtype=np.float64).copy()
+        self.hand = Hand(self.rng, self._last_command)
+
+    def _new_segment(self, pushers: np.ndarray, pose: np.ndarray) -> None:
+        rng = self.rng
+        kind = rng.choice(["rest", "pinch", "sweep", "solo"], p=[0.08, 0.30, 0.12, 0.50])
+        self._segment_left = int(rng.integers(30, 81))
+        self.speed = float(rng.uniform(0.003, 0.016))
+        self.pinch.speed = self.speed
+        self.hand = Hand(rng, self._last_command, lag=float(rng.uniform(1.5, 5.0)) if rng.random() < 0.5 else 0.0,
+                         pause=float(rng.uniform(0.005, 0.03)) if rng.random() < 0.5 else 0.0,
+                         jitter=float(rng.uniform(0.001, 0.005)) if rng.random() < 0.5 else 0.0)
+        self._release = None
+        if kind == "rest":
+            self.mode, self._segment_left, self._rest = "rest", int(rng.integers(5, 31)), pushers.copy()
+        elif kind == "pinch":
+            self.mode = "pinch"
+            self.pinch.reset()
+            if rng.random() < 1 / 3:  # near the goal: carries that arrive, overshoot or arrive turned
+                self.target_pose = GOAL_POSE + np.array([*rng.normal(0.0, 0.03, 2), rng.normal(0.0, 0.5)])
+            else:
+                self.target_pose = np.array([*rng.uniform(-0.1, 0.1, 2), rng.uniform(-np.pi, np.pi)])
+            if rng.random() < 0.25:
+                self._release = int(rng.integers(5, max(6, self._segment_left)))
+        elif kind == "sweep":
+            self.mode = "solo"
+            self.tasks = []
+            for _ in pushers:
+                through = pose[:2] + rng.normal(0.0, 0.03, 2)
+                angle = rng.uniform(-np.pi, np.pi)
+                half = rng.uniform(0.06, 0.12) * np.array([np.cos(angle), np.sin(angle)])
+                self.tasks.append({"kind": "sweep", "stage": "approach",
+                                   "start": np.clip(through - half, -WORKSPACE, WORKSPACE),
+                                   "end": np.clip(through + half, -WORKSPACE, WORKSPACE)})
+        else:
+            self.mode, self.tasks = "solo", self._solo_tasks(pushers, pose)
+
+    def _solo(self, p: np.ndarray, pose: np.ndarray, task: dict) -> np.ndarray:
+        if task["kind"] != "sweep":
+            return super()._solo(p, pose, task)
+        if task["stage"] == "approach":
+            if np.linalg.norm(p - task["start"]) > 0.005:
+                return plan_step(p, task["start"], pose, max(self.speed, 0.8 * MAX_STEP))
+            task["stage"] = "stroke"
+        return _advance(p, task["end"], self.speed)
+
+    def _targets(self, pushers: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        if self.mode == "rest":
+            return self._rest
+        targets = super()._targets(pushers, pose)
+        if self.mode == "pinch" and self._release is not None:
+            self._release -= 1
+            if self._release < 0:  # let go: open the grip outwards, away from the block
+                away = pushers - pose[:2]
+                away /= np.maximum(np.linalg.norm(away, axis=1, keepdims=True), 1e-9)
+                return pushers + 0.03 * away
+        return targets
+
+    def _command(self, targets: np.ndarray) -> np.ndarray:
+        targets = targets.reshape(4)
+        if self.mode != "rest":  # the drift goes through the hand: a rest or a pause holds still
+            self._drift = 0.9 * self._drift + self.rng.normal(0.0, 0.0007, 4)
+            targets = targets + self._drift
+        self._last_command = np.clip(self.hand(targets), -WORKSPACE, WORKSPACE)
+        return self._last_command.astype(np.float32)
+
+
+class HandExpertPolicy(ExpertPolicy):
+    """The noisy expert (:class:`NoisyExpertPolicy`'s smooth command noise of 0-12 mm)
+    through a person's hand drawn per episode (:class:`Hand`: half of them slow, time
+    constant 1.5-4 steps; half starting a pause at 0.5-3% of steps), for world-model data of goal-directed
+    contact as people perform it. No overshoot and no latency (held out, see
+    :class:`BroadPlayPolicy`)."""
+
+    def __init__(self, seed: int) -> None:
+        super().__init__()
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, obs: dict, info: dict) -> None:
+        super().reset(obs, info)
+        rng = self.rng
+        self.hand = Hand(rng, obs["agent_pos"], lag=float(rng.uniform(1.5, 4.0)) if rng.random() < 0.5 else 0.0,
+                         pause=float(rng.uniform(0.005, 0.03)) if rng.random() < 0.5 else 0.0,
+                         jitter=float(rng.uniform(0.0, NoisyExpertPolicy.MAX_NOISE)))
+
+    def __call__(self, obs: dict, info: dict) -> np.ndarray:
+        return np.clip(self.hand(super().__call__(obs, info)), -WORKSPACE, WORKSPACE).astype(np.float32)
 
 
 class NoisyExpertPolicy(ExpertPolicy):
@@ -371,15 +530,21 @@ class LaggedExpertPolicy(NoisyExpertPolicy):
 
 
 def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
-    """A scripted policy by name: ``play`` (randomised by ``seed``), ``expert``
-    (deterministic, block pose from state), ``expert-noisy`` (the expert with command
-    noise drawn from ``seed``) or ``expert-lagged`` (that, executed 0-5 steps late)."""
+    """A scripted policy by name: ``play`` (randomised by ``seed``), ``play-broad`` (play
+    of a person's and a policy's breadth), ``expert`` (deterministic, block pose from
+    state), ``expert-noisy`` (the expert with command noise drawn from ``seed``),
+    ``expert-lagged`` (that, executed 0-5 steps late) or ``expert-hands`` (that, through a
+    person's slow or pausing hand)."""
     if name not in POLICIES:
         raise InputError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
     if name == "expert":
         return ExpertPolicy()
     if name == "expert-lagged":
         return LaggedExpertPolicy(seed)
+    if name == "expert-hands":
+        return HandExpertPolicy(seed)
+    if name == "play-broad":
+        return BroadPlayPolicy(seed)
     return NoisyExpertPolicy(seed) if name == "expert-noisy" else PlayPolicy(seed)
 
 

@@ -37,6 +37,9 @@ from iwsim.world_model_env import WorldModelVectorEnv, score_key
 PUSHT = get_task("pusht")
 
 ENVS = ("pusht", "world-model")
+# An episode whose mean novelty is above this strays from what the model can vouch for
+# (about 1 for steps like the training data's; set from the yardstick, bench/families.py).
+NOVELTY_WARN = 2.0
 
 
 def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int = 64,
@@ -77,7 +80,8 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
     ``frames`` (E', T + 1, H, W, 3) of the first ``record`` episodes; step t's action
     follows frame t. T = ``steps``, or fewer when ``stop(obs)``, called with each step's
     new observations, returns True. ``start``: MuJoCo's initial-state distribution
-    (:func:`make_vector_env`)."""
+    (:func:`make_vector_env`). ``novelty`` (E, T): in a world model with a trust signal, how
+    unlike its training data each step's inputs are (:mod:`iwsim.world_model.novelty`), else None."""
     venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size, start=start)
     task = env_task(venv, env)
     key = score_key(task)
@@ -93,6 +97,7 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
         iou = info[key]
         history: deque[dict[str, np.ndarray]] = deque([obs] * policy.obs_horizon, maxlen=policy.obs_horizon)
         ious, frames, positions, actions, targets = [iou], [obs["pixels"][:record]], [obs["agent_pos"]], [], []
+        novelty: list[np.ndarray] = []
         policy.reset()
         queue: list[np.ndarray] = []
         bar = tqdm(total=steps, desc=f"eval in {env}", unit="step", disable=not progress)
@@ -110,6 +115,8 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
             frames.append(obs["pixels"][:record])
             positions.append(obs["agent_pos"])
             targets.append(info["target"])
+            if "novelty" in info:
+                novelty.append(info["novelty"])
             bar.update()
             if stop is not None and stop(obs):
                 break
@@ -121,7 +128,7 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
             "task": task.name, "success_score": task.success_score,
             "frames": np.stack(frames, 1) if record else None,
             "agent_pos": np.stack(positions, 1), "action": np.stack(actions, 1), "target": np.stack(targets, 1),
-            "seconds": seconds}
+            "novelty": np.stack(novelty, 1) if novelty else None, "seconds": seconds}
 
 
 def summarize(max_iou: np.ndarray, seeds: list[int], success_score: float = PUSHT.success_score) -> dict[str, Any]:
@@ -137,6 +144,17 @@ def summarize(max_iou: np.ndarray, seeds: list[int], success_score: float = PUSH
         "success_beta_posterior": beta_posterior(k, n),
         "success_clopper_pearson": list(clopper_pearson(k, n)),
     }
+
+
+def trust(novelty: np.ndarray | None) -> dict[str, Any]:
+    """The trust signal of a world-model evaluation (``rollout``'s ``novelty`` (E, T)):
+    each episode's mean novelty and their mean, the share of episodes above
+    :data:`NOVELTY_WARN`; nothing for MuJoCo or a model without one."""
+    if novelty is None:
+        return {}
+    per_episode = novelty.mean(1)
+    return {"novelty": {"per_episode": np.round(per_episode, 3).tolist(), "mean": float(per_episode.mean()),
+                        "above_warn": float((per_episode > NOVELTY_WARN).mean()), "warn": NOVELTY_WARN}}
 
 
 def no_score(seeds: list[int]) -> dict[str, Any]:
@@ -171,7 +189,7 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
                   record=min(videos, episodes) if out is not None else 0, progress=progress)
     result = {"env": env, "steps": steps, **(meta or {}), "task": run["task"], "scorer": run["scorer"],
               **(no_score(seeds) if run["iou"] is None else summarize(run["iou"].max(1), seeds, run["success_score"])),
-              "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
+              **trust(run["novelty"]), "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

@@ -27,7 +27,7 @@ from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.config import from_dict, to_dict
 from iwsim.data.lock import DirLock, LockedError
 from iwsim.errors import InputError
-from iwsim.eval.policy import rollout, summarize
+from iwsim.eval.policy import rollout, summarize, trust
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class, load_policy
 from iwsim.policies.data import Source
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
@@ -212,8 +212,8 @@ def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps
     wm = WorldModel.load(world_model) if env == "world-model" else None
     image_size = wm.image_size if wm is not None else getattr(policy, "image_size", 64)
     run = rollout(policy, env, seeds, steps, world_model=wm, image_size=image_size, progress=progress)
-    result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds), "seconds": run["seconds"],
-              "iou_per_step": np.round(run["iou"], 4).tolist()}
+    result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds), **trust(run["novelty"]),
+              "seconds": run["seconds"], "iou_per_step": np.round(run["iou"], 4).tolist()}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(path, result, sort_keys=False)
     return result

@@ -12,7 +12,15 @@ estimated from the pixels (``pose_source="pixels"``), so a scripted policy behav
 same in MuJoCo and inside a world model. Degradations, for policies of graded skill:
 ``noise`` adds Gaussian noise (metres, per coordinate) to every command, ``latency``
 executes each command that many steps late (holding the pushers' first positions until
-then). Noise is seeded per episode index, so results do not depend on the batch size.
+then). A human-like hand (:class:`iwsim.envs.scripted.Hand`) between the policy and the robot: ``lag`` (a
+slow hand that follows the policy's commands with that time constant, in steps),
+``pause`` (the chance per step of holding the command still for 5-20 steps),
+``jitter`` (a tremor: smooth noise of that std, correlated over ~5 steps) and
+``overshoot`` (a hand that leads its motion by that many steps, so every stop overshoots
+and comes back); ``miss`` aims the expert at a block displaced by that many metres in a
+direction (and turned by an angle) drawn per episode: expert-like motions that miss.
+The ``still`` policy holds the pushers where they start. All draws are seeded per episode
+index, so results do not depend on the batch size.
 """
 
 from __future__ import annotations
@@ -24,10 +32,10 @@ import numpy as np
 
 from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import WORKSPACE
-from iwsim.envs.scripted import ExpertPolicy, PlayPolicy, ScriptedPolicy
+from iwsim.envs.scripted import ExpertPolicy, Hand, PlayPolicy, ScriptedPolicy
 from iwsim.errors import InputError
 
-KINDS = ("expert", "play")
+KINDS = ("expert", "play", "still")
 
 
 @dataclass(frozen=True)
@@ -36,20 +44,44 @@ class ScriptedConfig:
     noise: float = 0.0  # std of Gaussian noise on each command (m)
     latency: int = 0  # commands execute this many steps late
     seed: int = 0  # episode i draws its noise (and the play policy its choices) from seed + i
+    lag: float = 0.0  # a slow hand: time constant (steps) of the low-pass its commands go through; <= 1: none
+    pause: float = 0.0  # chance per step that the hand holds its command for 5-20 steps
+    jitter: float = 0.0  # tremor: std (m) of smooth AR(1) noise on every command
+    overshoot: float = 0.0  # the hand leads its motion by this many steps (each stop overshoots)
+    miss: float = 0.0  # the expert aims at a block displaced by this much (m) and turned (per episode)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise InputError(f"unknown scripted policy {self.kind!r}; expected one of {', '.join(KINDS)}.")
-        if not (np.isfinite(self.noise) and self.noise >= 0):
-            raise InputError(f"noise must be a finite number >= 0, got {self.noise}.")
+        for name in ("noise", "lag", "jitter", "overshoot", "miss"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise InputError(f"{name} must be a finite number >= 0, got {v}.")
+        if not 0 <= self.pause < 1:
+            raise InputError(f"pause must be a chance per step in [0, 1), got {self.pause}.")
         if self.latency < 0:
             raise InputError(f"latency must be 0 or more steps, got {self.latency}.")
+        if self.miss and self.kind != "expert":
+            raise InputError(f"miss displaces the expert's aim; the {self.kind!r} policy has none.")
 
     @property
     def name(self) -> str:
-        parts = [self.kind] + ([f"noise{self.noise:g}"] if self.noise else []) + (
-            [f"latency{self.latency}"] if self.latency else [])
+        parts = [self.kind] + [f"{k}{getattr(self, k):g}" for k in ("noise", "latency", "lag", "pause", "jitter",
+                                                                    "overshoot", "miss") if getattr(self, k)]
         return "-".join(parts)
+
+
+class _MissingExpert(ExpertPolicy):
+    """The pixel expert aiming at a block displaced by ``offset`` (x, y, yaw) from where it
+    sees it: the expert's kind of motion, not aimed at where the block is."""
+
+    def __init__(self, offset: np.ndarray) -> None:
+        super().__init__(pose_source="pixels")
+        self.offset = offset
+
+    def block_pose(self, obs: dict, info: dict) -> np.ndarray | None:
+        pose = super().block_pose(obs, info)
+        return None if pose is None else pose + self.offset
 
 
 class _PixelPose:
@@ -73,6 +105,16 @@ class _PixelPose:
         return self.policy(obs, self._info(obs))
 
 
+class _Still:
+    """Holds the pushers where they start."""
+
+    def reset(self, obs: dict, info: dict) -> None:
+        self.start = np.asarray(obs["agent_pos"], dtype=np.float32).copy()
+
+    def __call__(self, obs: dict, info: dict) -> np.ndarray:
+        return self.start
+
+
 class ScriptedBatch:
     """B scripted episodes as one policy with ``obs_horizon = 1`` and one action per call."""
 
@@ -84,13 +126,19 @@ class ScriptedBatch:
         self.cfg = ScriptedConfig(cfg, **overrides) if isinstance(cfg, str) else cfg
         self.reset()
 
-    def _make(self, i: int) -> ScriptedPolicy:
+    def _make(self, i: int, rng: np.random.Generator) -> ScriptedPolicy:
+        if self.cfg.kind == "still":
+            return _Still()
+        if self.cfg.kind == "expert" and self.cfg.miss:
+            angle = rng.uniform(-np.pi, np.pi)
+            return _MissingExpert(np.array([self.cfg.miss * np.cos(angle), self.cfg.miss * np.sin(angle),
+                                            rng.uniform(-np.pi / 2, np.pi / 2)]))
         if self.cfg.kind == "expert":
             return ExpertPolicy(pose_source="pixels")
         return _PixelPose(PlayPolicy(self.cfg.seed + i))
 
     def reset(self) -> None:
-        self._episodes: list[tuple[ScriptedPolicy, np.random.Generator, deque]] | None = None
+        self._episodes: list[tuple[ScriptedPolicy, np.random.Generator, deque, Hand]] | None = None
 
     def predict_action(self, obs: dict) -> np.ndarray:
         """obs: image (B, 1, H, W, 3) uint8 and agent_pos (B, 1, 4) -> actions (B, 1, 4) float32."""
@@ -104,13 +152,17 @@ class ScriptedBatch:
         if self._episodes is None:
             self._episodes = []
             for i, o in enumerate(now):
-                policy = self._make(i)
+                rng = np.random.default_rng([self.cfg.seed, i])
+                hand_rng = np.random.default_rng([self.cfg.seed, i, 1])  # the noise's draws stay as they were
+                policy = self._make(i, hand_rng)
                 policy.reset(o, {})
                 held = deque([o["agent_pos"].copy()] * self.cfg.latency, maxlen=self.cfg.latency + 1)
-                self._episodes.append((policy, np.random.default_rng([self.cfg.seed, i]), held))
+                hand = Hand(hand_rng, o["agent_pos"], lag=self.cfg.lag, pause=self.cfg.pause, jitter=self.cfg.jitter,
+                            overshoot=self.cfg.overshoot)
+                self._episodes.append((policy, rng, held, hand))
         actions = []
-        for o, (policy, rng, queue) in zip(now, self._episodes):
-            a = np.asarray(policy(o, {}), dtype=np.float64)
+        for o, (policy, rng, queue, hand) in zip(now, self._episodes):
+            a = hand(np.asarray(policy(o, {}), dtype=np.float64))
             if self.cfg.noise:
                 a = a + rng.normal(0.0, self.cfg.noise, a.shape)
             queue.append(np.clip(a, -WORKSPACE, WORKSPACE).astype(np.float32))

@@ -64,4 +64,8 @@ class Denoiser:
             steps = self.cfg.euler_steps if self.cfg.objective == "edm" else self.cfg.jumps
         y = self.objective.sample(self._net(context, context_sigma, actions), self.schedule, noise, steps)
         base = self._base(context)
-        return y if base is None else base + y
+        if base is None:
+            return y
+        if self.cfg.delta_deadband > 0:  # a cell's change under the deadband is no change
+            y = y * (y.abs().amax(1, keepdim=True) > self.cfg.delta_deadband)
+        return base + y

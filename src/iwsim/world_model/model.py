@@ -62,6 +62,7 @@ from iwsim.world_model.codec import Codec
 from iwsim.world_model.codecs import WM_KIND, build_codec, codec_class, world_model_codec
 from iwsim.world_model.denoiser import Denoiser
 from iwsim.world_model.dynamics import Dynamics
+from iwsim.world_model.novelty import Novelty
 from iwsim.world_model.presets import OBJECTIVES, DynamicsStageConfig
 
 KIND = WM_KIND
@@ -141,6 +142,9 @@ class WorldModel(nn.Module):
         # labelled with (standardised latent units).
         self.jumps, self.euler_steps, self.context_label = cfg.jumps, cfg.euler_steps, cfg.context_label
         self.reencode = False
+        # The trust signal (iwsim.world_model.novelty): the Gaussian of the training data's
+        # step inputs, when the checkpoint carries one (iwsim export-model --novelty-data).
+        self.novelty: Novelty | None = None
         self._state: StreamState | None = None
         # The robot task (iwsim.envs.task.Task) the checkpoint records, set by load; None
         # for a model built in code (its callers then take iwsim.tasks.task_of's default).
@@ -313,6 +317,17 @@ class WorldModel(nn.Module):
         return self.reset_state_latents(self.encode(x.flatten(0, 1)).unflatten(0, (b, k)), a, seed)
 
     @torch.inference_mode()
+    def novelty_of(self, state: StreamState, actions: np.ndarray | torch.Tensor) -> np.ndarray | None:
+        """How unlike the training data the step that ``actions`` (B, A), in the data's
+        units, takes from ``state`` is (:mod:`iwsim.world_model.novelty`): (B,), or None
+        for a model without novelty statistics."""
+        if self.novelty is None:
+            return None
+        a = self.normalize_actions(actions, state.batch_size)
+        prev = torch.where(state.known[:, None], state.action, a)
+        return self.novelty(state.context[:, -1], prev, a).cpu().numpy()
+
+    @torch.inference_mode()
     def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor) -> tuple[StreamState, np.ndarray]:
         """Actions (B, A) in the data's units -> the next state and frames, uint8 (B, H, W, 3)."""
         state, images = self.step_state_images(state, self.normalize_actions(actions, state.batch_size))
@@ -399,6 +414,7 @@ class WorldModel(nn.Module):
         """The tensors of a world-model ``model.safetensors``."""
         return {**{f"codec.{k}": v for k, v in self.codec.state_dict().items()},
                 **{f"dynamics.{k}": v for k, v in self.dynamics.state_dict().items()},
+                **({} if self.novelty is None else {f"novelty.{k}": v for k, v in self.novelty.state_dict().items()}),
                 "latent_mean": self.latent_mean}
 
     def describe(self) -> dict:
@@ -449,6 +465,9 @@ class WorldModel(nn.Module):
                                   f"{' '.join(str(e).split())[:200]}") from None
         norm = config["action_norm"]
         wm = cls(codec, dyn, cfg, norm["low"], norm["high"], tensors["latent_mean"], config["latent_norm"]["scale"])
+        if "novelty.mean" in tensors:
+            wm.novelty = Novelty(tensors["novelty.mean"].shape[0])
+            wm.novelty.load_state_dict({k[len("novelty."):]: v for k, v in tensors.items() if k.startswith("novelty.")})
         wm.task = task_from_config(config, path / "config.json")
         if wm.task.action_dim != wm.action_dim:
             raise CheckpointError(f"{path / 'config.json'}: its task {wm.task.name!r} takes {wm.task.action_dim}-D "
@@ -456,14 +475,17 @@ class WorldModel(nn.Module):
         return wm.to(device).eval()
 
 
-def export_model(run: str | Path, out: str | Path, force: bool = False, decoder: str | Path | None = None) -> Path:
+def export_model(run: str | Path, out: str | Path, force: bool = False, decoder: str | Path | None = None,
+                 novelty: Novelty | None = None) -> Path:
     """A standalone world-model checkpoint (``model.safetensors`` + ``config.json``) from a
     run of ``train dynamics`` or ``train decoder-finetune`` (its last checkpoint) or from
     one of its checkpoints (``iwsim export-model``).
 
     With ``decoder`` (another world model whose codec has the same encoder weights, e.g. a
     ``train decoder-finetune`` run), the checkpoint takes that model's codec: its latents
-    are the ones the dynamics was trained on, only their rendering differs."""
+    are the ones the dynamics was trained on, only their rendering differs. With ``novelty``
+    (:func:`iwsim.world_model.dynamics_data.fit_store_novelty` of the training data) the
+    checkpoint carries that trust signal instead of the run's."""
     src = resolve_checkpoint(run)
     config = load_json(src / "config.json")
     provenance = {k: config[k] for k in ("data", "ae_checkpoint", "finetuned_from") if k in config}
@@ -477,8 +499,10 @@ def export_model(run: str | Path, out: str | Path, force: bool = False, decoder:
         if not same:
             raise InputError(f"{dec_src}'s codec encodes differently from {src}'s (other encoder weights); "
                              "its decoder renders other latents.")
-        task = wm.task
+        task, novelty = wm.task, wm.novelty
         wm = WorldModel(codec, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean, wm.latent_scale)
-        wm.task = task
+        wm.task, wm.novelty = task, novelty
         provenance["decoder"] = str(dec_src)
+    if novelty is not None:
+        wm.novelty = novelty
     return wm.save(out, {"provenance": {"source": str(src), **provenance}}, force)

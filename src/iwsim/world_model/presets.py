@@ -112,6 +112,10 @@ class DynamicsStageConfig:
     unroll_grad_every: int = 0  # with unroll_grad, cut it every this many predictions (0: never; TBPTT)
     changed_weight: float = 4.0  # extra loss weight on latent cells that change (1 + this)
     changed_threshold: float = 0.1  # a cell changes when a channel moves by more (standardised)
+    # Inference (predict_delta): a predicted change whose largest channel in a cell stays
+    # under this (standardised units) is taken as no change, so that what nothing touches
+    # cannot creep by a small systematic change each step (the idle drift, issue 41). 0: off.
+    delta_deadband: float = 0.0
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
     holdout_every: int = 20
     eval_episodes: int = 4  # held-out episodes rolled out open-loop at each evaluation

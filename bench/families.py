@@ -1,0 +1,195 @@
+"""The yardstick's generalisation part (issue 41): operator families scored in MuJoCo and in
+a world model from the same first states, and the idle measure.
+
+A family is a kind of operator: the pixel expert, the expert through a human-like hand
+(:class:`iwsim.policies.scripted.Hand`: a slow lagging hand, a person's pauses, a tremor,
+latency, a hand that overshoots, and a person who does all of that a little), expert-like
+motions aimed at a displaced block (they miss), random pushing (the play policy), pushers
+held still, and learned policies (a zoo of Diffusion Policy / ACT checkpoints, the
+episodes shared round-robin among them). Every family runs from the same first states
+(MuJoCo seeds from :data:`SEED`, never used for training or by the studies) for the same
+steps in both environments; an episode's score is its max pixel IoU.
+
+A family is *seen* by a model when its kind of motion was in the model's training data
+(:data:`TRAINING_FAMILIES`: which families each collected policy covers); targets count
+only the unseen ones.
+
+The idle measure: from fresh MuJoCo starts the pushers are held still; in each frame of the
+model the T is fitted (:func:`iwsim.envs.pixels.estimate_block_pose`) and compared with
+MuJoCo's frame of the same step. A frame keeps the block when the T fits crisply (fit >=
+:data:`CRISP`) and in place (<= 1 px, <= 5 degrees).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.stats import spearmanr
+
+from iwsim.checkpoint import load_json, write_json_atomic
+from iwsim.envs import pixels
+from iwsim.eval.policy import rollout
+from iwsim.eval.ranking import agreement
+from iwsim.experiments.common import evaluate_policies, fingerprint
+from iwsim.experiments.policy_eval import mean_interval
+from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
+from iwsim.world_model import WorldModel
+
+SEED = 700000  # first states of the families: MuJoCo seeds SEED, SEED + 1, ...
+LEARNED = "learned"
+FAMILIES: dict[str, tuple[ScriptedConfig | None, str]] = {
+    "expert": (ScriptedConfig("expert"), "the pixel expert"),
+    "person": (ScriptedConfig("expert", lag=2, pause=0.03, jitter=0.003),
+               "the expert through a person's hand: a little slow, pausing now and then, a slight tremor"),
+    "lag3": (ScriptedConfig("expert", lag=3), "a slow hand (time constant 3 steps)"),
+    "lag6": (ScriptedConfig("expert", lag=6), "a slower hand (6 steps)"),
+    "pause": (ScriptedConfig("expert", pause=0.05), "pauses: the command held 5-20 steps, 5% a step"),
+    "jitter": (ScriptedConfig("expert", jitter=0.006), "a tremor of 6 mm (correlated over ~5 steps)"),
+    "latency3": (ScriptedConfig("expert", latency=3), "commands executed 3 steps late"),
+    "overshoot": (ScriptedConfig("expert", overshoot=2), "a hand leading its motion by 2 steps (overshoots)"),
+    "miss": (ScriptedConfig("expert", miss=0.05), "expert-like motions aimed 5 cm (and a turn) off the block"),
+    "play": (ScriptedConfig("play"), "random pushing (the play policy)"),
+    "still": (ScriptedConfig("still"), "the pushers held still"),
+    LEARNED: (None, "learned policies: the zoo's checkpoints, round-robin over the episodes"),
+}
+# The families whose kind of motion each collected policy (``iwsim collect --policy``) puts
+# in a world model's training data.
+TRAINING_FAMILIES: dict[str, tuple[str, ...]] = {
+    "play": ("play",),
+    "expert-noisy": ("expert", "jitter"),  # the expert with smooth command noise of 0-12 mm
+    "expert-lagged": ("expert", "jitter", "latency3"),
+}
+IDLE_STEPS = 50
+CRISP = 0.9  # a T fits crisply (the codec's reconstructions of first frames fit ~0.92)
+IN_PLACE_PX, IN_PLACE_DEG = 1.0, 5.0
+
+
+def seen_families(policies: list[str]) -> list[str]:
+    """The families covered by training data collected with ``policies``."""
+    unknown = [p for p in policies if p not in TRAINING_FAMILIES]
+    if unknown:
+        raise ValueError(f"unknown training policies {unknown}; known: {', '.join(TRAINING_FAMILIES)}.")
+    return sorted({f for p in policies for f in TRAINING_FAMILIES[p]})
+
+
+def zoo_sources(zoo: list[str]) -> list[str]:
+    """Policy checkpoint directories of the learned family (``--zoo`` entries, each a
+    checkpoint or a run whose ``checkpoints/<step>`` are all taken)."""
+    out = []
+    for entry in zoo:
+        path = Path(entry)
+        steps = sorted((d for d in (path / "checkpoints").iterdir() if d.name.isdigit()), key=lambda d: int(d.name)) \
+            if (path / "checkpoints").is_dir() else [path]
+        out += [str(d) for d in steps]
+    return out
+
+
+def family_scores(model: str | None, work: Path, families: list[str], seeds: int, steps: int,
+                  zoo: list[str]) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+    """Per family, the max IoU of each episode (``seeds`` of them) in MuJoCo (``model``
+    None) or in the world model ``model``, and (for a model with a trust signal) each
+    episode's novelty; cached under ``work`` by
+    :func:`iwsim.experiments.common.evaluate_policies`."""
+    env = "pusht" if model is None else "world-model"
+    all_seeds = [SEED + i for i in range(seeds)]
+    sources: dict[str, Any] = {f: FAMILIES[f][0] for f in families if f != LEARNED}
+    results = evaluate_policies(sources, env, seeds=all_seeds, steps=steps, world_model=model,
+                                out=work / "families", progress=False)
+    out = {f: [e["max_iou"] for e in r["episodes"]] for f, r in results.items()}
+    novelty = {f: r["novelty"]["per_episode"] for f, r in results.items() if "novelty" in r}
+    if LEARNED in families:
+        policies = zoo_sources(zoo)
+        if not policies:
+            raise ValueError("the learned family needs policy checkpoints: pass --zoo RUN_OR_CHECKPOINT ...")
+        scores, nov = np.zeros(seeds), np.zeros(seeds)
+        for k, path in enumerate(policies):
+            mine = all_seeds[k::len(policies)]
+            if not mine:
+                continue
+            name = f"{LEARNED}-{Path(path).parent.parent.name}-{Path(path).name}"
+            r = evaluate_policies({name: path}, env, seeds=mine, steps=steps, world_model=model,
+                                  out=work / "families", progress=False)[name]
+            scores[k::len(policies)] = [e["max_iou"] for e in r["episodes"]]
+            if "novelty" in r:
+                nov[k::len(policies)] = r["novelty"]["per_episode"]
+        out[LEARNED] = scores.tolist()
+        if novelty:
+            novelty[LEARNED] = nov.tolist()
+    return {f: out[f] for f in families}, {f: novelty[f] for f in families if f in novelty}
+
+
+def compare(mujoco: dict[str, list[float]], model: dict[str, list[float]], seen: list[str],
+            novelty: dict[str, list[float]] | None = None) -> dict[str, Any]:
+    """Per family: the mean max IoU in both, the offset (model - MuJoCo) with a 95% bootstrap
+    interval over episodes, and whether the family is seen; pooled Pearson r, Spearman rho
+    and MMRV over all (family, episode) pairs and over the unseen families' alone. With
+    ``novelty`` (each episode's, per family): how well it ranks the episodes by their error
+    |model - MuJoCo| (Spearman rho over all episodes), and each family's mean."""
+    rows = {}
+    for f in model:
+        a, b = np.asarray(mujoco[f]), np.asarray(model[f])
+        rows[f] = {"mujoco": float(a.mean()), "model": float(b.mean()), "offset": float((b - a).mean()),
+                   "offset_interval": list(mean_interval(b - a)), "seen": f in seen, "episodes": len(a)}
+    pooled = {}
+    for part, fams in (("all", list(model)), ("unseen", [f for f in model if f not in seen])):
+        if not fams:
+            continue
+        a = np.concatenate([mujoco[f] for f in fams])
+        b = np.concatenate([model[f] for f in fams])
+        agree = agreement(a.tolist(), b.tolist(), ("MuJoCo", "model"))
+        pooled[part] = {"pearson": agree["pearson"], "spearman": agree["spearman"], "mmrv": agree["mmrv"],
+                        "max_abs_offset": max(abs(rows[f]["offset"]) for f in fams), "families": fams}
+    out: dict[str, Any] = {"families": rows, "pooled": pooled}
+    if novelty and set(novelty) == set(model):
+        err = np.concatenate([np.abs(np.asarray(model[f]) - np.asarray(mujoco[f])) for f in model])
+        nov = np.concatenate([novelty[f] for f in model])
+        for f in model:
+            rows[f]["novelty"] = float(np.mean(novelty[f]))
+        out["trust"] = {"spearman_error": float(spearmanr(nov, err)[0]) if np.ptp(nov) > 0 and np.ptp(err) > 0
+                        else None, "episodes": len(err)}
+    return out
+
+
+def block_state(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame (..., H, W, 3): the fitted T's pose (..., 3) (NaN where none) and fit (...)."""
+    flat = frames.reshape(-1, *frames.shape[-3:])
+    est = [pixels.estimate_block_pose(f) for f in flat]
+    pose = np.stack([e.pose for e in est]).reshape(*frames.shape[:-3], 3)
+    fit = np.array([e.fit_iou for e in est]).reshape(frames.shape[:-3])
+    return pose, fit
+
+
+def idle(model: str | None, work: Path, episodes: int, steps: int = IDLE_STEPS) -> dict[str, Any]:
+    """Pushers held still for ``steps`` from ``episodes`` fresh starts: the T's fit per
+    step (mean over episodes) and, against MuJoCo's frames, the share of frames that keep
+    the block (crisp and in place). Cached under ``work``."""
+    key = {"model": model and fingerprint(model), "episodes": episodes, "steps": steps}
+    cached = work / "idle" / f"{'mujoco' if model is None else fingerprint(model)}.json"
+    if cached.is_file() and (saved := load_json(cached))["key"] == key:
+        return saved["result"]
+    seeds = [SEED + i for i in range(episodes)]
+
+    def run(wm: WorldModel | None) -> np.ndarray:
+        return rollout(ScriptedBatch("still"), "pusht" if wm is None else "world-model", seeds, steps,
+                       world_model=wm, record=episodes, progress=False)["frames"]
+
+    torch.manual_seed(0)
+    truth = block_state(run(None)) if model is not None else None
+    pose, fit = block_state(run(None if model is None else WorldModel.load(model)))
+    result: dict[str, Any] = {"fit_per_step": np.nanmean(fit, 0).round(4).tolist(),
+                              "fit_first": float(np.mean(fit[:, 0]))}
+    for s in (10, 20, steps):
+        result[f"fit_{s}"] = float(np.mean(fit[:, min(s, steps)]))
+    if truth is not None:
+        ref_pose, _ = truth
+        size = WorldModel.load(model).image_size
+        shift_px = np.linalg.norm(pose[..., :2] - ref_pose[..., :2], axis=-1) / (2 * pixels.VIEW_HALF) * size
+        turn = np.degrees(np.abs((pose[..., 2] - ref_pose[..., 2] + np.pi) % (2 * np.pi) - np.pi))
+        kept = (fit >= CRISP) & (shift_px <= IN_PLACE_PX) & (turn <= IN_PLACE_DEG)  # NaN compares False
+        result.update(kept=float(kept[:, 1:].mean()), kept_per_step=kept.mean(0).round(3).tolist())
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(cached, {"key": key, "result": result})
+    return result
