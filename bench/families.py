@@ -61,6 +61,10 @@ TRAINING_FAMILIES: dict[str, tuple[str, ...]] = {
     "play": ("play",),
     "expert-noisy": ("expert", "jitter"),  # the expert with smooth command noise of 0-12 mm
     "expert-lagged": ("expert", "jitter", "latency3"),
+    # rests, pauses, slow hands (time constants 1.5-5 steps) and tremors over random pushing
+    "play-broad": ("play", "still", "pause", "lag3", "lag6", "jitter"),
+    # the noisy expert through slow or pausing hands: a person's kind of teleoperation
+    "expert-hands": ("expert", "jitter", "lag3", "lag6", "pause", "person"),
 }
 IDLE_STEPS = 50
 CRISP = 0.9  # a T fits crisply (the codec's reconstructions of first frames fit ~0.92)

@@ -26,7 +26,7 @@ def test_yardstick_runs_on_a_tiny_model(tmp_path):
     later = tiny_world_model(seed=1).save(tmp_path / "run" / "00000004", {"data": str(data)})
     out = tmp_path / "out"
     cmd = [sys.executable, str(ROOT / "bench" / "yardstick.py"), "--models", f"tiny={ckpt}", f"later={later}",
-           "--curve", "tiny,later", "--data", str(data),
+           "--parts", "core", "--curve", "tiny,later", "--data", str(data),
            "--episodes", "2", "--horizon", "36", "--steps", "6", "--candidates", "2", "--stability-steps", "20",
            "--speed-calls", "2", "--work", str(tmp_path / "work"), "--out", str(out)]
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)

@@ -17,6 +17,7 @@ given kind, and every model class loads through it.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -30,7 +31,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from iwsim.errors import IwsimError
-from iwsim.resources import human_bytes, require_memory
+from iwsim.resources import human_bytes, read_capped, require_memory
 
 # What each ``config.json`` kind holds, for messages.
 KINDS = {"autoencoder": "an autoencoder", "world_model": "a world model", "policy": "a policy"}
@@ -51,6 +52,18 @@ def write_json_atomic(path: Path, obj: Any, sort_keys: bool = True) -> None:
     write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=sort_keys) + "\n")
 
 
+def save_tensors(tensors: dict[str, torch.Tensor], path: Path, metadata: dict[str, str] | None = None) -> None:
+    """``safetensors`` ``save_file``, with a failed write (e.g. a full disk) an OSError
+    naming ``path`` instead of a SafetensorError, and no partial file left behind."""
+    try:
+        save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, path, metadata=metadata)
+    except SafetensorError as e:
+        Path(path).unlink(missing_ok=True)
+        full = "StorageFull" in str(e) or "os error 28" in str(e)
+        raise OSError(errno.ENOSPC if full else errno.EIO,
+                      os.strerror(errno.ENOSPC) if full else " ".join(str(e).split())[:200], str(path)) from None
+
+
 def load_tensors(path: Path) -> dict[str, torch.Tensor]:
     """Read a safetensors file, or raise CheckpointError naming it."""
     if not path.is_file():
@@ -61,11 +74,18 @@ def load_tensors(path: Path) -> dict[str, torch.Tensor]:
         raise CheckpointError(f"checkpoint file {path} is unreadable (truncated or corrupt): {e}.") from None
 
 
+JSON_MAX_BYTES = 64 << 20  # a checkpoint's config or state is far smaller
+
+
 def load_json(path: Path) -> dict[str, Any]:
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise CheckpointError(f"checkpoint file {path} is missing.")
     try:
-        return json.loads(path.read_text())
+        return json.loads(read_capped(path, JSON_MAX_BYTES, CheckpointError))
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint file {path} is missing.") from None
+    except UnicodeDecodeError:
+        raise CheckpointError(f"checkpoint file {path} is not UTF-8 text.") from None
     except json.JSONDecodeError as e:
         raise CheckpointError(f"checkpoint file {path} is not valid JSON: {e}.") from None
 
@@ -96,7 +116,10 @@ def load_model_dir(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[st
     if not path.is_dir():
         raise CheckpointError(f"{path} is not a checkpoint directory (model.safetensors + config.json).")
     config = load_json(path / "config.json")
-    found = config.get("kind") if isinstance(config, dict) else None
+    if not isinstance(config, dict) or not isinstance(config.get("kind"), str):
+        raise CheckpointError(f"{path} is not an iwsim checkpoint: its config.json is not a JSON object with a "
+                              f"'kind'; expected {KINDS.get(kind, repr(kind))}.")
+    found = config["kind"]
     if found != kind:
         raise CheckpointError(f"{path} is a {found!r} checkpoint, not {KINDS.get(kind, repr(kind))}.")
     return config, load_tensors(path / "model.safetensors")
@@ -150,13 +173,19 @@ def save_checkpoint(root: Path, step: int, model: dict[str, torch.Tensor], confi
     final = root / f"{step:08d}"
     tmp = root / f".{step:08d}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "training_state").mkdir(parents=True)
-    save_file({k: v.detach().cpu().contiguous() for k, v in model.items()}, tmp / "model.safetensors")
-    write_json_atomic(tmp / "config.json", config)
-    for stem, tensors in training_tensors.items():
-        save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()},
-                  tmp / "training_state" / f"{stem}.safetensors")
-    write_json_atomic(tmp / "training_state" / "state.json", {**training_meta, "step": step})
+    try:
+        (tmp / "training_state").mkdir(parents=True)
+        save_tensors(model, tmp / "model.safetensors")
+        write_json_atomic(tmp / "config.json", config)
+        for stem, tensors in training_tensors.items():
+            save_tensors(tensors, tmp / "training_state" / f"{stem}.safetensors")
+        write_json_atomic(tmp / "training_state" / "state.json", {**training_meta, "step": step})
+    except OSError as e:  # e.g. a full disk: the checkpoints already written stay as they are
+        shutil.rmtree(tmp, ignore_errors=True)
+        last = last_checkpoint(root) if (root / "last").is_symlink() else None
+        raise OSError(f"cannot write checkpoint {final.name} of {root.parent}: {e.strerror or e}; rerunning the "
+                      f"command resumes from {'the start' if last is None else 'step ' + str(int(last.name))}"
+                      ) from None
     if final.exists():
         shutil.rmtree(final)
     os.replace(tmp, final)
@@ -180,8 +209,8 @@ def _check_replaceable(path: Path, ours: set[str]) -> None:
     if path.is_symlink() or not path.is_dir():
         refuse("is not a directory")
     try:
-        config = json.loads((path / "config.json").read_text())
-    except (OSError, ValueError):
+        config = load_json(path / "config.json")
+    except (OSError, ValueError):  # CheckpointError too
         config = None
     if not isinstance(config, dict) or config.get("kind") not in KINDS:
         refuse("is not an iwsim checkpoint (no config.json of a known kind)")
@@ -206,10 +235,14 @@ def save_model_dir(path: Path, tensors: dict[str, torch.Tensor], config: dict[st
     tmp = full.with_name(f".{full.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, tmp / "model.safetensors")
-    write_json_atomic(tmp / "config.json", config)
-    for name, obj in (json_files or {}).items():
-        write_json_atomic(tmp / name, obj)
+    try:
+        save_tensors(tensors, tmp / "model.safetensors")
+        write_json_atomic(tmp / "config.json", config)
+        for name, obj in (json_files or {}).items():
+            write_json_atomic(tmp / name, obj)
+    except OSError:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     if path.exists():
         old = full.with_name(f".{full.name}.old")
         shutil.rmtree(old, ignore_errors=True)

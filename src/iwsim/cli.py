@@ -149,7 +149,6 @@ def build_parser() -> argparse.ArgumentParser:
                    "checkpoint; its encoder must be --run's)")
     p.add_argument("--novelty-data", metavar="STORE", help="the model's training data: fit the trust signal "
                    "(how unlike this data a step's inputs are) into the checkpoint")
-    p.add_argument("--latent-cache", help="latent cache of --novelty-data (as train dynamics's)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_export_model)
 
@@ -412,6 +411,20 @@ def _check_frames_memory(what: str, frames: int, copies: int = 1) -> None:
     require_memory(frames * copies * 64 * 64 * 3, f"{what} (at least {frames * copies} frames in memory)")
 
 
+MUJOCO_ENV_BYTES = 38 << 20  # one MuJoCo environment with its renderer (measured: 38 MB at 64 px)
+STEP_RECORD_BYTES = 64  # what evaluation keeps of each step of an episode (score, positions, actions)
+
+
+def _check_episodes_memory(episodes: int, steps: int, env: str) -> None:
+    """Refuse ``iwsim eval policy --episodes N`` when its episodes, which run together, cannot
+    fit: a lower bound of an environment each (MuJoCo's), two observed frames (uint8 and
+    the policy's float copy) and a record of every step."""
+    from iwsim.resources import require_memory
+
+    per_episode = (MUJOCO_ENV_BYTES if env == "pusht" else 0) + 2 * 64 * 64 * 3 * 5 + steps * STEP_RECORD_BYTES
+    require_memory(episodes * per_episode, f"--episodes {episodes} of {steps} steps in {env}, run together")
+
+
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
     """Each named integer flag, when given, must be >= 1."""
     for name in names:
@@ -542,6 +555,7 @@ def _eval_policy(args: argparse.Namespace) -> int:
     check_args(args.episodes, args.seed, args.steps, args.videos)
     _check_frames_memory(f"--steps {args.steps} with --videos {args.videos}",
                          args.steps * min(args.videos, args.episodes))
+    _check_episodes_memory(args.episodes, args.steps, args.env)
     device = resolve_device(args.device)
     policy = load_policy(args.checkpoint, device, n_action_steps=args.action_steps)
     wm = None
@@ -601,13 +615,10 @@ def _export_model(args: argparse.Namespace) -> int:
 
     novelty = None
     if args.novelty_data is not None:
-        from pathlib import Path
-
         from iwsim.world_model.dynamics_data import fit_store_novelty
 
-        cache = Path(args.latent_cache) if args.latent_cache else None
         novelty = fit_store_novelty(WorldModel.load(resolve_checkpoint(args.run)), args.novelty_data,
-                                    progress=not args.no_progress, cache=cache)
+                                    progress=not args.no_progress)
     path = export_model(args.run, args.out, force=args.force, decoder=args.decoder, novelty=novelty)
     print(path)
     return 0
@@ -720,9 +731,10 @@ def _play(args: argparse.Namespace) -> int:
 def _read_json(path: str, flag: str) -> object:
     import json
 
+    from iwsim.resources import read_capped
+
     try:
-        with open(path) as f:
-            return json.load(f)
+        return json.loads(read_capped(path, 16 << 20))
     except OSError as e:
         raise InputError(f"{flag} {path}: cannot read it ({e.strerror}).") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:

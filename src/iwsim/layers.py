@@ -8,9 +8,10 @@ ids, ``__version__`` and a lazy ``iwsim.WorldModel``) is outside the layers.
 
 LAYERS: list[tuple[str, ...]] = [
     # 1. foundations: network blocks, noise and samplers, checkpoint I/O, metrics, errors,
-    #    configs, the generic training loop
+    #    configs, the one-writer lock (of stores and run directories), the generic training loop
     ("iwsim.errors", "iwsim.resources", "iwsim.models", "iwsim.diffusion", "iwsim.checkpoint", "iwsim.metrics",
-     "iwsim.normalize", "iwsim.config", "iwsim.layers", "iwsim.training.trainer", "iwsim.training.distributed"),
+     "iwsim.normalize", "iwsim.config", "iwsim.layers", "iwsim.data.lock", "iwsim.training.trainer",
+     "iwsim.training.distributed"),
     # 2. the ground truth: MuJoCo tasks, their scripted policies, pixel scorers
     ("iwsim.envs",),
     # 3. data and the task registry, then the models as objects (the world model with its codecs and its training)

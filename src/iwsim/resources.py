@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import stat
 import sys
 
 from iwsim.errors import InputError, IwsimError
@@ -23,6 +24,22 @@ log = logging.getLogger(__name__)
 
 GiB = 1 << 30
 MiB = 1 << 20
+
+
+def read_capped(path: str | os.PathLike, limit: int, error: type[Exception] = InputError) -> bytes:
+    """The bytes of the file ``path``, which must be a regular file of at most ``limit``
+    bytes (``error`` naming it otherwise): a small file a user names (a config, a token, a
+    symlink to ``/dev/zero`` by mistake) is never read until memory runs out. A missing
+    file is a FileNotFoundError."""
+    path = os.fspath(path)
+    # non-blocking: opening a FIFO must not wait for a writer (a regular file ignores it)
+    with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC), "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise error(f"{path}: not a regular file.")
+        data = f.read(limit + 1)
+    if len(data) > limit:
+        raise error(f"{path}: larger than {human_bytes(limit)}, more than such a file holds.")
+    return data
 
 
 class ResourceError(IwsimError):

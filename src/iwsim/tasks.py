@@ -161,19 +161,24 @@ def task_from_config(config: dict, where: str | Path = "config.json") -> Task:
             return task_from_dict(config["task"])
         except InputError as e:
             raise InputError(f"{where}: {e}") from None
-    norm = config.get("action_norm", {})
-    low, high = norm.get("low"), norm.get("high")
-    data = config.get("data") or (config.get("provenance") or {}).get("data")
-    if data and Path(data).is_dir():
+    # a file's config: every entry may be of any JSON type (a policy's provenance.data is a list)
+    norm = config.get("action_norm")
+    low, high = (norm.get("low"), norm.get("high")) if isinstance(norm, dict) else (None, None)
+    provenance = config.get("provenance")
+    data = config.get("data") or (provenance.get("data") if isinstance(provenance, dict) else None)
+    if isinstance(data, str) and data and Path(data).is_dir():
         try:
             return task_from_store(data, low, high)
         except InputError:
             pass  # not a readable store any more: as if it were gone
-    n = len(low) if isinstance(low, list) else 0
+    n = len(low) if isinstance(low, list) and isinstance(high, list) and len(high) == len(low) else 0
+    if n and not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in [*low, *high]):
+        n = 0
     if n == PushTTask().action_dim:
         return PushTTask()
     if not n:
-        raise InputError(f"{where} has no action bounds (action_norm) to describe its task by.")
+        raise InputError(f"{where} has no action bounds (action_norm: low and high, numbers of one length) to "
+                         "describe its task by.")
     return DatasetTask(name="generic", action_low=tuple(low), action_high=tuple(high))
 
 

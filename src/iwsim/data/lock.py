@@ -38,13 +38,16 @@ class DirLock:
 
     ``wait=False`` raises :class:`LockedError` at once when another process (or another
     open lock in this process) holds it; ``wait=True`` logs who holds it and blocks until
-    it is free. Release with :meth:`release` or by leaving a ``with`` block.
+    it is free (``hint`` ends the refusal: what to do instead). Release with :meth:`release`
+    or by leaving a ``with`` block.
     """
 
-    def __init__(self, directory: str | os.PathLike, *, wait: bool = False, what: str = "writing") -> None:
+    def __init__(self, directory: str | os.PathLike, *, wait: bool = False, what: str = "writing",
+                 hint: str = "wait for it to finish, or pass --wait-for-lock to queue behind it.") -> None:
         self.path = Path(directory) / LOCK_NAME
+        self._fd: int | None = None  # set first: __del__ runs even when the open below fails
         # Opened without truncating: the holder's text must survive until we own the lock.
-        self._fd: int | None = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         try:
             try:
                 fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -54,8 +57,7 @@ class DirLock:
                 holder = self._wait_for_holder() or "another process"
                 if not wait:
                     raise LockedError(errno.EWOULDBLOCK, f"{directory} is being written by {holder}; one writer "
-                                      "at a time: wait for it to finish, or pass --wait-for-lock to queue behind "
-                                      "it.") from None
+                                      f"at a time: {hint}") from None
                 log.warning("%s is being written by %s; waiting for it to finish", directory, holder)
                 fcntl.flock(self._fd, fcntl.LOCK_EX)
             text = f"pid {os.getpid()} ({_command()}), {what} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode()

@@ -15,6 +15,10 @@ to a temporary name, then renamed), so a process killed at any point leaves a st
 length of the data (arrays may hold a few uncommitted frames past it) and ignore a trailing
 entry that is not yet written (it reads as the fill value 0, so ends must strictly
 increase). Opening in mode ``"a"`` repairs such leftovers before anything is appended.
+Anything else that does not add up (ends that do not increase, a chunk file missing or not
+decodable, sizes the files do not hold, metadata that is not JSON) is damage: every reader
+and writer refuses the store with a StoreError naming it, and nothing is changed. Every
+chunk is written, even one of fill values, so a missing chunk file is always damage.
 
 One writer at a time: mode ``"a"`` holds the store's lock (``root/.iwsim.lock``, see
 :mod:`iwsim.data.lock`) until :meth:`EpisodeStore.close`; a second writer is refused, or
@@ -34,11 +38,31 @@ from typing import Any, Literal
 import numpy as np
 import zarr
 from numcodecs import Blosc
+from numcodecs.compat import ensure_contiguous_ndarray
+from numcodecs.registry import register_codec
 
 from iwsim.data.lock import DirLock, LockedError, remove_stale_temps, temp_sibling
 from iwsim.errors import InputError
+from iwsim.resources import read_capped
 
 log = logging.getLogger(__name__)
+
+class _CheckedBlosc(Blosc):
+    """Blosc that checks a chunk's header against its length before decoding: c-blosc reads
+    past the end of a truncated or damaged buffer and can crash the process (numcodecs
+    issue 228), where a damaged chunk must be an error that names it."""
+
+    def decode(self, buf: Any, out: Any = None) -> Any:
+        view = memoryview(ensure_contiguous_ndarray(buf)).cast("B")
+        # the 16-byte header: ..., nbytes (uint32 LE at 4), blocksize (8), cbytes (12)
+        if len(view) < 16 or int.from_bytes(view[12:16], "little") != len(view):
+            said = int.from_bytes(view[12:16], "little") if len(view) >= 16 else "a 16-byte header and more"
+            raise RuntimeError(f"a Blosc chunk of {len(view)} bytes whose header says {said}: truncated or damaged")
+        return super().decode(buf, out)
+
+
+# Every Zarr array opened from now on decodes Blosc through the checked codec.
+register_codec(_CheckedBlosc, "blosc")
 
 STORE_VERSION = 1  # layout version, stored as the ``store_version`` attribute
 # uint8 frames: zstd alone (byte shuffling is a no-op at itemsize 1); ~90x on rendered frames.
@@ -83,14 +107,110 @@ def dir_size(path: str | os.PathLike) -> int:
     return total
 
 
-def _committed_ends(raw: np.ndarray) -> np.ndarray:
-    """The prefix of ``raw`` that is whole: positive and strictly increasing.
+def _committed_ends(raw: np.ndarray, path: Path) -> np.ndarray:
+    """``raw`` without an entry that is not yet written: positive and strictly increasing.
 
-    A crash between growing ``episode_ends`` and writing its new entry leaves a trailing
-    fill value 0, which this drops.
+    A crash between growing ``episode_ends`` and writing its new entry leaves one trailing
+    fill value 0, which this drops. Anything else that does not increase is damage, not an
+    interrupted append, and is refused (nothing is cut).
     """
     ok = np.diff(raw, prepend=0) > 0
-    return raw if ok.all() else raw[: int(np.argmin(ok))]
+    if ok.all():
+        return raw
+    if ok[:-1].all() and raw[-1] == 0:
+        return raw[:-1]
+    i = int(np.argmin(ok))
+    raise StoreError(f"{path} is damaged: meta/episode_ends must increase strictly, but entry {i} is {raw[i]} "
+                     f"after {raw[i - 1] if i else 0}; `iwsim data validate` lists what is wrong.")
+
+
+def _chunk_rows(arr: zarr.Array, directory: Path) -> set[int]:
+    """The row-chunk indices of ``arr`` (a Zarr format 2 array in ``directory``) that have a file."""
+    rows = set()
+    with os.scandir(directory) as it:
+        for entry in it:
+            head = entry.name.split("/" if entry.is_dir() else ".", 1)[0]
+            if head.isdigit():
+                rows.add(int(head))
+    return rows
+
+
+def _missing_chunk(arr: zarr.Array, directory: Path, n: int) -> int | None:
+    """The first row chunk of ``arr`` holding any of its first ``n`` rows whose file is
+    missing (such rows would read as the fill value), or None. Counts, never allocates per
+    declared row, so a shape edited to 10^12 costs one directory listing."""
+    step = arr.chunks[0]
+    need = -(-n // step)
+    if not need:
+        return None
+    rows = _chunk_rows(arr, directory)
+    return next((i for i in range(min(need, len(rows) + 1)) if i not in rows), None)
+
+
+ZARR_META_MAX_BYTES = 64 << 20  # a .zattrs, .zarray or .zgroup larger than this is not one Zarr wrote
+_ZARR_META = (".zgroup", ".zattrs", ".zarray")
+
+
+def _check_metadata_files(path: Path) -> None:
+    """Every Zarr metadata file of the store (root, meta/, data/ and their arrays) is a
+    JSON object in a regular file of a sane size: Zarr reads them whole (a symlink to
+    ``/dev/zero`` would be read until memory ran out) and, reading a group's members
+    concurrently, fails on a bad one with tasks left pending."""
+    dirs = [path, path / "meta", path / "meta" / "episode_ends", path / "data"]
+    if (path / "data").is_dir():
+        dirs += [p for p in (path / "data").iterdir() if p.is_dir()]
+    for d in dirs:
+        for name in _ZARR_META:
+            f = d / name
+            if not os.path.lexists(f):
+                continue
+            try:
+                ok = isinstance(json.loads(read_capped(f, ZARR_META_MAX_BYTES, StoreError)), dict)
+            except StoreError as e:
+                raise StoreError(f"{path} is damaged: {e}") from None
+            except (OSError, ValueError):
+                ok = False
+            if not ok:
+                raise StoreError(f"{path} is damaged: {f.relative_to(path)} is not a JSON object.")
+
+
+class _Checked:
+    """Read access to a data array that turns a chunk that cannot be decoded (truncated,
+    another dtype than ``.zarray`` declares, ...) into a StoreError naming the array."""
+
+    def __init__(self, arr: zarr.Array, where: str) -> None:
+        self._arr, self._where = arr, where
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._arr, name)
+
+    def __len__(self) -> int:
+        return len(self._arr)
+
+    def _read(self, read: Callable[[], Any]) -> Any:
+        try:
+            return read()
+        except (RuntimeError, ValueError, TypeError, KeyError, OSError) as e:
+            if isinstance(e, InputError):
+                raise
+            why = " ".join(str(e).split())[:160] or type(e).__name__
+            raise StoreError(f"{self._where} is damaged: a chunk cannot be read ({why}); "
+                             "`iwsim data validate` lists what is wrong.") from None
+
+    def __getitem__(self, selection: Any) -> np.ndarray:
+        return self._read(lambda: self._arr[selection])
+
+    @property
+    def oindex(self) -> _CheckedIndex:
+        return _CheckedIndex(self)
+
+
+class _CheckedIndex:
+    def __init__(self, checked: _Checked) -> None:
+        self._checked = checked
+
+    def __getitem__(self, selection: Any) -> np.ndarray:
+        return self._checked._read(lambda: self._checked._arr.oindex[selection])
 
 
 def _settable(attrs: Mapping[str, Any]) -> dict[str, Any]:
@@ -146,17 +266,40 @@ class EpisodeStore:
         self._lock = lock
         self._ends_array = root["meta/episode_ends"]
         self._data = root["data"]
-        self._arrays: dict[str, zarr.Array] = dict(self._data.arrays())
-        self._attrs: dict[str, Any] = dict(root.attrs)
+        self._load()
+
+    def _load(self) -> None:
+        """Read (again) what is on disk: the arrays, the attributes and the committed ends."""
+        path = self.path
+        # every chunk is written, even one of fill values: a missing chunk file is then damage
+        self._arrays: dict[str, zarr.Array] = {
+            k: a.with_config({"write_empty_chunks": True}) for k, a in self._data.arrays()}
+        self._attrs: dict[str, Any] = dict(self._root.attrs)
+        # the declared length is checked against the files before anything is allocated
+        ends_dir = path / "meta" / "episode_ends"
+        declared = self._ends_array.shape[0]
+        written = max(_chunk_rows(self._ends_array, ends_dir), default=-1) + 1 if ends_dir.is_dir() else 0
+        if declared > written * self._ends_array.chunks[0] + 1:  # + 1: an end not yet written
+            raise StoreError(f"{path} is damaged: meta/episode_ends declares {declared} entries but its chunk "
+                             f"files hold at most {written * self._ends_array.chunks[0]}.")
+        if not np.issubdtype(self._ends_array.dtype, np.integer):
+            raise StoreError(f"{path} is damaged: meta/episode_ends holds {self._ends_array.dtype}, not integers.")
         raw = np.asarray(self._ends_array[:], dtype=np.int64)
-        self._ends = _committed_ends(raw)
+        self._ends = _committed_ends(raw, path)
         self._n_uncommitted_ends = len(raw) - len(self._ends)
         n = self.n_frames
         for key, arr in self._arrays.items():
+            if arr.ndim == 0:
+                raise StoreError(f"{path} is damaged: data/{key} is a scalar, not one entry per frame.")
             if arr.shape[0] < n:
                 raise StoreError(
                     f"{path} is damaged: meta/episode_ends counts {n} frames but data/{key} holds only {arr.shape[0]}."
                 )
+            missing = _missing_chunk(arr, path / "data" / key, n)
+            if missing is not None:
+                step = arr.chunks[0]
+                raise StoreError(f"{path} is damaged: the chunk file of data/{key} holding frames {missing * step}.."
+                                 f"{min(n, (missing + 1) * step) - 1} is missing.")
         if n and not self._arrays:
             raise StoreError(f"{path} is damaged: meta/episode_ends counts {n} frames but data/ holds no arrays.")
         seeds = self._attrs.get("seeds", [])
@@ -263,6 +406,7 @@ class EpisodeStore:
 
     @classmethod
     def _open(cls, path: Path, mode: Literal["r", "a"], lock: DirLock | None) -> EpisodeStore:
+        _check_metadata_files(path)
         try:
             root = zarr.open_group(path, mode="r" if mode == "r" else "r+")
         except (OSError, ValueError, KeyError, TypeError):
@@ -274,7 +418,13 @@ class EpisodeStore:
             raise StoreError(f"{path} is a Zarr group without meta/episode_ends, not {_EXPECTED}.")
         if not isinstance(root.get("data"), zarr.Group):
             raise StoreError(f"{path} is a Zarr group without data/, not {_EXPECTED}.")
-        store = cls(root, path, mode, lock)
+        try:
+            store = cls(root, path, mode, lock)
+        except (ValueError, KeyError, TypeError) as e:  # a .zarray or .zattrs that is not what Zarr wrote
+            if isinstance(e, StoreError):
+                raise
+            raise StoreError(f"{path} is damaged: its Zarr metadata cannot be read ({' '.join(str(e).split())[:160]})."
+                             ) from None
         if mode == "a":
             store._repair()
         elif store._n_uncommitted_ends or store._n_uncommitted_frames():
@@ -350,7 +500,7 @@ class EpisodeStore:
         ``n_frames`` rows are committed."""
         if key not in self._arrays:
             raise StoreError(f"{self.path} has no array data/{key}; it has {self.keys}.")
-        return self._arrays[key]
+        return _Checked(self._arrays[key], f"{self.path} data/{key}")
 
     def __repr__(self) -> str:
         return f"EpisodeStore({str(self.path)!r}, episodes={self.n_episodes}, frames={self.n_frames})"
@@ -363,7 +513,7 @@ class EpisodeStore:
         i %= n
         start = int(self._ends[i - 1]) if i else 0
         stop = int(self._ends[i])
-        return {k: a[start:stop] for k, a in self._arrays.items()}
+        return {k: self.array(k)[start:stop] for k in self._arrays}
 
     def info(self) -> dict[str, Any]:
         """Summary: episodes, frames, per-array shape/dtype/chunks, fps, task, image size,
@@ -396,17 +546,24 @@ class EpisodeStore:
         episode = self._check_episode(episode)
         n0 = self.n_frames
         t = next(iter(episode.values())).shape[0]
-        if self.n_episodes == 0:
-            self._define_arrays(episode)
-        # 1. data: grow every array to exactly n0 + t (this also drops any uncommitted tail)
-        for key, value in episode.items():
-            arr = self._arrays[key]
-            arr.resize((n0 + t, *arr.shape[1:]))
-            arr[n0:] = value
-        # 2. seeds: an entry past n_episodes means nothing until episode_ends commits it
-        self._set_attr("seeds", [*self._attrs["seeds"][: self.n_episodes], None if seed is None else int(seed)])
-        # 3. commit
-        self._commit(n0 + t)
+        try:
+            if self.n_episodes == 0:
+                self._define_arrays(episode)
+            # 1. data: grow every array to exactly n0 + t (this also drops any uncommitted tail)
+            for key, value in episode.items():
+                arr = self._arrays[key]
+                arr.resize((n0 + t, *arr.shape[1:]))
+                arr[n0:] = value
+            # 2. seeds: an entry past n_episodes means nothing until episode_ends commits it
+            self._set_attr("seeds", [*self._attrs["seeds"][: self.n_episodes], None if seed is None else int(seed)])
+            # 3. commit
+            self._commit(n0 + t)
+        except BaseException:
+            # e.g. a full disk: what reached the disk is uncommitted, so readers see the store
+            # as it was; this object forgets what it believed and reads the disk again, so the
+            # next append (which overwrites any uncommitted tail) starts from what is there
+            self._load()
+            raise
 
     def _commit(self, end: int) -> None:
         """Grow episode_ends by one entry: the single step that makes an append visible."""
@@ -453,7 +610,7 @@ class EpisodeStore:
                 dtype=value.dtype,
                 compressors=IMAGE_COMPRESSOR if image_like else LOWDIM_COMPRESSOR,
                 fill_value=0,
-            )
+            ).with_config({"write_empty_chunks": True})
         for key in set(self._arrays) - set(episode):
             del self._data[key]
             del self._arrays[key]

@@ -70,9 +70,18 @@ class PolicyRun:
         return [Source(Path(path), n) for path, n in self.data]
 
 
+def check_dirs(**dirs: Path) -> None:
+    """Each ``--NAME`` directory a study writes (``--out``, ``--work``) is a directory or
+    does not exist yet: checked before hours of work, not when the report is written."""
+    for flag, path in dirs.items():
+        if path.exists() and not path.is_dir():
+            raise InputError(f"--{flag} {path} is a file; expected a directory (it is created if missing).")
+
+
 def lock_work(work: Path, study: str) -> DirLock:
     """The lock of a study's work directory, held while the study runs: two studies on one
     work directory would train the same run directories at once."""
+    check_dirs(work=work)
     work.mkdir(parents=True, exist_ok=True)
     try:
         return DirLock(work, what=f"running the {study} study")
@@ -89,7 +98,12 @@ def check_study_model(world_model: str | os.PathLike | None) -> None:
     if path is None or not (path / "config.json").is_file():
         raise InputError(f"world model {world_model} is not a checkpoint directory (config.json + "
                          "model.safetensors); pass --world-model PATH.")
-    task = task_from_config(load_json(path / "config.json"), path / "config.json")
+    config = load_json(path / "config.json")
+    kind = config.get("kind") if isinstance(config, dict) else None
+    if kind != "world_model":
+        raise InputError(f"{path} is {'a ' + repr(kind) if kind else 'not a'} checkpoint, not a world model; pass "
+                         "--world-model a world model (e.g. checkpoints/pusht-64).")
+    task = task_from_config(config, path / "config.json")
     if task.kind != STUDY_TASK:
         raise InputError(f"{path} is a world model of task {task.name!r}; the studies compare with MuJoCo's "
                          f"{STUDY_TASK!r}, their only ground truth (evaluate a policy in it with iwsim eval policy).")

@@ -37,6 +37,7 @@ from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
 from iwsim.experiments.common import (
     PolicyRun,
+    check_dirs,
     check_study_model,
     evaluate_policies,
     fingerprint,
@@ -187,6 +188,7 @@ def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset
     if jobs < 1:
         raise InputError(f"jobs must be a positive integer, got {jobs}.")
     check_study_model(cfg.world_model)
+    check_dirs(out=out)
     with lock_work(work, "datagen"):
         return _run_datagen(cfg, out, work, preset, jobs, progress)
 

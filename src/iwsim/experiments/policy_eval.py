@@ -44,6 +44,7 @@ from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import (
     PolicyRun,
     PolicySource,
+    check_dirs,
     check_study_model,
     checkpoints,
     evaluate_policies,
@@ -206,6 +207,7 @@ def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path,
     if not isinstance(jobs, int) or jobs < 1:
         raise InputError(f"--jobs must be a positive integer, got {jobs}.")
     check_study_model(cfg.world_model)
+    check_dirs(out=out)
     with lock_work(work, "policy-eval"):
         return _run_policy_eval(cfg, out, work, preset, jobs, progress)
 

@@ -26,14 +26,15 @@ import secrets
 import socket
 from collections.abc import Iterable
 from dataclasses import dataclass
-from pathlib import Path
 
 from iwsim.errors import InputError, IwsimError
+from iwsim.resources import read_capped
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 WILDCARD = ("0.0.0.0", "::", "")
 TOKEN_ENV = "IWSIM_PLAY_TOKEN"
 MIN_TOKEN_CHARS = 8
+TOKEN_FILE_MAX_BYTES = 64 << 10
 
 
 class PlayError(IwsimError):
@@ -57,7 +58,9 @@ def resolve_token(flag: str | None = None, file: str | os.PathLike | None = None
     env = os.environ if env is None else env
     if file is not None:
         try:
-            lines = Path(file).read_text().splitlines()
+            lines = read_capped(file, TOKEN_FILE_MAX_BYTES).decode().splitlines()
+        except InputError as e:
+            raise InputError(f"the token file {e}") from None
         except (OSError, UnicodeDecodeError) as e:
             raise InputError(f"cannot read the token file {file}: {getattr(e, 'strerror', None) or e}.") from None
         token, source = (lines[0].strip() if lines else ""), f"--token-file {file}"

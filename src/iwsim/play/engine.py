@@ -22,7 +22,8 @@ there (T-push: the pusher positions read from it), the action, the motion it exe
 the frame's pixel score if the task has a scorer (``img``, ``state``, ``action``,
 ``target``, ``iou``: the layout of ``iwsim collect``). The take lives in memory
 until it is saved, and a save is one atomic append, so a client that vanishes
-mid-recording leaves nothing behind.
+mid-recording leaves nothing behind. A save that fails (a full disk) leaves the store as it
+was and the take with its session, which the next save tries again.
 """
 
 from __future__ import annotations
@@ -97,6 +98,7 @@ class Session:
     twin_frame: np.ndarray | None = None
     twin_iou: float | None = None
     take: dict[str, list] | None = None  # the recording in progress
+    unsaved: list[tuple[dict[str, np.ndarray], int]] = field(default_factory=list)  # (take, seed) whose save failed
     closed: bool = False
 
 
@@ -153,7 +155,7 @@ class Engine:
                      "keys": list(self.keys)}
             self.recorder = Recorder(Path(cfg.record_to), attrs, cfg.wait_for_lock, self.keys)
         self.sessions: dict[int, Session] = {}
-        self._saves: list[tuple[Session, Future[int], int]] = []
+        self._saves: list[tuple[Session, dict[str, np.ndarray], int, Future[int]]] = []
         self._next_id = 0
         self._rng = np.random.default_rng()
         self._threads = torch.get_num_threads()
@@ -174,7 +176,7 @@ class Engine:
 
     def close(self, s: Session) -> None:
         """Forget the session; an unsaved take is dropped."""
-        s.closed, s.take = True, None
+        s.closed, s.take, s.unsaved = True, None, []
         if s.twin is not None:
             s.twin.close()
             s.twin = None
@@ -235,8 +237,18 @@ class Engine:
                 return [proto.event("error", message="already recording; save (Shift+S) or discard (q) first.")]
             if self.recorder is None:
                 return [proto.event("error", message="recording is off; start iwsim play with --record-to STORE.")]
+            if s.unsaved:
+                return [proto.event("error", message=f"{len(s.unsaved)} take(s) could not be saved and are kept: "
+                                                     "save (Shift+S) to try again, or discard (q), first.")]
             s.take = {k: [] for k in self.keys}
             return [self._status(s, "recording")]
+        if s.take is None and s.unsaved:  # a save failed (e.g. a full disk): the takes are still here
+            unsaved, s.unsaved = s.unsaved, []
+            if name == "discard":
+                return [self._status(s, f"discarded {len(unsaved)} take(s) that could not be saved")]
+            for episode, seed in unsaved:
+                self._save(s, episode, seed)
+            return [self._status(s, f"saving {len(unsaved)} kept take(s) again")]
         if s.take is None:
             return [proto.event("error", message=f"nothing to {name}: not recording (press c to record).")]
         if name == "discard":
@@ -247,22 +259,30 @@ class Engine:
         if not take["img"]:
             return [self._status(s, "nothing recorded yet; take discarded")]
         episode = {k: np.stack(v) for k, v in take.items()}
-        self._saves.append((s, self.recorder.save(episode, s.seed), len(episode["img"])))
+        self._save(s, episode, s.seed)
         return [self._status(s, f"saving {len(episode['img'])} steps")]
+
+    def _save(self, s: Session, episode: dict[str, np.ndarray], seed: int) -> None:
+        self._saves.append((s, episode, seed, self.recorder.save(episode, seed)))
 
     def finished_saves(self) -> list[tuple[Session, str]]:
         """Events for the saves written since the last call: ``saved`` with the episode's
-        index in the store, or an ``error`` if the append failed (the store is unchanged)."""
-        done = [x for x in self._saves if x[1].done()]
-        self._saves = [x for x in self._saves if not x[1].done()]
+        index in the store, or an ``error`` if the append failed (the store is unchanged, and
+        the session keeps the take: its next save tries again)."""
+        done = [x for x in self._saves if x[3].done()]
+        self._saves = [x for x in self._saves if not x[3].done()]
         out = []
-        for s, future, n in done:
+        for s, episode, seed, future in done:
+            n = len(episode["img"])
             try:
                 out.append((s, proto.event("saved", episode=future.result(), steps=n,
                                            store=self.recorder.path.name)))
             except Exception as e:  # noqa: BLE001 - the client hears why; the server goes on
                 log.error("saving a take of session %d failed: %s", s.id, e)
-                out.append((s, proto.event("error", message=f"saving failed: {e}")))
+                if not s.closed:
+                    s.unsaved.append((episode, seed))
+                out.append((s, proto.event("error", message=f"saving failed: {e}; the take of {n} steps is kept: "
+                                                            "save (Shift+S) to try again, or discard (q).")))
         return out
 
     def _drop_take(self, s: Session) -> list[str]:

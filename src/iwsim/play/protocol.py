@@ -82,8 +82,10 @@ def _int(msg: dict, key: str, low: int, high: int, default: Any = ...) -> Any:
 
 def parse(data: str | bytes, action_dim: int) -> Message:
     """One client message -> a :data:`Message`, or :class:`ProtocolError` saying what is wrong."""
-    if len(data) > MAX_MESSAGE_BYTES:
-        raise ProtocolError(f"message of {len(data)} bytes is over the limit of {MAX_MESSAGE_BYTES}.")
+    # the limit counts bytes: a character may take up to 4 in UTF-8
+    size = len(data.encode("utf-8", "surrogatepass")) if isinstance(data, str) else len(data)
+    if size > MAX_MESSAGE_BYTES:
+        raise ProtocolError(f"message of {size} bytes is over the limit of {MAX_MESSAGE_BYTES}.")
     if isinstance(data, bytes):
         raise ProtocolError("binary messages are not accepted; send JSON text.")
     try:

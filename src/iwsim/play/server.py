@@ -141,6 +141,14 @@ OVERFLOW_REASON = "dropped: the client sent faster than it read the replies"
 # server's time from the others.
 MAX_MESSAGES_PER_STEP = 10
 RATE_REASON = "dropped: more than {} messages a second"
+# What a message costs the budget, in messages. A restart encodes a new first frame (and
+# resets the MuJoCo twin), side by side builds or closes a MuJoCo renderer: tens of
+# milliseconds of the engine's thread each, against well under one for an action. Charged
+# by that cost, they are limited to 2 (restarts) and 1 (side by side) a second beyond a
+# short burst, so a client toggling them cannot take the other sessions' frames; one over
+# the budget is refused with an error and the session goes on.
+MESSAGE_COST = {proto.Reset: 5 * MAX_MESSAGES_PER_STEP, proto.SideBySide: 10 * MAX_MESSAGES_PER_STEP}
+COST_REASON = "too many restarts a second: this one is ignored; wait a moment and try again."
 
 
 class MessageBudget:
@@ -151,13 +159,14 @@ class MessageBudget:
         self.rate, self.burst, self.clock = rate, 2 * rate, clock
         self.tokens, self.last = self.burst, clock()
 
-    def take(self) -> bool:
+    def take(self, cost: float = 1) -> bool:
+        """Whether a message of ``cost`` (in messages) fits; if so it is charged."""
         now = self.clock()
         self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
         self.last = now
-        if self.tokens < 1:
+        if self.tokens < cost:
             return False
-        self.tokens -= 1
+        self.tokens -= cost
         return True
 
 
@@ -250,6 +259,10 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
     @app.websocket("/ws")
     async def session_socket(ws: WebSocket) -> None:
         host = ws.headers.get("host")
+        if not access.known_host(host):  # DNS rebinding: as for HTTP, a foreign name gets nothing
+            log.warning("refused a session for host %r", host)
+            await ws.close(code=1008)
+            return
         if not access.origin_allowed(ws.headers.get("origin"), host):
             log.warning("refused a session from origin %r (host %r)", ws.headers.get("origin"), host)
             await ws.close(code=1008)  # before accepting: the handshake fails with HTTP 403
@@ -288,6 +301,10 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
                 except proto.ProtocolError as e:
                     out.event(proto.event("error", message=str(e)))
                 else:
+                    extra = MESSAGE_COST.get(type(parsed), 1) - 1  # the message itself is charged above
+                    if extra and not budget.take(extra):
+                        out.event(proto.event("error", message=COST_REASON))
+                        continue
                     events, frame = await runner.call(apply, s, parsed)
                     for text in events:
                         out.event(text)

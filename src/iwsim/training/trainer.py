@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -41,6 +42,7 @@ from iwsim.checkpoint import (
     write_json_atomic,
 )
 from iwsim.config import TrainConfig
+from iwsim.data.lock import DirLock, LockedError
 from iwsim.errors import InputError, IwsimError
 from iwsim.training import distributed
 
@@ -96,12 +98,20 @@ def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False) 
 
         # compared without the descriptions the old config predates
         new = {k: v for k, v in config.items() if k in old or k not in ADDED_DESCRIPTIONS}
-        if comparable(old) != comparable(new) and not force:
+        if comparable(old) != comparable(new):
             diff = sorted(_diff_keys(comparable(old), comparable(new)))
-            raise InputError(
-                f"{run_dir} holds a run with a different config (differs in {', '.join(diff)}); "
-                "use another --out, or --force to train it with the new config."
-            )
+            if not force:
+                raise InputError(
+                    f"{run_dir} holds a run with a different config (differs in {', '.join(diff)}); "
+                    "use another --out, or --force to train it with the new config."
+                )
+            # --force starts over: the old run's checkpoints, metrics and evaluations were
+            # trained with the old config, and resuming from them would mix the two
+            log.warning("%s: --force with a different config (%s): starting over, removing the old run's "
+                        "checkpoints, metrics and evaluations", run_dir, ", ".join(diff))
+            for name in ("checkpoints", "eval"):
+                shutil.rmtree(run_dir / name, ignore_errors=True)
+            (run_dir / "metrics.jsonl").unlink(missing_ok=True)
     write_json_atomic(path, config)
 
 
@@ -164,16 +174,33 @@ def train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, An
     if cfg.batch_size % d.world:
         raise InputError(f"batch size {cfg.batch_size} does not split evenly over {d.world} processes.")
     run_dir = Path(run_dir)
+    lock = None
     if d.main:
-        prepare_run_dir(run_dir, config, force)
-    distributed.barrier(d)
-    handler = _setup_logging(run_dir) if d.main else None
+        lock = lock_run_dir(run_dir)  # one writer per run: held until training ends
     try:
-        return _train(task, cfg, run_dir, config, device, d, progress)
+        if d.main:
+            prepare_run_dir(run_dir, config, force)
+        distributed.barrier(d)
+        handler = _setup_logging(run_dir) if d.main else None
+        try:
+            return _train(task, cfg, run_dir, config, device, d, progress)
+        finally:
+            if handler is not None:
+                logging.getLogger("iwsim").removeHandler(handler)
+                handler.close()
     finally:
-        if handler is not None:
-            logging.getLogger("iwsim").removeHandler(handler)
-            handler.close()
+        if lock is not None:
+            lock.release()
+
+
+def lock_run_dir(run_dir: Path) -> DirLock:
+    """The run directory's writer lock (``run_dir/.iwsim.lock``, as an episode store's);
+    a second process training into ``run_dir`` is refused in one line naming the first."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        return DirLock(run_dir, what="training", hint="wait for it to finish, or train into another --out.")
+    except LockedError as e:
+        raise InputError(e.strerror) from None
 
 
 def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, Any], device: torch.device,

@@ -10,17 +10,18 @@ windows of training episodes with everything random a training step needs.
 from __future__ import annotations
 
 import hashlib
+import json
+import logging
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import safe_open
-from safetensors.torch import save_file
+from safetensors import SafetensorError, safe_open
 from tqdm import tqdm
 
-from iwsim.checkpoint import resolve_checkpoint
+from iwsim.checkpoint import resolve_checkpoint, save_tensors
 from iwsim.data.frames import split_episodes, to_model
 from iwsim.data.store import EpisodeStore, StoreError, conditioning_key
 from iwsim.diffusion import edm
@@ -34,6 +35,10 @@ from iwsim.world_model.codecs import load_codec
 from iwsim.world_model.model import WorldModel
 from iwsim.world_model.novelty import Novelty, fit_novelty, novelty_features
 from iwsim.world_model.presets import DynamicsStageConfig
+
+log = logging.getLogger(__name__)
+
+NOVELTY_STEPS = 50_000  # steps of the training data the trust signal's Gaussian is fitted to
 
 
 @dataclass
@@ -193,7 +198,7 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
         for k, i in enumerate(tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress)):
             frames = np.ascontiguousarray(img[i:i + chunk])
             hashes.append(hashlib.blake2b(frames.tobytes(), digest_size=12).hexdigest())
-            if k < len(old) and old[k] in (hashes[-1], "*"):
+            if k < len(old) and old[k] in (hashes[-1], "*") and len(cached) >= i + len(frames):
                 out.append(cached[i:i + len(frames)].half())
                 continue
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
@@ -203,10 +208,13 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
     latents = torch.cat(out)
     if cache is not None and hashes != old:
         cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_name(f".{cache.name}.tmp")
+        tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")  # per process: two runs may share a cache
         meta = {"weights": weights, "chunk": str(chunk), "hashes": ",".join(hashes)}
-        save_file({"latents": latents.contiguous()}, tmp, metadata=meta)
-        os.replace(tmp, cache)
+        try:
+            save_tensors({"latents": latents}, tmp, metadata=meta)
+            os.replace(tmp, cache)
+        finally:
+            tmp.unlink(missing_ok=True)
     return latents
 
 
@@ -220,33 +228,68 @@ def _read_cache(cache: Path | None, weights: str, store: EpisodeStore, frames: i
     """A latent cache's latents and per-chunk frame hashes, if written for these encoder
     weights (none otherwise). A cache written before the hashes, keyed by the store's path
     and frame count, counts for that store with every chunk matching ("*")."""
-    if cache is None or not cache.is_file():
+    if cache is None or not os.path.lexists(cache):
         return None, []
-    with safe_open(cache, "pt") as f:
-        meta = f.metadata() or {}
-        if meta.get("weights") == weights and meta.get("chunk") == str(chunk):
-            return f.get_tensor("latents"), meta["hashes"].split(",")
-        if meta.get("key") == f"{store.path}|{frames}|{weights}":
-            return f.get_tensor("latents"), ["*"] * -(-frames // chunk)
+    if not cache.is_file():
+        raise InputError(f"the latent cache {cache} is {'a directory' if cache.is_dir() else 'not a regular file'}; "
+                         "expected the path of a .safetensors file (it is created if missing).")
+    if not _is_latent_cache(cache):
+        raise InputError(f"{cache} is not a latent cache (a .safetensors file of latents); it is left as it is: "
+                         "choose another latent cache path, or remove it.")
+    try:
+        with safe_open(cache, "pt") as f:
+            meta = f.metadata() or {}
+            if meta.get("weights") == weights and meta.get("chunk") == str(chunk):
+                hashes = meta["hashes"].split(",")
+            elif meta.get("key") == f"{store.path}|{frames}|{weights}":
+                hashes = ["*"] * -(-frames // chunk)
+            else:
+                return None, []
+            latents = f.get_tensor("latents")
+            # the hashes' chunks must all lie in the latents: the last one may be partial
+            if latents.ndim != 4 or not (len(hashes) - 1) * chunk < latents.shape[0] <= len(hashes) * chunk:
+                raise ValueError(f"{latents.shape[0]} latents for {len(hashes)} chunks of {chunk} frames")
+            return latents, hashes
+    except (SafetensorError, OSError, ValueError, KeyError, RuntimeError) as e:  # a cache: damaged is rebuilt
+        log.warning("the latent cache %s is damaged (%s); encoding the store again", cache, " ".join(str(e).split()))
     return None, []
 
 
-def fit_store_novelty(wm: WorldModel, data: str | Path, progress: bool = True, cache: Path | None = None) -> Novelty:
-    """The trust signal's Gaussian (:mod:`iwsim.world_model.novelty`) of every step of the
-    store ``data`` (the model's training data): the step's newest latent, standardised by
-    the model, and the normalised actions before and at it (at an episode's first step its
-    first action stands for both, as after a reset)."""
+def _is_latent_cache(path: Path) -> bool:
+    """Whether ``path`` starts like a latent cache: a safetensors header (a little-endian
+    length, then that much JSON) naming ``latents``. Read with a cap, so any file is cheap."""
+    with path.open("rb") as f:
+        head = f.read(8)
+        n = int.from_bytes(head, "little") if len(head) == 8 else 0
+        if not 0 < n <= 1 << 24:
+            return False
+        try:
+            header = json.loads(f.read(n))
+        except ValueError:
+            return False
+    return isinstance(header, dict) and "latents" in header
+
+
+def fit_store_novelty(wm: WorldModel, data: str | Path, progress: bool = True,
+                      max_steps: int = NOVELTY_STEPS) -> Novelty:
+    """The trust signal's Gaussian (:mod:`iwsim.world_model.novelty`) of the steps of the
+    store ``data`` (the model's training data; whole episodes, evenly spread, up to
+    ``max_steps`` steps): the step's newest latent, standardised by the model, and the
+    normalised actions before and at it (at an episode's first step its first action
+    stands for both, as after a reset)."""
     store = EpisodeStore.open(data, "r")
-    size = store.array("img").shape[1]
-    if size != wm.image_size:
-        raise InputError(f"{data} holds {size}x{size} frames but the world model renders "
+    img = store.array("img")
+    if img.shape[1] != wm.image_size:
+        raise InputError(f"{data} holds {img.shape[1]}x{img.shape[1]} frames but the world model renders "
                          f"{wm.image_size}x{wm.image_size}.")
-    actions = wm.normalize_actions(np.asarray(store.array(conditioning_key(store.keys))[:], dtype=np.float32)).cpu()
-    latents = encode_store(wm.codec, store, wm.device, progress, cache)
     ends = store.episode_ends.astype(np.int64)
-    prev_idx = np.arange(len(actions)) - 1
-    prev_idx[np.concatenate([[0], ends[:-1]])] += 1  # an episode's first step: its own action
-    feats = [novelty_features(wm.standardize(latents[i:i + 4096].float().to(wm.device)).cpu(),
-                              actions[prev_idx[i:i + 4096]], actions[i:i + 4096])
-             for i in range(0, len(actions), 4096)]
+    starts = np.concatenate([[0], ends[:-1]])
+    every = max(1, int(np.ceil(ends[-1] / max_steps)))
+    chosen = range(0, len(ends), every)
+    actions = wm.normalize_actions(np.asarray(store.array(conditioning_key(store.keys))[:], dtype=np.float32)).cpu()
+    feats = []
+    for e in tqdm(chosen, desc="novelty", disable=not progress):
+        idx = np.arange(starts[e], ends[e])
+        z = wm.standardize(wm.encode(np.asarray(img[starts[e]:ends[e]]))).cpu()
+        feats.append(novelty_features(z, actions[np.maximum(idx - 1, starts[e])], actions[idx]))
     return fit_novelty(torch.cat(feats))

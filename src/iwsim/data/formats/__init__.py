@@ -21,7 +21,7 @@ import logging
 import os
 from pathlib import Path
 
-from iwsim.data.formats.common import FormatError, check_resize_memory, output_dir, write_store
+from iwsim.data.formats.common import FormatError, check_resize_memory, output_dir, read_meta, write_store
 from iwsim.data.store import EpisodeStore
 from iwsim.errors import InputError
 
@@ -97,7 +97,7 @@ def validate(path: str | os.PathLike) -> tuple[str, list[str]]:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path} does not exist.")
-    if (path / "meta" / "info.json").is_file():
+    if os.path.lexists(path / "meta" / "info.json"):  # even a broken one: validate says what is wrong with it
         from iwsim.data.formats.lerobot import validate_lerobot
 
         return validate_lerobot(path)
@@ -105,8 +105,8 @@ def validate(path: str | os.PathLike) -> tuple[str, list[str]]:
         from iwsim.data.formats.dp_zarr import read_zarr, validate_store
 
         try:
-            attrs = json.loads((path / ".zattrs").read_text())
-        except (OSError, ValueError):
+            attrs = json.loads(read_meta(path / ".zattrs"))
+        except (OSError, ValueError):  # FormatError too
             attrs = {}
         if isinstance(attrs, dict) and "store_version" in attrs:
             return "episode store", validate_store(path)
@@ -131,9 +131,13 @@ def merge(sources: list[str | os.PathLike], out: str | os.PathLike, *, progress:
     if len(sources) < 2:
         raise InputError(f"merge takes at least 2 stores, got {len(sources)}.")
     target = Path(out).resolve()
+    seen: dict[Path, str | os.PathLike] = {}
     for src in sources:
         if target.is_relative_to(Path(src).resolve()):
             raise InputError(f"--out {out} is inside the input {src}; write the merged store elsewhere.")
+        if Path(src).resolve() in seen:  # its episodes would be written twice
+            raise InputError(f"merge names the store {seen[Path(src).resolve()]} twice ({src}); give each store once.")
+        seen[Path(src).resolve()] = src
     stores = [EpisodeStore.open(src, "r") for src in sources]
     first = stores[0]
     for s in stores[1:]:

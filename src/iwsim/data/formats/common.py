@@ -20,13 +20,23 @@ import numpy as np
 from iwsim.data.lock import LOCK_NAME, DirLock, remove_stale_temps, temp_sibling
 from iwsim.data.store import EpisodeStore
 from iwsim.errors import InputError
-from iwsim.resources import require_memory
+from iwsim.resources import read_capped, require_memory
 
 REQUIRED = ("img", "state", "action")
 
 
 class FormatError(InputError):
     """A file that does not follow its format; the message names the file, key and episode."""
+
+
+META_MAX_BYTES = 256 << 20  # a metadata file (info.json, episodes.jsonl, ...) larger than this is not one
+
+
+def read_meta(path: Path) -> str:
+    """The text of a metadata file, read with a size cap: a FormatError for anything but a
+    regular file (a symlink to ``/dev/zero`` would be read until memory ran out) or a file
+    over :data:`META_MAX_BYTES`. A missing file is a FileNotFoundError, as for ``read_text``."""
+    return read_capped(path, META_MAX_BYTES, FormatError).decode()
 
 
 def where(path: str | os.PathLike, key: str | None = None, episode: int | None = None) -> str:

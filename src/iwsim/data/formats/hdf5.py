@@ -112,7 +112,10 @@ def export_aloha(store: EpisodeStore, out: Path, *, fps: int, task: str, progres
     for i in tqdm(range(store.n_episodes), unit="ep", desc=f"export {out.name}", disable=not progress):
         ep = check_episode(store.episode(i), where(store.path, episode=i))
         img, state = ep["img"], ep["state"]
-        with h5py.File(out / f"episode_{i}.hdf5", "w") as f:
+        # Built in memory, then written by Python: the HDF5 library on a full disk crashed
+        # the process (segmentation fault); a failed Python write is an OSError, one line.
+        image = io.BytesIO()
+        with h5py.File(image, "w") as f:
             f.attrs["sim"] = True  # ACT aligns sim actions with their frame (real ones one step earlier)
             f.attrs["compress"] = False
             f.attrs["fps"] = int(fps)
@@ -127,6 +130,8 @@ def export_aloha(store: EpisodeStore, out: Path, *, fps: int, task: str, progres
             # ACT's loaders read qvel unconditionally but never use it; zeros keep them working.
             f.create_dataset("observations/qvel", data=np.zeros_like(state))
             f.create_dataset("action", data=ep["action"])
+        with open(out / f"episode_{i}.hdf5", "wb") as file:
+            file.write(image.getbuffer())
 
 
 # --- ALOHA: import ---------------------------------------------------------------------------

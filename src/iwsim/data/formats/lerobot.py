@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from iwsim.data.formats.common import FormatError, check_episode, positive_int, store_episodes, where
+from iwsim.data.formats.common import FormatError, check_episode, positive_int, read_meta, store_episodes, where
 from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video, write_episode_video
 from iwsim.data.store import EpisodeStore
 from iwsim.errors import InputError
@@ -53,6 +53,7 @@ V21_DATA = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
 V21_VIDEO = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
 IMAGE = "observation.image"
 STATE, ACTION = "observation.state", "action"
+FLOAT_DTYPES = ("float32", "float64", "float16")  # of the state and action features
 INDEX_FEATURES = {"timestamp": "float32", "frame_index": "int64", "episode_index": "int64", "index": "int64",
                   "task_index": "int64"}
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
@@ -341,7 +342,7 @@ def export_v21(store: EpisodeStore, out: Path, *, fps: int, task: str, progress:
 def _load_info(src: Path, versions: tuple[str, ...]) -> dict:
     path = src / "meta" / "info.json"
     try:
-        info = json.loads(path.read_text())
+        info = json.loads(read_meta(path))
     except FileNotFoundError:
         raise FormatError(f"{path}: missing; {src} is not a LeRobot dataset.") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -354,10 +355,16 @@ def _load_info(src: Path, versions: tuple[str, ...]) -> dict:
     for key, kind in (("fps", (int, float)), ("features", dict)):
         if not isinstance(info.get(key), kind):
             raise FormatError(f"{where(path, key)}: missing or of the wrong type.")
+    if isinstance(info["fps"], bool) or positive_int(info["fps"]) is None:
+        raise FormatError(f"{where(path, 'fps')}: {info['fps']!r}, expected a positive number of frames a second.")
     for key in (STATE, ACTION):
         if key not in info["features"]:
             raise FormatError(f"{where(path, 'features')}: no '{key}' feature; features are "
                               f"{sorted(info['features'])}.")
+        dtype = info["features"][key].get("dtype") if isinstance(info["features"][key], dict) else None
+        if dtype not in FLOAT_DTYPES:
+            raise FormatError(f"{where(path, f'features.{key}.dtype')}: {dtype!r}, expected one of "
+                              f"{', '.join(FLOAT_DTYPES)}.")
     return info
 
 
@@ -424,7 +431,16 @@ def _images(table, key: str, path: Path, episode: int) -> np.ndarray:
     return np.stack(frames)
 
 
-def _episode_from_rows(table, path: Path, e: int, cam: str, frames: np.ndarray | None) -> dict[str, np.ndarray]:
+def _episode_from_rows(table, path: Path, e: int, cam: str, frames: np.ndarray | None,
+                       length: object = None) -> dict[str, np.ndarray]:
+    """Episode ``e`` from its rows of a data file; ``length``: what the episode metadata says."""
+    if length is not None and (not isinstance(length, int) or length != table.num_rows):
+        raise FormatError(f"{where(path, episode=e)}: the episode metadata says length {str(length)[:40]}, the data "
+                          f"file holds {table.num_rows} rows.")
+    index = _column(table, "episode_index", path, e)
+    if not (index == e).all():
+        raise FormatError(f"{where(path, 'episode_index', e)}: rows of episode(s) "
+                          f"{sorted(set(index.tolist()) - {e})[:3]} among episode {e}'s.")
     order = np.argsort(_column(table, "frame_index", path, e), kind="stable")
     ep = {"state": _column(table, STATE, path, e)[order], "action": _column(table, ACTION, path, e)[order]}
     ep["img"] = frames if frames is not None else _images(table, cam, path, e)[order]
@@ -498,16 +514,18 @@ def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple
                 if vpath not in videos:
                     videos = {vpath: read_video(vpath)}
                 frames = _slice(videos[vpath], first, hi - lo, vpath, e)
-            yield _episode_from_rows(rows, path, e, cam, frames), None
+            yield _episode_from_rows(rows, path, e, cam, frames, m.get("length")), None
 
     return _attrs(info, tasks, cam), len(meta), episodes()
 
 
 def _jsonl(path: Path) -> list[dict]:
     try:
-        lines = path.read_text().splitlines()
+        lines = read_meta(path).splitlines()
     except FileNotFoundError:
         raise FormatError(f"{path}: missing.") from None
+    except UnicodeDecodeError:
+        raise FormatError(f"{path}: not UTF-8 text.") from None
     out = []
     for i, line in enumerate(lines):
         if line.strip():
@@ -544,7 +562,7 @@ def read_v21(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tupl
             if is_video:
                 vpath = video_path.resolve(src, episode_chunk=e // chunks, video_key=cam, episode_index=e)
                 frames = _slice(read_video(vpath), 0, table.num_rows, vpath, e)
-            yield _episode_from_rows(table, path, e, cam, frames), None
+            yield _episode_from_rows(table, path, e, cam, frames, m.get("length")), None
 
     return _attrs(info, tasks, cam), len(meta), episodes()
 
@@ -566,8 +584,8 @@ def validate_lerobot(path: Path) -> tuple[str, list[str]]:
     metadata, data and video file, and that they agree with each other."""
     problems: list[str] = []
     try:
-        raw = json.loads((path / "meta/info.json").read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raw = json.loads(read_meta(path / "meta/info.json"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError, FormatError) as e:
         return "LeRobot dataset", [f"{path / 'meta/info.json'}: unreadable ({e})."]
     version = raw.get("codebase_version") if isinstance(raw, dict) else None
     kind = f"LeRobot dataset {version}"
@@ -607,12 +625,14 @@ def validate_lerobot(path: Path) -> tuple[str, list[str]]:
         stats_path = path / "meta/stats.json"
         if stats_path.is_file():
             try:
-                stats = json.loads(stats_path.read_text())
+                stats = json.loads(read_meta(stats_path))
                 for key, s in stats.items():
                     lack = {"min", "max", "mean", "std", "count", *QUANTILES} - set(s)
                     if lack:
                         problems.append(f"{where(stats_path, key)}: missing {sorted(lack)}.")
-            except (json.JSONDecodeError, AttributeError, TypeError):
+            except FormatError as e:
+                problems.append(str(e))
+            except (json.JSONDecodeError, UnicodeDecodeError, AttributeError, TypeError):
                 problems.append(f"{stats_path}: not a JSON object of per-feature stats.")
     # Reading every episode checks the files, their columns and the frame counts.
     reader = read_v3 if v3 else read_v21
