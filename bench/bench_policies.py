@@ -35,7 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
 from iwsim.eval.policy import evaluate, summarize  # noqa: E402
-from iwsim.policies import load_policy  # noqa: E402
+from iwsim.policies.factory import load_policy  # noqa: E402
 
 
 def _expert_episode(seed_steps: tuple[int, int]) -> float:

@@ -7,7 +7,7 @@ changed, then score chosen checkpoints closed-loop in MuJoCo.
 
 ``--set`` changes one field of the preset (``model.X``, ``train.X`` or ``shift``; the
 value is JSON, bare words are strings); ``--exec FIELD=VALUE`` changes only how the trained
-policy runs (``iwsim.policies.EXECUTION_FIELDS``, e.g. ``n_action_steps=4`` or ACT's
+policy runs (the policy's registered ``execution`` fields, e.g. ``n_action_steps=4`` or ACT's
 ``temporal_ensemble=null``). Runs go to ``runs/pol/NAME`` and resume exactly; evaluations
 are cached beside them, one file per checkpoint, seeds and execution.
 Validation seeds (200000+) choose; ``--test`` scores on the test seeds (100000+) instead.
@@ -29,8 +29,9 @@ from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.config import from_dict, to_dict
 from iwsim.eval.policy import rollout, summarize
 from iwsim.experiments.common import checkpoints
-from iwsim.policies import PRESETS, PolicyStageConfig, load_policy
+from iwsim.policies import POLICIES, PRESETS, PolicyStageConfig
 from iwsim.policies.data import parse_mixture
+from iwsim.policies.factory import load_policy
 from iwsim.training.policy import train_policy
 
 VAL_SEED, TEST_SEED = 200_000, 100_000
@@ -65,7 +66,7 @@ def stage_config(preset: str, steps: int, sets: list[str], bf16: bool, seed: int
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--name", required=True)
-    p.add_argument("--policy", choices=("dp", "act"), required=True)
+    p.add_argument("--policy", choices=tuple(POLICIES), required=True)
     p.add_argument("--preset", help="default: the policy's name")
     p.add_argument("--data", required=True)
     p.add_argument("--steps", type=int, required=True)

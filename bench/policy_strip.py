@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 
 from iwsim.eval.policy import rollout
-from iwsim.policies import load_policy
+from iwsim.policies.factory import load_policy
 
 SEEDS = (200001, 200002, 200005, 200007, 200013, 200003)  # validation seeds, failures of dp-base among them
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from wm_studies_check import strip
 
-from iwsim.policies import load_policy
+from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.resources import set_threads
 

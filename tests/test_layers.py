@@ -6,11 +6,21 @@ T-push's ground-truth tooling, named in ``iwsim.layers.GROUND_TRUTH_TOOLING``)."
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-from iwsim.layers import GROUND_TRUTH_TOOLING, LAYERS, TASK_IMPORTERS, TASK_MODULES, layer_of, within
+from iwsim.layers import (
+    GROUND_TRUTH_TOOLING,
+    LAYERS,
+    T_PUSH_DEFAULTS_SPELLED,
+    TASK_IMPORTERS,
+    TASK_MODULES,
+    layer_of,
+    within,
+)
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 ROOT = "iwsim"  # the package's __init__, outside the layers
@@ -88,8 +98,60 @@ def test_the_ground_truth_tooling_list_only_names_modules_that_need_it():
     assert [m for m in GROUND_TRUTH_TOOLING if not any(within(d, TASK_MODULES) for d in GRAPH[m])] == []
 
 
+def test_the_store_layer_does_not_reach_the_task_registry():
+    """Issue 43: data/ imported tasks.py through collection; collection now sits above the
+    registry, and the rest of data/ stays below it."""
+    assert layer_of("iwsim.data.collect") > layer_of("iwsim.tasks") == layer_of("iwsim.data")
+    assert [m for m in GRAPH if within(m, ("iwsim.data",)) and not within(m, ("iwsim.data.collect",))
+            and any(within(d, ("iwsim.tasks", "iwsim.data.collect")) for d in GRAPH[m])] == []
+
+
+def test_the_package_root_reaches_up_only_for_the_lazy_world_model():
+    """``import iwsim`` registers the Gymnasium ids; ``iwsim.WorldModel`` (public) is the one
+    upward import, inside a function so that ``import iwsim`` does not import torch."""
+    tree = ast.parse(MODULES[ROOT].read_text())
+    top = {a.name if isinstance(n, ast.Import) else n.module for stmt in tree.body
+           if not isinstance(stmt, ast.FunctionDef) for n in ast.walk(stmt)
+           if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
+    lazy = {n.module for stmt in tree.body if isinstance(stmt, ast.FunctionDef) for n in ast.walk(stmt)
+            if isinstance(n, ast.ImportFrom)}
+    assert top == {"iwsim.envs"} and lazy == {"iwsim.world_model"}
+    code = ("import sys, iwsim; assert 'torch' not in sys.modules; "
+            "assert iwsim.WorldModel.load and 'torch' in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+SHIPPED_CHECKPOINT = "checkpoints/pusht-64"
+
+
+def spells_t_push_defaults(name: str) -> bool:
+    """Whether ``name`` holds the shipped checkpoint's path outside a docstring, or calls
+    ``get_task("pusht")`` at module level."""
+    tree = ast.parse(MODULES[name].read_text())
+    docstrings = {id(n.body[0].value) for n in ast.walk(tree)
+                  if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and n.body
+                  and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+    if any(isinstance(n, ast.Constant) and isinstance(n.value, str) and SHIPPED_CHECKPOINT in n.value
+           and id(n) not in docstrings for n in ast.walk(tree)):
+        return True
+    top = [n for stmt in tree.body if not isinstance(stmt, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))
+           for n in ast.walk(stmt)]
+    return any(isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", None)) == "get_task"
+               and n.args and isinstance(n.args[0], ast.Constant) and n.args[0].value == "pusht" for n in top)
+
+
+def test_the_t_push_defaults_have_one_home():
+    """Issue 43: the shipped checkpoint and the module-level T-push task are spelled only by
+    T-push's own modules and the task registry (the list of the others only shrinks)."""
+    spelled = {name for name in MODULES if spells_t_push_defaults(name)}
+    home = ("iwsim.tasks", *TASK_MODULES)
+    assert sorted(m for m in spelled if not within(m, home) and m not in T_PUSH_DEFAULTS_SPELLED) == []
+    assert sorted(m for m in T_PUSH_DEFAULTS_SPELLED if m not in spelled) == []
+
+
 @pytest.mark.parametrize("module, layer", [("iwsim.checkpoint", 0), ("iwsim.envs.scripted", 1),
-                                           ("iwsim.world_model", 3), ("iwsim.world_model_env", 4),
+                                           ("iwsim.data.store", 2), ("iwsim.tasks", 2), ("iwsim.data.collect", 3),
+                                           ("iwsim.world_model", 4), ("iwsim.world_model_env", 5),
                                            ("iwsim.cli", len(LAYERS) - 1)])
 def test_layer_of(module, layer):
     assert layer_of(module) == layer

@@ -1,4 +1,4 @@
-"""ACT (iwsim.policies.act): overfitting, the execution contract, temporal ensembling as
+"""ACT (iwsim.policies.act.model): overfitting, the execution contract, temporal ensembling as
 the paper's Algorithm 2, save/load, bad input. Tiny configs; one torch thread."""
 
 import dataclasses
@@ -9,7 +9,8 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from iwsim.config import from_dict, to_dict
-from iwsim.policies.act import ACTConfig, ACTPolicy, TemporalEnsemble
+from iwsim.policies.act.config import ACTConfig
+from iwsim.policies.act.model import ACTPolicy, TemporalEnsemble
 from iwsim.policies.common import Normalizer, PolicyBatch
 
 pytestmark = pytest.mark.usefixtures("one_thread")

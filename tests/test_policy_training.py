@@ -16,9 +16,10 @@ from iwsim.data.collect import collect
 from iwsim.data.store import EpisodeStore
 from iwsim.eval.policy import evaluate, rollout
 from iwsim.eval.stats import beta_posterior, clopper_pearson
-from iwsim.policies import PRESETS, load_policy, make_policy
+from iwsim.policies import PRESETS
 from iwsim.policies.common import Normalizer, random_shift
 from iwsim.policies.data import PolicyData, Source, parse_mixture
+from iwsim.policies.factory import load_policy, make_policy
 from tests.test_dynamics import tiny_world_model
 
 pytestmark = pytest.mark.usefixtures("one_thread")

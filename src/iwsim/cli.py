@@ -19,20 +19,23 @@ EXIT_USER_ERROR = 1  # bad values the library rejected (argparse's own usage err
 
 def build_parser() -> argparse.ArgumentParser:
     from iwsim.envs import IMAGE_SIZES, POLICIES, TASKS
+    from iwsim.policies import POLICIES as LEARNED_POLICIES
+    from iwsim.policies import PRESETS as POLICY_PRESETS
     from iwsim.resources import available_cores
+    from iwsim.tasks import DEFAULT_TASK as TASK
 
     parser = argparse.ArgumentParser(prog="iwsim", description="Interactive world simulator for robot learning.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("collect", help="record scripted episodes of a MuJoCo task into an episode store")
-    p.add_argument("--task", default="pusht", help=f"task: {', '.join(TASKS)} (default: %(default)s)")
+    p.add_argument("--task", default=TASK.kind, help=f"task: {', '.join(TASKS)} (default: %(default)s)")
     p.add_argument("--policy", default="play", help=f"scripted policy: {', '.join(POLICIES)} (default: %(default)s)")
     p.add_argument("--episodes", type=int, required=True, help="total episodes the store should hold")
     p.add_argument("--steps", type=int, default=200, help="steps per episode (default: %(default)s)")
     p.add_argument(
         "--image-size",
         type=int,
-        default=64,
+        default=TASK.image_size,
         help=f"square image size: {', '.join(map(str, IMAGE_SIZES))} (default: %(default)s)",
     )
     p.add_argument(
@@ -67,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--in", dest="src", required=True, help="dataset directory or file")
     q.add_argument("--out", required=True, help="episode store to create (must not exist)")
     q.add_argument("--camera", help="camera to take frames from (default: the only or the usual one)")
-    q.add_argument("--image-size", type=int, default=64,
+    q.add_argument("--image-size", type=int, default=TASK.image_size,
                    help="frame size after a centred square crop; 0 keeps the source's (default: %(default)s)")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     q.set_defaults(func=_data_import)
@@ -89,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     init = q.add_mutually_exclusive_group(required=True)
     init.add_argument("--ae", help="stage-1 run directory or checkpoint (e.g. runs/ae), or a world-model checkpoint "
                       "(its codec): train from scratch")
-    init.add_argument("--init", help="world-model checkpoint to fine-tune (e.g. checkpoints/pusht-64): its "
+    init.add_argument("--init", help=f"world-model checkpoint to fine-tune (e.g. {TASK.checkpoint}): its "
                                      "autoencoder, normalisation and network are kept")
     q.add_argument("--variant", default="ours",
                    help="ours, or a benchmark baseline or ablation: deterministic, diffusion, no-context-noise, "
@@ -101,8 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     _train_flags(q, "tiny, pusht-64")
     q.set_defaults(func=_train_dynamics)
     q = train_sub.add_parser("policy", help="an imitation policy (Diffusion Policy or ACT) on a mixture of stores")
-    q.add_argument("--policy", required=True, choices=("dp", "act"), help="policy type")
-    _train_flags(q, "dp, act, tiny-dp, tiny-act (default: the policy's name)")
+    q.add_argument("--policy", required=True, choices=tuple(LEARNED_POLICIES), help="policy type")
+    _train_flags(q, f"{', '.join(POLICY_PRESETS)} (default: the policy's name)")
     q.set_defaults(func=_train_policy, preset=None)
     for action in q._actions:  # --data takes a mixture here
         if action.dest == "data":
@@ -127,11 +130,11 @@ def build_parser() -> argparse.ArgumentParser:
     eval_sub = p.add_subparsers(dest="eval_command", required=True, metavar="COMMAND")
     q = eval_sub.add_parser("policy", help="success and max IoU over seeded episodes, with intervals and videos")
     q.add_argument("--checkpoint", required=True, help="policy run (its last checkpoint) or checkpoint directory")
-    q.add_argument("--env", default="pusht", choices=("pusht", "world-model"), help="(default: %(default)s)")
-    q.add_argument("--world-model", default="checkpoints/pusht-64", help="for --env world-model (default: %(default)s)")
+    q.add_argument("--env", default=TASK.kind, choices=(TASK.kind, "world-model"), help="(default: %(default)s)")
+    q.add_argument("--world-model", default=TASK.checkpoint, help="for --env world-model (default: %(default)s)")
     q.add_argument("--episodes", type=int, default=50, help="(default: %(default)s)")
     q.add_argument("--seed", type=int, default=100000, help="first MuJoCo seed (default: %(default)s)")
-    q.add_argument("--steps", type=int, default=600, help="steps per episode (default: %(default)s)")
+    q.add_argument("--steps", type=int, default=TASK.horizon, help="steps per episode (default: %(default)s)")
     q.add_argument("--videos", type=int, default=4, help="episodes recorded as videos (default: %(default)s)")
     q.add_argument("--action-steps", type=int,
                    help="actions executed per query, overriding the checkpoint's (Diffusion Policy's Ta)")
@@ -185,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_bench)
 
     p = sub.add_parser("demo", help="the shipped world model next to MuJoCo under the scripted expert, as a video")
-    p.add_argument("--checkpoint", default="checkpoints/pusht-64", help="world model (default: %(default)s)")
+    p.add_argument("--checkpoint", default=TASK.checkpoint, help="world model (default: %(default)s)")
     p.add_argument("--seed", type=int, default=100000,
                    help="MuJoCo initial state; training data uses seeds below 100000 (default: %(default)s)")
     p.add_argument("--steps", type=int, default=192, help="steps (default: %(default)s)")
@@ -194,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_demo)
 
     p = sub.add_parser("play", help="drive a world model from the browser and record demonstrations")
-    p.add_argument("--checkpoint", default="checkpoints/pusht-64", help="world model (default: %(default)s)")
+    p.add_argument("--checkpoint", default=TASK.checkpoint, help="world model (default: %(default)s)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind; others need a token of your choice (default: %(default)s)")
     p.add_argument("--port", type=int, default=8000, help="port, 0 for any free one (default: %(default)s)")
@@ -220,10 +223,10 @@ def build_parser() -> argparse.ArgumentParser:
     q = exp_sub.add_parser("datagen", help="policies trained on world-model demonstrations vs simulator ones")
     q.add_argument("--preset", default="default", choices=("default", "act", "tiny"),
                    help="default: Diffusion Policy, mixtures and sizes; act: ACT, mixtures (default: %(default)s)")
-    q.add_argument("--world-model", help="world-model checkpoint (default: checkpoints/pusht-64)")
-    q.add_argument("--policy", choices=("dp", "act"), help="policy type (default: the preset's)")
+    q.add_argument("--world-model", help=f"world-model checkpoint (default: {TASK.checkpoint})")
+    q.add_argument("--policy", choices=tuple(LEARNED_POLICIES), help="policy type (default: the preset's)")
     q.add_argument("--episodes", type=int, help="MuJoCo evaluation episodes per policy (default: the preset's, 50)")
-    q.add_argument("--steps", type=int, help="steps per evaluation episode (default: the preset's, 600)")
+    q.add_argument("--steps", type=int, help=f"steps per evaluation episode (default: the preset's, {TASK.horizon})")
     q.add_argument("--total", type=int, help="demonstrations per mixture run (default: the preset's, 100)")
     q.add_argument("--fractions", help="world-model shares of the mixture runs, comma-separated (default: the "
                                        "preset's, 0,0.25,0.5,0.75,1)")
@@ -242,9 +245,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=_experiment_datagen)
     q = exp_sub.add_parser("policy-eval", help="does the world model rank policies like MuJoCo? (r, rho, MMRV)")
     q.add_argument("--preset", default="default", choices=("default", "tiny"), help="scale (default: %(default)s)")
-    q.add_argument("--world-model", help="world-model checkpoint (default: checkpoints/pusht-64)")
+    q.add_argument("--world-model", help=f"world-model checkpoint (default: {TASK.checkpoint})")
     q.add_argument("--episodes", type=int, help="episodes per policy and simulator (default: the preset's, 20)")
-    q.add_argument("--steps", type=int, help="steps per episode (default: the preset's, 600)")
+    q.add_argument("--steps", type=int, help=f"steps per episode (default: the preset's, {TASK.horizon})")
     q.add_argument("--seed", type=int, help="episode i starts from MuJoCo seed SEED + i (default: 100000)")
     q.add_argument("--demos", help="demonstration store the policies train on, e.g. from iwsim collect --policy "
                                    "expert (default: the simulator expert's, recorded under --work when missing)")
@@ -549,7 +552,7 @@ def _train_policy(args: argparse.Namespace) -> int:
 
 def _eval_policy(args: argparse.Namespace) -> int:
     from iwsim.eval.policy import check_args, evaluate
-    from iwsim.policies import load_policy
+    from iwsim.policies.factory import load_policy
     from iwsim.training.trainer import resolve_device
 
     check_args(args.episodes, args.seed, args.steps, args.videos)

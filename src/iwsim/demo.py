@@ -18,8 +18,6 @@ from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CHECKPOINT = "checkpoints/pusht-64"
-
 
 def main(args: argparse.Namespace) -> int:
     if args.steps < 1:

@@ -3,7 +3,11 @@ layers below it, and no imports form a cycle (``tests/test_layers.py`` checks bo
 
 A name stands for a module or a package and everything in it; a module belongs to the
 longest name that covers it. The package's ``__init__`` (``import iwsim``: the Gymnasium
-ids, ``__version__`` and a lazy ``iwsim.WorldModel``) is outside the layers.
+ids, ``__version__`` and a lazy ``iwsim.WorldModel``) is outside the layers: the one
+import that reaches up, on purpose. ``iwsim.WorldModel.load(path)`` is public, and only a
+lazy attribute gives it without importing torch on ``import iwsim`` (the command line and
+collection's workers import the package); ``tests/test_layers.py`` checks it stays the only
+one.
 """
 
 LAYERS: list[tuple[str, ...]] = [
@@ -14,8 +18,11 @@ LAYERS: list[tuple[str, ...]] = [
      "iwsim.training.distributed"),
     # 2. the ground truth: MuJoCo tasks, their scripted policies, pixel scorers
     ("iwsim.envs",),
-    # 3. data and the task registry, then the models as objects (the world model with its codecs and its training)
+    # 3. data and the task registry; collection, a tool over the registry's tasks (it lives
+    #    beside the store in data/ but sits above the registry); then the models as objects
+    #    (the world model with its codecs and its training)
     ("iwsim.data", "iwsim.tasks"),
+    ("iwsim.data.collect",),
     ("iwsim.world_model", "iwsim.policies"),
     # 4. Gymnasium envs over a world model
     ("iwsim.world_model_env",),
@@ -41,6 +48,15 @@ GROUND_TRUTH_TOOLING = {
     "iwsim.eval.rollout": "against_mujoco: a scripted expert's take in MuJoCo beside the model's",
     "iwsim.eval.profiling": "the yardstick's measures of T-push's objects (block pose, pushers)",
     "iwsim.experiments.demos": "the studies' MuJoCo takes from T-push's initial-state distributions (start=)",
+}
+
+# T-push's defaults (frame size, evaluation horizon, shipped checkpoint) live on its Task
+# (iwsim.envs.pusht_task.PushTTask, the commands' iwsim.tasks.DEFAULT_TASK, the studies'
+# iwsim.experiments.common.STUDY). Modules that still spell one out (the shipped checkpoint's
+# path, or a module-level get_task("pusht")), each with why; tests/test_layers.py checks
+# that no other module does and that the list only shrinks.
+T_PUSH_DEFAULTS_SPELLED = {
+    "iwsim.eval.policy": "a module-level get_task(\"pusht\") for summarize's success threshold (issue 43)",
 }
 
 

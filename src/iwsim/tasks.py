@@ -30,6 +30,9 @@ from iwsim.envs.task import Bindings, Start, Task
 from iwsim.errors import InputError
 
 REGISTRY: dict[str, type[Task]] = {PushTTask.kind: PushTTask}
+# The task the commands and the studies default to: its name (``kind``), frame size
+# (``image_size``), evaluation horizon (``horizon``) and shipped world model (``checkpoint``).
+DEFAULT_TASK: type[PushTTask] = PushTTask
 # Per-frame arrays a start reads from a store (whichever the store has).
 RECORD_KEYS = ("state", "block_pose", "target", "action")
 STEP_OF_SPREAD = 0.1  # a teleop step is this share of the standard deviation of a dimension's actions

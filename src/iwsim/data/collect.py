@@ -1,5 +1,8 @@
 """Collect scripted episodes of a MuJoCo task into an episode store (``iwsim collect``).
 
+A tool over the task registry (:mod:`iwsim.tasks`): it sits in the layer above it
+(:data:`iwsim.layers.LAYERS`), so nothing in ``data/`` or the registry imports it.
+
 Episode i is recorded with seed ``seed + i``, so a command gives the same data whatever the
 number of workers, and re-running it with more episodes appends only the missing ones.
 """
@@ -26,7 +29,7 @@ from iwsim.envs import IMAGE_SIZES, POLICIES, check_task
 from iwsim.envs.scripted import record_episode
 from iwsim.errors import InputError
 from iwsim.resources import require_memory
-from iwsim.tasks import get_task
+from iwsim.tasks import DEFAULT_TASK, get_task
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +73,7 @@ def collect(
     *,
     out: str | os.PathLike,
     steps: int = 200,
-    image_size: int = 64,
+    image_size: int = DEFAULT_TASK.image_size,
     workers: int = 1,
     seed: int = 0,
     progress: bool = True,

@@ -62,6 +62,10 @@ class PushTTask(Task):
     start_source = "mujoco"
     clip_commands = True  # MuJoCo clips targets to the workspace
     has_ground_truth = True
+    # T-push's defaults, read by the commands and the studies through iwsim.tasks.DEFAULT_TASK:
+    image_size = 64  # the frames collected, trained on and evaluated at (the shipped model's)
+    horizon = 600  # steps of an evaluation episode (the paper's T-push horizon)
+    checkpoint = "checkpoints/pusht-64"  # the shipped world model
 
     def spaces(self, image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
         return spaces(image_size)

@@ -28,15 +28,19 @@ from iwsim.config import from_dict, to_dict
 from iwsim.data.lock import DirLock, LockedError
 from iwsim.errors import InputError
 from iwsim.eval.policy import rollout, summarize, trust
-from iwsim.policies import PRESETS, PolicyStageConfig, config_class, load_policy
+from iwsim.policies import PRESETS, PolicyStageConfig, config_class
 from iwsim.policies.data import Source
+from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
-from iwsim.tasks import task_from_config
+from iwsim.tasks import DEFAULT_TASK, task_from_config
 from iwsim.training.policy import train_policy
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
-STUDY_TASK = "pusht"  # the studies' ground truth is MuJoCo's T-push
+# The studies' task, in one place: their ground truth is MuJoCo's T-push (the default task),
+# whose success threshold, scorer, evaluation horizon and shipped world model they use.
+STUDY = DEFAULT_TASK()
+STUDY_TASK = STUDY.kind
 
 PolicySource = str | Path | ScriptedConfig  # a policy run or checkpoint directory, or a scripted policy
 
@@ -46,7 +50,7 @@ class PolicyRun:
     """One policy training: a run directory ``root / name``."""
 
     name: str
-    policy: str = "dp"  # "dp" | "act"
+    policy: str = "dp"  # a registered policy (iwsim.policies.POLICIES)
     data: tuple[tuple[str, int | None], ...] = ()  # (store path, its first N episodes; None: all)
     steps: int | None = None  # None: the preset's
     preset: str | None = None  # None: the policy's name
@@ -102,7 +106,7 @@ def check_study_model(world_model: str | os.PathLike | None) -> None:
     kind = config.get("kind") if isinstance(config, dict) else None
     if kind != "world_model":
         raise InputError(f"{path} is {'a ' + repr(kind) if kind else 'not a'} checkpoint, not a world model; pass "
-                         "--world-model a world model (e.g. checkpoints/pusht-64).")
+                         f"--world-model a world model (e.g. {STUDY.checkpoint}).")
     task = task_from_config(config, path / "config.json")
     if task.kind != STUDY_TASK:
         raise InputError(f"{path} is a world model of task {task.name!r}; the studies compare with MuJoCo's "

@@ -36,6 +36,7 @@ from iwsim.checkpoint import write_json_atomic, write_text_atomic
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
 from iwsim.experiments.common import (
+    STUDY,
     PolicyRun,
     check_dirs,
     check_study_model,
@@ -46,14 +47,11 @@ from iwsim.experiments.common import (
     training_time,
 )
 from iwsim.experiments.demos import DemoRecipe, DemoStats, record_with, simulator_demos, simulator_store
+from iwsim.policies import policy_type
 from iwsim.policies.scripted import ScriptedConfig
-from iwsim.tasks import get_task
 
 log = logging.getLogger(__name__)
 
-PUSHT = get_task("pusht")  # the study is of T-push (its success threshold)
-
-POLICIES = ("dp", "act")
 BOOTSTRAP = 2000  # resamples of the evaluation episodes for the parity ratio's interval
 # The config fields the command's flags override, and the recipe fields.
 FLAGS = {"world_model": "--world-model", "policy": "--policy", "total": "--total", "wm_fractions": "--fractions",
@@ -64,8 +62,8 @@ RECIPE_FLAGS = {"accept_iou": "--accept-iou", "steps": "--demo-steps"}
 
 @dataclasses.dataclass(frozen=True)
 class DatagenConfig:
-    world_model: str = "checkpoints/pusht-64"
-    policy: str = "dp"  # "dp" | "act"
+    world_model: str = STUDY.checkpoint
+    policy: str = "dp"  # a registered policy (iwsim.policies.POLICIES)
     policy_preset: str = ""  # prefix of the policy's preset: "" (dp, act) or "tiny-"
     train_steps: int | None = None  # None: the preset's
     checkpoint_every: int | None = None  # None: the preset's
@@ -80,8 +78,7 @@ class DatagenConfig:
     steps: int = 300  # evaluation steps per episode
 
     def __post_init__(self) -> None:
-        if self.policy not in POLICIES:
-            raise InputError(f"unknown policy {self.policy!r}; expected one of {', '.join(POLICIES)}.")
+        policy_type(self.policy)  # a registered policy (else its one-line InputError)
         for name in ("total", "episodes", "steps"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
@@ -112,13 +109,13 @@ PRESETS: dict[str, DatagenConfig] = {
     # 50 x 600 steps 18 min. Sizes 5, 25, 100 (not also 50) keep it within the budget.
     "default": DatagenConfig(train_steps=3000, checkpoint_every=1000, total=100,
                              wm_fractions=(0.0, 0.25, 0.5, 0.75, 1.0), sim_sizes=(5, 25, 100),
-                             wm_sizes=(5, 25, 100), steps=600),
+                             wm_sizes=(5, 25, 100), steps=STUDY.horizon),
     # ACT on the same demonstrations, the mixtures only (its scaling curve is flat over 25-100
     # demonstrations, bench/results/policies/scaling.md): five trainings of 4000 steps (the
     # step chosen at 100 demonstrations; measured 21-27 min each on one thread beside another
     # job) ~65 min two at a time, five evaluations of ~4 min; about 1 h 15 min.
     "act": DatagenConfig(policy="act", train_steps=4000, checkpoint_every=1000, total=100,
-                         wm_fractions=(0.0, 0.25, 0.5, 0.75, 1.0), sim_sizes=(), steps=600),
+                         wm_fractions=(0.0, 0.25, 0.5, 0.75, 1.0), sim_sizes=(), steps=STUDY.horizon),
     # Seconds, for tests: tiny policies, a few short takes, every take kept (a random tiny
     # world model never places the T).
     "tiny": DatagenConfig(policy_preset="tiny-", train_steps=4, checkpoint_every=2, total=2, sim_sizes=(1, 2),
@@ -293,8 +290,8 @@ def parity(cfg: DatagenConfig, names: dict[Run, str], scores: dict[str, dict]) -
     rng = np.random.default_rng(0)
     idx = rng.integers(len(a), size=(BOOTSTRAP, len(a)))
     out: dict[str, Any] = {"world_model": wm, "simulator": sim}
-    for metric, fa, fb in (("mean_max_iou", a, b), ("success_rate", a >= PUSHT.success_score,
-                                                                               b >= PUSHT.success_score)):
+    for metric, fa, fb in (("mean_max_iou", a, b), ("success_rate", a >= STUDY.success_score,
+                                                                               b >= STUDY.success_score)):
         den = fb.mean()
         ratio = float(fa.mean() / den) if den > 0 else None
         boot_a, boot_b = fa[idx].mean(1), fb[idx].mean(1)
@@ -339,7 +336,7 @@ def markdown(r: dict[str, Any]) -> str:
         f"Policy: {c['policy']} (preset `{c['policy_preset']}{c['policy']}`, {s['train_steps']} training steps); "
         f"world model `{c['world_model']}`. Evaluation in MuJoCo: {s['eval_episodes']} episodes of "
         f"{s['eval_steps']} steps (seeds {s['eval_seeds'][0]}..{s['eval_seeds'][1]}); score = max IoU within the "
-        f"horizon, success = IoU >= {PUSHT.success_score}.",
+        f"horizon, success = IoU >= {STUDY.success_score}.",
         "",
         f"Compute (one thread per job, summed over jobs and over the invocations that did the work): "
         f"demonstrations {t['demos'] / 60:.1f} min, training {t['training'] / 60:.1f} min, evaluation "

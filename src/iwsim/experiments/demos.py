@@ -63,16 +63,14 @@ from iwsim.envs import IMAGE_SIZES
 from iwsim.envs.pusht import check_start
 from iwsim.errors import InputError
 from iwsim.eval.policy import ENVS, MAX_SEED, rollout
-from iwsim.experiments.common import fingerprint
+from iwsim.experiments.common import STUDY, fingerprint
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.scripted import ScriptedBatch
-from iwsim.tasks import get_task
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
 
-PUSHT = get_task("pusht")  # the demonstrations are of T-push (its scorer and success threshold)
-
+PUSHT = STUDY  # the demonstrations are of the studies' task (bench/yardstick.py reads this name)
 POLICY_NAMES = {"world-model": "world-model-teleop", "pusht": "expert-pixels"}
 SOURCES = {"world-model": "world_model", "pusht": "mujoco"}
 # Attributes that must agree before a run may append to an existing store.
@@ -164,7 +162,8 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                  world_model: str | os.PathLike | None = None, accept_iou: float = PUSHT.success_score,
                  tail: int | None = 10,
                  batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
-                 dart_noise: float = 0.0, start: str = "random", image_size: int = 64, progress: bool = True,
+                 dart_noise: float = 0.0, start: str = "random", image_size: int = PUSHT.image_size,
+                 progress: bool = True,
                  wait_for_lock: bool = False) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
     accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried

@@ -42,6 +42,7 @@ from iwsim.eval.figures import pyplot, save_figure
 from iwsim.eval.policy import check_args
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import (
+    STUDY,
     PolicyRun,
     PolicySource,
     check_dirs,
@@ -68,10 +69,10 @@ FLAGS = {"world_model": "--world-model", "episodes": "--episodes", "steps": "--s
 
 @dataclasses.dataclass(frozen=True)
 class PolicyEvalConfig:
-    world_model: str = "checkpoints/pusht-64"
+    world_model: str = STUDY.checkpoint
     episodes: int = 20  # evaluation episodes per policy and environment
     seed: int = 100000  # episode i starts from MuJoCo seed seed + i in both environments
-    steps: int = 600  # steps per evaluation episode (the paper's T-push horizon)
+    steps: int = STUDY.horizon  # steps per evaluation episode (the paper's T-push horizon)
     demos: str | None = None  # a demonstration store; None: the simulator expert's under work/demos
     demo_episodes: int = 100  # demonstrations of the full-data runs (their first N)
     small_demos: int = 25  # demonstrations of the small-data Diffusion Policy run

@@ -24,6 +24,7 @@ from torch.nn import functional as F
 
 from iwsim.errors import InputError
 from iwsim.normalize import Normalizer
+from iwsim.policies.registry import policy_name
 
 
 @dataclass
@@ -46,13 +47,16 @@ class Policy(nn.Module):
     weights), the action and state sizes, and the window it trains on: ``obs_horizon``
     observed steps and ``horizon`` actions from the first of them."""
 
-    kind: str
-
     def __init__(self, cfg, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__()
         self.cfg, self.action_norm, self.state_norm = cfg, action_norm, state_norm
         self.action_dim = int(action_norm.low.shape[0])
         self.state_dim = int(state_norm.low.shape[0])
+
+    @property
+    def kind(self) -> str:
+        """The policy's registered name (what its checkpoints store)."""
+        return policy_name(self.cfg)
 
     @property
     def obs_horizon(self) -> int:

@@ -11,9 +11,10 @@ import torch
 from torch import nn
 
 from iwsim.config import from_dict, to_dict
-from iwsim.policies import PolicyStageConfig, config_class, describe, make_policy
+from iwsim.policies import PolicyStageConfig, config_class
 from iwsim.policies.common import random_shift
 from iwsim.policies.data import PolicyData, Source
+from iwsim.policies.factory import describe, make_policy
 from iwsim.training import trainer
 
 EVAL_WINDOWS = 64  # fixed windows scored at every evaluation

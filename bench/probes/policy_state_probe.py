@@ -8,7 +8,7 @@ If this policy learns the task, the image policy's gap is perception; if it stal
 same way, it is the imitation itself (the actions, the data, the policy class).
 Scores on 20 validation seeds x 600 steps go to runs/pol/NAME/probe_scores.jsonl.
 
-    MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_state_probe.py --name probe-pose \
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/probes/policy_state_probe.py --name probe-pose \
         --steps 6000 --eval-at 2000,4000,6000
 """
 import argparse
@@ -25,7 +25,7 @@ from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import VIEW_HALF
 from iwsim.policies import PRESETS
 from iwsim.policies.data import parse_mixture
-from iwsim.policies.diffusion import DiffusionPolicy
+from iwsim.policies.diffusion.model import DiffusionPolicy
 from iwsim.training import trainer
 from iwsim.training.policy import PolicyTask
 

@@ -10,15 +10,12 @@ To = 2, Tp = 16, Ta = 8). The trainer keeps EMA weights, which are what gets exp
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
 from iwsim.diffusion.ddpm import add_noise, ddim_sample, squared_cosine_alphas_cumprod
-from iwsim.errors import InputError
 from iwsim.models.blocks import sinusoidal
 from iwsim.policies.common import (
     ImageEncoder,
@@ -27,30 +24,7 @@ from iwsim.policies.common import (
     PolicyBatch,
     prepare_obs,
 )
-
-
-@dataclass(frozen=True)
-class DiffusionConfig:
-    obs_horizon: int = 2  # To
-    horizon: int = 16  # Tp: actions per denoised chunk, from the first observed step
-    n_action_steps: int = 8  # Ta: executed per query, from the current step
-    image_features: int = 64
-    encoder_channels: tuple[int, ...] = (32, 64, 64)
-    encoder_stride: int = 2  # of the first conv: 64 px -> 8x8 keypoint maps; full-resolution convs cost 4x more
-    down_dims: tuple[int, ...] = (64, 128, 256)
-    kernel_size: int = 5
-    step_embed_dim: int = 64
-    train_steps: int = 100  # DDPM timesteps
-    inference_steps: int = 10  # DDIM steps
-    relative_actions: bool = False  # predict offsets from the current agent_pos (same size as the action)
-
-    def __post_init__(self) -> None:
-        if not 1 <= self.n_action_steps <= self.horizon - self.obs_horizon + 1:
-            raise InputError(f"n_action_steps must be in 1..{self.horizon - self.obs_horizon + 1} "
-                             f"(horizon {self.horizon}, obs_horizon {self.obs_horizon}), got {self.n_action_steps}.")
-        if self.horizon % 2 ** (len(self.down_dims) - 1):
-            raise InputError(f"horizon {self.horizon} must be divisible by {2 ** (len(self.down_dims) - 1)} "
-                             f"for {len(self.down_dims)} UNet levels.")
+from iwsim.policies.diffusion.config import DiffusionConfig
 
 
 class Conv1dBlock(nn.Sequential):
@@ -112,8 +86,6 @@ class ConditionalUnet1D(nn.Module):
 
 class DiffusionPolicy(Policy):
     """See the module docstring; the execution contract is in :mod:`iwsim.policies.common`."""
-
-    kind = "dp"
 
     def __init__(self, cfg: DiffusionConfig, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__(cfg, action_norm, state_norm)

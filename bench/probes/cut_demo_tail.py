@@ -2,7 +2,7 @@
 store's accept_iou): the steps the expert spends holding the block on the goal after it
 are dropped. The same takes as recording with ``DemoRecipe(tail=1)``, without recording.
 
-    python bench/cut_demo_tail.py runs/experiments/demos/sim_expert.zarr runs/pol/demos/notail.zarr
+    python bench/probes/cut_demo_tail.py runs/experiments/demos/sim_expert.zarr runs/pol/demos/notail.zarr
 """
 
 import argparse

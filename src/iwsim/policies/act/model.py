@@ -20,13 +20,13 @@ the current step, w_i = exp(-m * i) with w_0 the oldest; without it, the first
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
 from iwsim.errors import InputError
+from iwsim.policies.act.config import ACTConfig
 from iwsim.policies.common import (
     ImageEncoder,
     Normalizer,
@@ -34,45 +34,6 @@ from iwsim.policies.common import (
     PolicyBatch,
     prepare_obs,
 )
-
-
-@dataclass(frozen=True)
-class ACTConfig:
-    obs_horizon: int = 1  # ACT observes the current step only
-    chunk_size: int = 16  # k: actions predicted per query (the paper: 100 at 50 Hz)
-    n_action_steps: int = 1  # actions executed per query (1 with temporal ensembling)
-    temporal_ensemble: float | None = 0.01  # m in w_i = exp(-m * i); None: execute n_action_steps per chunk
-    encoder_channels: tuple[int, ...] = (32, 64, 64, 64)  # CNN trunk; levels after the first halve H and W
-    dim: int = 128
-    heads: int = 4
-    enc_layers: int = 2
-    dec_layers: int = 2
-    vae_layers: int = 2  # the CVAE encoder's transformer layers (the paper: 4)
-    ff_dim: int = 256
-    dropout: float = 0.1
-    latent_dim: int = 32  # as the paper
-    kl_weight: float = 10.0  # beta, as the paper
-    observe_state: bool = True  # False: act from the image alone (the agent_pos token is blanked)
-    relative_actions: bool = False  # predict offsets from the current agent_pos (same size as the action)
-
-    @property
-    def horizon(self) -> int:
-        """Future actions a training window holds (as DiffusionConfig.horizon)."""
-        return self.chunk_size
-
-    def __post_init__(self) -> None:
-        if self.obs_horizon != 1:
-            raise InputError(f"ACT observes the current step only: obs_horizon must be 1, got {self.obs_horizon}.")
-        if not 1 <= self.n_action_steps <= self.chunk_size:
-            raise InputError(f"n_action_steps must be in 1..chunk_size ({self.chunk_size}), got {self.n_action_steps}.")
-        if self.temporal_ensemble is not None and self.n_action_steps != 1:
-            raise InputError(f"temporal ensembling queries every step, so n_action_steps must be 1, got "
-                             f"{self.n_action_steps}; set temporal_ensemble to None to execute several.")
-        if self.dim % 4 or self.dim % self.heads:
-            raise InputError(f"dim must be divisible by 4 (2D sine embedding) and by heads ({self.heads}), "
-                             f"got {self.dim}.")
-        if not self.encoder_channels or any(c % 8 for c in self.encoder_channels):
-            raise InputError(f"encoder_channels must be multiples of 8 (GroupNorm(8)), got {self.encoder_channels}.")
 
 
 def sinusoid(pos: torch.Tensor, dim: int) -> torch.Tensor:
@@ -178,8 +139,6 @@ class TemporalEnsemble:
 
 class ACTPolicy(Policy):
     """See the module docstring; the execution contract is in :mod:`iwsim.policies.common`."""
-
-    kind = "act"
 
     def __init__(self, cfg: ACTConfig, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__(cfg, action_norm, state_norm)

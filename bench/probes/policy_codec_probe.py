@@ -5,7 +5,7 @@ layers). The latents of the training frames are computed once, under ``--variant
 random shifts of up to 4 px (the first unshifted), so a step costs only the head and the
 UNet. Scores on 20 validation seeds x 600 steps go to runs/pol/NAME/proto_scores.jsonl.
 
-    MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_codec_probe.py --name proto-codec \
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/probes/policy_codec_probe.py --name proto-codec \
         --steps 10000 --variants 5 --eval-at 4000,7000,10000
 """
 import argparse
@@ -20,7 +20,8 @@ from torch import nn
 from iwsim.policies import PRESETS
 from iwsim.policies.common import random_shift
 from iwsim.policies.data import parse_mixture
-from iwsim.policies.diffusion import DiffusionConfig, DiffusionPolicy
+from iwsim.policies.diffusion.config import DiffusionConfig
+from iwsim.policies.diffusion.model import DiffusionPolicy
 from iwsim.training import trainer
 from iwsim.training.policy import PolicyTask
 from iwsim.world_model.model import WorldModel

@@ -1,0 +1,67 @@
+"""Building, describing and loading the registered policies (:mod:`iwsim.policies.registry`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from iwsim.checkpoint import CheckpointError, build_within_memory, load_model_dir
+from iwsim.config import from_dict, to_dict
+from iwsim.errors import InputError
+from iwsim.policies.common import Normalizer
+from iwsim.policies.registry import POLICIES, config_class, policy_type
+
+KIND = "policy"
+
+
+def make_policy(policy: str, model: dict[str, Any], action_norm: Normalizer, state_norm: Normalizer) -> nn.Module:
+    """A policy of type ``policy`` with config fields ``model`` (defaults for the rest)."""
+    entry = policy_type(policy)
+    return entry.policy_class()(from_dict(entry.config_class, model), action_norm, state_norm)
+
+
+def describe(policy: nn.Module) -> dict[str, Any]:
+    """The parts of ``config.json`` that :func:`load_policy` reads."""
+    return {"kind": KIND, "policy": policy.kind, "model": to_dict(policy.cfg),
+            "action_dim": policy.action_dim, "state_dim": policy.state_dim}
+
+
+def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_steps: int | None = None,
+                **execution: Any) -> nn.Module:
+    """A trained policy from a checkpoint directory, or from a run (its last checkpoint).
+
+    ``n_action_steps`` overrides how many actions of each predicted chunk are executed
+    before the policy is queried again (Diffusion Policy's Ta; None: as trained). It only
+    changes execution: the chunk the network predicts is the same. ``execution`` overrides
+    the policy's other registered execution fields the same way (DP's ``inference_steps``;
+    ACT's ``temporal_ensemble``, None to execute ``n_action_steps`` of each chunk)."""
+    path = Path(path)
+    if (path / "checkpoints" / "last").exists():
+        path = (path / "checkpoints" / "last").resolve()
+    if not (path / "config.json").is_file() or not (path / "model.safetensors").is_file():
+        raise CheckpointError(f"{path} is not a policy checkpoint (model.safetensors + config.json) or a run of "
+                              "iwsim train policy.")
+    config, tensors = load_model_dir(path, KIND)
+    if n_action_steps is not None:
+        execution = {**execution, "n_action_steps": n_action_steps}
+    if execution:
+        entry = POLICIES.get(config.get("policy", ""))
+        allowed = entry.execution if entry else ()
+        unknown = sorted(set(execution) - set(allowed))
+        if unknown:
+            raise InputError(f"{', '.join(unknown)} cannot be changed when running a {config.get('policy')!r} policy; "
+                             f"these can: {', '.join(allowed)}.")
+        config["model"] = {**config.get("model", {}), **execution}
+        from_dict(config_class(config.get("policy", "")), config["model"])  # a bad value: its one-line InputError
+    try:
+        a, s = int(config["action_dim"]), int(config["state_dim"])
+        policy = build_within_memory(lambda: make_policy(config["policy"], config["model"], Normalizer(
+            torch.zeros(a), torch.ones(a)), Normalizer(torch.zeros(s), torch.ones(s))), f"the policy of {path}")
+        policy.load_state_dict(tensors)
+        policy.image_size = int(config.get("image_size", 64))  # the frames it was trained on
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(f"{path} does not hold a loadable policy ({' '.join(str(e).split())[:200]}).") from None
+    return policy.to(device).eval()
