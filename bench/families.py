@@ -99,9 +99,10 @@ def family_scores(model: str | None, work: Path, families: list[str], seeds: int
     :func:`iwsim.experiments.common.evaluate_policies`."""
     env = "pusht" if model is None else "world-model"
     all_seeds = [SEED + i for i in range(seeds)]
+    work = work / "families" / ("mujoco" if model is None else fingerprint(model))  # a cache per model
     sources: dict[str, Any] = {f: FAMILIES[f][0] for f in families if f != LEARNED}
-    results = evaluate_policies(sources, env, seeds=all_seeds, steps=steps, world_model=model,
-                                out=work / "families", progress=False)
+    results = evaluate_policies(sources, env, seeds=all_seeds, steps=steps, world_model=model, out=work,
+                                progress=False)
     out = {f: [e["max_iou"] for e in r["episodes"]] for f, r in results.items()}
     novelty = {f: r["novelty"]["per_episode"] for f, r in results.items() if "novelty" in r}
     if LEARNED in families:
@@ -114,8 +115,8 @@ def family_scores(model: str | None, work: Path, families: list[str], seeds: int
             if not mine:
                 continue
             name = f"{LEARNED}-{Path(path).parent.parent.name}-{Path(path).name}"
-            r = evaluate_policies({name: path}, env, seeds=mine, steps=steps, world_model=model,
-                                  out=work / "families", progress=False)[name]
+            r = evaluate_policies({name: path}, env, seeds=mine, steps=steps, world_model=model, out=work,
+                                  progress=False)[name]
             scores[k::len(policies)] = [e["max_iou"] for e in r["episodes"]]
             if "novelty" in r:
                 nov[k::len(policies)] = r["novelty"]["per_episode"]
@@ -155,6 +156,21 @@ def compare(mujoco: dict[str, list[float]], model: dict[str, list[float]], seen:
         out["trust"] = {"spearman_error": float(spearmanr(nov, err)[0]) if np.ptp(nov) > 0 and np.ptp(err) > 0
                         else None, "episodes": len(err)}
     return out
+
+
+def ensemble_trust(mujoco: dict[str, list[float]], model: dict[str, list[float]], partner: dict[str, list[float]]
+                   ) -> dict[str, Any]:
+    """The ensemble trust signal on the families (:func:`iwsim.eval.policy.disagreement`):
+    how well each episode's |model - partner| ranks the episodes by the model's error
+    |model - MuJoCo| (Spearman rho over all (family, episode) pairs both models ran), and
+    each family's mean disagreement."""
+    fams = [f for f in model if f in partner]
+    a, b = (np.concatenate([np.asarray(x[f]) for f in fams]) for x in (model, partner))
+    err = np.abs(a - np.concatenate([np.asarray(mujoco[f]) for f in fams]))
+    gap = np.abs(a - b)
+    return {"spearman_error": float(spearmanr(gap, err)[0]) if np.ptp(gap) > 0 and np.ptp(err) > 0 else None,
+            "episodes": len(err), "families": {f: float(np.mean(np.abs(np.subtract(model[f], partner[f]))))
+                                              for f in fams}}
 
 
 def block_state(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

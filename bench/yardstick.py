@@ -245,6 +245,15 @@ def generalisation_markdown(report: dict) -> list[str]:
         rho = (g or {}).get("trust", {}).get("spearman_error")
         cells.append("no signal" if rho is None else f"{rho:.2f}")
         lines.append(f"| {n} | " + " | ".join(cells) + f" | {(g or {}).get('minutes', 0):.0f} |")
+    pairs = report.get("trust_pairs", {})
+    if pairs:
+        lines += ["", "The ensemble trust signal (`iwsim eval policy --trust-model`): each episode's score "
+                  "difference between the model and a partner model, against the model's error |model - MuJoCo| "
+                  "over all family episodes (Spearman rho; > 0: it ranks episodes by their error).", "",
+                  "| model = partner | rho(disagreement, abs error) | episodes |", "|---|---|---|"]
+        for pair, t in pairs.items():
+            rho = "undefined" if t["spearman_error"] is None else f"{t['spearman_error']:.2f}"
+            lines.append(f"| {pair} | {rho} | {t['episodes']} |")
     for n, r in rows.items():
         g = r.get("generalisation")
         if not g:
@@ -338,6 +347,10 @@ def main(argv: list[str] | None = None) -> int:
                    "model's training data, for its seen families (default: play,expert-noisy)")
     p.add_argument("--curve", help="NAME,NAME,...: models of one run (checkpoints named by their step) to plot "
                    "against training steps in scaling.png")
+    p.add_argument("--trust-pairs", nargs="*", default=[], help="MODEL=PARTNER: the ensemble trust signal, "
+                   "each family episode's |MODEL - PARTNER| against MODEL's error (both with the families part)")
+    p.add_argument("--merge", nargs="*", default=[], help="reports (results.json) of yardstick runs made side by "
+                   "side into other --out directories: their models' rows join this report's")
     p.add_argument("--work", default="runs/yardstick", help="cache (default: %(default)s)")
     p.add_argument("--out", default="bench/results/yardstick", help="report directory (default: %(default)s)")
     args = p.parse_args(argv)
@@ -365,6 +378,13 @@ def main(argv: list[str] | None = None) -> int:
     report = load_json(report_path) if report_path.is_file() else {"models": {}}
     command = " ".join(["python", *sys.argv])
     report["commands"] = [c for c in report.get("commands", []) if c != command] + [command]
+    for other in map(load_json, args.merge):  # rows measured side by side into other reports
+        report["commands"] = [c for c in report["commands"] if c not in other["commands"]] + other["commands"]
+        for name, row in other["models"].items():
+            report["models"][name] = {**report["models"].get(name, {}), **row}
+        report.setdefault("mujoco", {}).update({k: v for k, v in other["mujoco"].items() if k not in
+                                                report.get("mujoco", {})})
+        report.update({k: other[k] for k in ("family_seeds", "idle_episodes", "steps") if k in other})
     mujoco = report.setdefault("mujoco", {})
     goals = None
     if "core" in parts:
@@ -395,6 +415,14 @@ def main(argv: list[str] | None = None) -> int:
             r["idle"] = fam.idle(ckpt, work, args.idle_episodes)
             print(f"{name}: idle block kept {r['idle']['kept']:.0%}", flush=True)
         report["models"][name] = r
+        write_json_atomic(report_path, report)
+    for pair in args.trust_pairs:
+        a, sep, b = pair.partition("=")
+        rows = [report["models"].get(n, {}).get("generalisation") for n in (a, b)]
+        if not sep or not all(rows):
+            p.error(f"--trust-pairs takes MODEL=PARTNER of models with the families part, got {pair!r}")
+        report.setdefault("trust_pairs", {})[pair] = fam.ensemble_trust(mujoco["families"], rows[0]["scores"],
+                                                                         rows[1]["scores"])
         write_json_atomic(report_path, report)
     if args.curve:
         curve = [n.strip() for n in args.curve.split(",")]

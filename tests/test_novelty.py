@@ -1,13 +1,15 @@
 """The trust signal (``iwsim.world_model.novelty``): a Gaussian of the training data's step
 inputs, saved with the model and reported by every evaluation inside it."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
 
 from iwsim.cli import main
 from iwsim.data.store import EpisodeStore, conditioning_key
-from iwsim.eval.policy import rollout
+from iwsim.eval.policy import disagreement, rollout
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.world_model import WorldModel
 from iwsim.world_model.dynamics_data import fit_store_novelty
@@ -57,7 +59,20 @@ def test_export_model_fits_the_trust_signal_and_eval_prints_it(play_store, tmp_p
     assert main(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", f"{play_store}:2",
                  "--steps", "1", "--out", str(pol), "--no-progress"]) == 0
     capsys.readouterr()
+    partner = tiny_world_model(seed=1).save(tmp_path / "partner", {})
     assert main(["eval", "policy", "--checkpoint", str(pol), "--env", "world-model", "--world-model", str(out),
-                 "--episodes", "2", "--steps", "3", "--videos", "0", "--out", str(tmp_path / "ev"),
-                 "--no-progress"]) == 0
-    assert "trust: mean novelty" in capsys.readouterr().out
+                 "--trust-model", str(partner), "--episodes", "2", "--steps", "3", "--videos", "0",
+                 "--out", str(tmp_path / "ev"), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "novelty:" in printed and "trust: the two world models' scores differ" in printed
+    result = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert len(result["disagreement"]["per_episode"]) == 2 and len(result["novelty"]["per_episode"]) == 2
+    assert main(["eval", "policy", "--checkpoint", str(pol), "--env", "pusht", "--trust-model", str(partner),
+                 "--episodes", "1", "--steps", "2", "--videos", "0", "--out", str(tmp_path / "ev2")]) == 1
+    assert "--trust-model applies to --env world-model" in capsys.readouterr().err
+
+
+def test_disagreement_is_the_score_gap_per_episode():
+    d = disagreement(np.array([0.9, 0.5, 0.2]), np.array([0.4, 0.55, 0.2]))
+    assert d["per_episode"] == [0.5, 0.05, 0.0] and d["mean"] == pytest.approx(0.55 / 3)
+    assert d["above_warn"] == pytest.approx(1 / 3)

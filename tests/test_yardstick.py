@@ -68,10 +68,12 @@ def test_yardstick_families_and_idle_run_on_a_tiny_model(play_store, tmp_path):
     assert iwsim(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", f"{play_store}:2",
                   "--steps", "2", "--out", str(zoo), "--no-progress"]) == 0
     ckpt = tiny_world_model().save(tmp_path / "wm", {})
+    partner = tiny_world_model(seed=1).save(tmp_path / "partner", {})
     out = tmp_path / "out"
-    cmd = [sys.executable, str(ROOT / "bench" / "yardstick.py"), "--models", f"tiny={ckpt}",
+    cmd = [sys.executable, str(ROOT / "bench" / "yardstick.py"), "--models", f"tiny={ckpt}", f"partner={partner}",
            "--parts", "families,idle", "--steps", "4", "--family-seeds", "3", "--idle-episodes", "2",
-           "--zoo", str(zoo), "--trained-on", "tiny=play", "--work", str(tmp_path / "work"), "--out", str(out)]
+           "--zoo", str(zoo), "--trained-on", "tiny=play", "--trust-pairs", "tiny=partner",
+           "--work", str(tmp_path / "work"), "--out", str(out)]
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     r = json.loads((out / "results.json").read_text())
@@ -86,5 +88,7 @@ def test_yardstick_families_and_idle_run_on_a_tiny_model(play_store, tmp_path):
     idle = r["models"]["tiny"]["idle"]
     assert 0 <= idle["kept"] <= 1 and len(idle["fit_per_step"]) == 51
     assert r["mujoco"]["idle"]["fit_first"] > 0.8  # MuJoCo's own frames fit the T
+    pair = r["trust_pairs"]["tiny=partner"]
+    assert pair["episodes"] == 3 * len(FAMILIES) and set(pair["families"]) == set(FAMILIES)
     md = (out / "results.md").read_text()
-    assert "## Generalisation" in md and "| tiny |" in md and "| miss |" in md
+    assert "## Generalisation" in md and "| tiny |" in md and "| miss |" in md and "| tiny=partner |" in md

@@ -132,6 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--checkpoint", required=True, help="policy run (its last checkpoint) or checkpoint directory")
     q.add_argument("--env", default=TASK.kind, choices=(TASK.kind, "world-model"), help="(default: %(default)s)")
     q.add_argument("--world-model", default=TASK.checkpoint, help="for --env world-model (default: %(default)s)")
+    q.add_argument("--trust-model", help="a second world model of the task (trained differently): the policy runs "
+                   "in it too, and each episode's score difference says how far the first can be trusted")
     q.add_argument("--episodes", type=int, default=50, help="(default: %(default)s)")
     q.add_argument("--seed", type=int, default=100000, help="first MuJoCo seed (default: %(default)s)")
     q.add_argument("--steps", type=int, default=TASK.horizon, help="steps per episode (default: %(default)s)")
@@ -566,10 +568,14 @@ def _eval_policy(args: argparse.Namespace) -> int:
         from iwsim.world_model import WorldModel
 
         wm = WorldModel.load(args.world_model, device)
+    if args.trust_model is not None and args.env != "world-model":
+        raise InputError("--trust-model applies to --env world-model (MuJoCo is the ground truth).")
+    partner = None if args.trust_model is None else WorldModel.load(args.trust_model, device)
     result = evaluate(policy, args.env, episodes=args.episodes, seed=args.seed, steps=args.steps, world_model=wm,
                       image_size=policy.image_size, out=args.out, videos=args.videos, progress=not args.no_progress,
                       meta={"checkpoint": str(args.checkpoint), "n_action_steps": policy.cfg.n_action_steps,
-                            "world_model": args.world_model if args.env == "world-model" else None})
+                            "world_model": args.world_model if args.env == "world-model" else None,
+                            "trust_model": args.trust_model}, partner=partner)
     if result["scorer"] is None:
         print(f"{args.env}: no scorer (task {result['task']!r} has no pixel scorer): {args.episodes} episodes of "
               f"{args.steps} steps without a score; {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
@@ -579,13 +585,15 @@ def _eval_policy(args: argparse.Namespace) -> int:
     print(f"{args.env}: mean max IoU {result['mean_max_iou']:.3f}; success {result['success_rate']:.2f} "
           f"(Beta posterior mean {post['mean']:.2f}, 95% {post['low']:.2f}-{post['high']:.2f}; "
           f"Clopper-Pearson {lo:.2f}-{hi:.2f}); {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
+    if "disagreement" in result:
+        dis = result["disagreement"]
+        print(f"trust: the two world models' scores differ by {dis['mean']:.3f} on average; "
+              f"{100 * dis['above_warn']:.0f}% of episodes differ by more than {dis['warn']:g}, where the score is "
+              "least to be trusted")
     if "novelty" in result:
         nov = result["novelty"]
-        print(f"trust: mean novelty {nov['mean']:.2f} (about 1 on the model's training data); "
-              f"{100 * nov['above_warn']:.0f}% of episodes above {nov['warn']:g}, where the model's score is "
-              "least to be trusted")
-    elif args.env == "world-model":
-        print("trust: this world model carries no novelty statistics (iwsim export-model --novelty-data adds them)")
+        print(f"novelty: {nov['mean']:.2f} on average (about 1 on the model's training data); "
+              f"{100 * nov['above_warn']:.0f}% of episodes above {nov['warn']:g} stray from it")
     return 0
 
 

@@ -40,6 +40,9 @@ ENVS = ("pusht", "world-model")
 # An episode whose mean novelty is above this strays from what the model can vouch for
 # (about 1 for steps like the training data's; set from the yardstick, bench/families.py).
 NOVELTY_WARN = 2.0
+# An episode whose score differs by more than this between two world models (the ensemble
+# trust signal, :func:`disagreement`) is one the models cannot vouch for.
+DISAGREE_WARN = 0.2
 
 
 def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int = 64,
@@ -178,11 +181,24 @@ def check_args(episodes: int, seed: int, steps: int, videos: int) -> None:
                          f"are 0..2**32-1), got {seed}.")
 
 
+def disagreement(scores: np.ndarray, partner_scores: np.ndarray) -> dict[str, Any]:
+    """The ensemble trust signal: each episode's |score - the partner model's score| (E,)
+    for the same policy from the same first state, their mean, and the share of episodes
+    above :data:`DISAGREE_WARN`. Two world models trained differently agree where the data
+    pins the outcome down and part where it does not (measured on the yardstick:
+    ``bench/families.py``)."""
+    gap = np.abs(np.asarray(scores, np.float64) - np.asarray(partner_scores, np.float64))
+    return {"per_episode": np.round(gap, 4).tolist(), "mean": float(gap.mean()),
+            "above_warn": float((gap > DISAGREE_WARN).mean()), "warn": DISAGREE_WARN}
+
+
 def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
              image_size: int = 64, out: str | Path | None = None, videos: int = 4, progress: bool = True,
-             meta: dict[str, Any] | None = None) -> dict[str, Any]:
+             meta: dict[str, Any] | None = None, partner: Any = None) -> dict[str, Any]:
     """Evaluate ``policy`` on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``,
-    write ``results.json`` and videos of the first ``videos`` episodes."""
+    write ``results.json`` and videos of the first ``videos`` episodes. With ``partner``
+    (a second world model, for ``env="world-model"``), the policy also runs in it from the
+    same seeds and the result gains ``disagreement`` (:func:`disagreement`)."""
     check_args(episodes, seed, steps, videos)
     seeds = [seed + i for i in range(episodes)]
     run = rollout(policy, env, seeds, steps, world_model=world_model, image_size=image_size,
@@ -190,6 +206,11 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
     result = {"env": env, "steps": steps, **(meta or {}), "task": run["task"], "scorer": run["scorer"],
               **(no_score(seeds) if run["iou"] is None else summarize(run["iou"].max(1), seeds, run["success_score"])),
               **trust(run["novelty"]), "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
+    if partner is not None and run["iou"] is not None:
+        if env != "world-model":
+            raise InputError("a partner world model (--trust-model) applies to evaluations inside a world model.")
+        other = rollout(policy, env, seeds, steps, world_model=partner, image_size=image_size, progress=progress)
+        result["disagreement"] = disagreement(run["iou"].max(1), other["iou"].max(1))
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
