@@ -610,6 +610,9 @@ class EpisodeStore:
                 dtype=value.dtype,
                 compressors=IMAGE_COMPRESSOR if image_like else LOWDIM_COMPRESSOR,
                 fill_value=0,
+                # an array the group does not list may still be half on disk (a first append
+                # that failed between writing its metadata files): in an empty store it is stale
+                overwrite=True,
             ).with_config({"write_empty_chunks": True})
         for key in set(self._arrays) - set(episode):
             del self._data[key]
