@@ -92,17 +92,17 @@ def zoo_sources(zoo: list[str]) -> list[str]:
 
 
 def family_scores(model: str | None, work: Path, families: list[str], seeds: int, steps: int,
-                  zoo: list[str]) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+                  zoo: list[str], jobs: int = 1) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
     """Per family, the max IoU of each episode (``seeds`` of them) in MuJoCo (``model``
     None) or in the world model ``model``, and (for a model with a trust signal) each
     episode's novelty; cached under ``work`` by
-    :func:`iwsim.experiments.common.evaluate_policies`."""
+    :func:`iwsim.experiments.common.evaluate_policies`, up to ``jobs`` families at a time."""
     env = "pusht" if model is None else "world-model"
     all_seeds = [SEED + i for i in range(seeds)]
     work = work / "families" / ("mujoco" if model is None else fingerprint(model))  # a cache per model
     sources: dict[str, Any] = {f: FAMILIES[f][0] for f in families if f != LEARNED}
     results = evaluate_policies(sources, env, seeds=all_seeds, steps=steps, world_model=model, out=work,
-                                progress=False)
+                                jobs=jobs, progress=False)
     out = {f: [e["max_iou"] for e in r["episodes"]] for f, r in results.items()}
     novelty = {f: r["novelty"]["per_episode"] for f, r in results.items() if "novelty" in r}
     if LEARNED in families:

@@ -127,7 +127,8 @@ def generalisation(name: str, ckpt: str, args: argparse.Namespace, work: Path, m
                    ) -> dict:
     """Item 7 for one model: its families beside MuJoCo's (:func:`families.compare`)."""
     t0 = time.perf_counter()
-    scores, novelty = fam.family_scores(ckpt, work, args.families, args.family_seeds, args.steps, args.zoo)
+    scores, novelty = fam.family_scores(ckpt, work, args.families, args.family_seeds, args.steps, args.zoo,
+                                        args.jobs)
     result = fam.compare(mujoco["families"], scores, seen, novelty)
     result.update(seen=seen, scores=scores, minutes=(time.perf_counter() - t0) / 60)
     return result
@@ -337,6 +338,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--horizon", type=int, default=192, help="open-loop steps on held-out play (default: %(default)s)")
     p.add_argument("--speed-calls", type=int, default=100, help="timed steps per speed test (default: %(default)s)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
+    p.add_argument("--jobs", type=int, default=1, help="families evaluated at once, in processes of one thread "
+                   "(default: %(default)s)")
     p.add_argument("--families", default=",".join(fam.FAMILIES), help="operator families (default: all)")
     p.add_argument("--family-seeds", type=int, default=24, help="first states per family (default: %(default)s)")
     p.add_argument("--idle-episodes", type=int, default=20, help="fresh starts of the idle measure "
@@ -395,7 +398,8 @@ def main(argv: list[str] | None = None) -> int:
         report.update(data=args.data, horizon=args.horizon, episodes=args.episodes, candidates=args.candidates,
                       stability_steps=args.stability_steps)
     if "families" in parts:
-        mujoco["families"] = fam.family_scores(None, work, args.families, args.family_seeds, args.steps, args.zoo)[0]
+        mujoco["families"] = fam.family_scores(None, work, args.families, args.family_seeds, args.steps, args.zoo,
+                                               args.jobs)[0]
         report.update(family_seeds=args.family_seeds)
     if "idle" in parts:
         mujoco["idle"] = fam.idle(None, work, args.idle_episodes)

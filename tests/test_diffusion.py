@@ -1,6 +1,6 @@
 import torch
 
-from iwsim.diffusion.consistency import jump, jump_levels, sample, sample_levels, two_jump_loss
+from iwsim.diffusion.consistency import JumpModel, jump_levels, sample_jumps, sample_levels, two_jump_loss
 from iwsim.diffusion.schedule import NOISE_CLIP, Schedule, gaussian
 from iwsim.world_model.autoencoder_net import DecoderConfig, DecoderUNet, Encoder, EncoderConfig
 
@@ -22,9 +22,10 @@ def test_jump_identities():
     sch = Schedule()
     x, cond = torch.randn(5, 3, 8, 8), torch.randn(5, 4, 2, 2)
     t = torch.tensor([1, 10, 300, 700, 999])
-    torch.testing.assert_close(jump(random_net, sch, x, t, t, cond), x, rtol=1e-5, atol=1e-5)  # s = t
+    jump = JumpModel(random_net, sch)
+    torch.testing.assert_close(jump(x, t, t, cond=cond), x, rtol=1e-5, atol=1e-5)  # s = t
     zero = torch.zeros(5, dtype=torch.long)
-    torch.testing.assert_close(jump(random_net, sch, x, zero, zero, cond), x)
+    torch.testing.assert_close(jump(x, zero, zero, cond=cond), x)
 
 
 def test_perfect_network_jumps_exactly():
@@ -37,9 +38,10 @@ def test_perfect_network_jumps_exactly():
         a, b = sch.coefficients(tt, x_t)
         return a * eps - b * x0
 
-    torch.testing.assert_close(jump(oracle, sch, sch.noise(x0, t, eps), t, s, None), sch.noise(x0, s, eps),
+    jump = JumpModel(oracle, sch)
+    torch.testing.assert_close(jump(sch.noise(x0, t, eps), t, s, cond=None), sch.noise(x0, s, eps),
                                rtol=1e-4, atol=1e-4)
-    loss, _ = two_jump_loss(oracle, sch, x0, None, t, s, eps)
+    loss, _ = two_jump_loss(jump, x0, t, s, eps, {"cond": None})
     assert loss.item() < 1e-8
 
 
@@ -59,6 +61,7 @@ def test_sampler_is_deterministic_for_a_generator():
         torch.nn.init.normal_(p, std=0.1)
     sch = Schedule()
     z = enc(torch.rand(2, 3, 32, 32) * 2 - 1)
-    runs = [sample(dec, sch, z, (2, 3, 32, 32), num_jumps=k, generator=torch.Generator().manual_seed(s))
+    runs = [sample_jumps(JumpModel(dec, sch), gaussian((2, 3, 32, 32), torch.Generator().manual_seed(s)),
+                         jump_levels(k, sch.T - 1), {"z": z})
             for k, s in ((3, 1), (3, 1), (3, 2))]
     assert torch.equal(runs[0], runs[1]) and not torch.equal(runs[0], runs[2])

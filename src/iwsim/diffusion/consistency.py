@@ -1,8 +1,8 @@
 """Consistency "jumps" between noise levels, their training loss and the sampler.
 
-A jump network ``net(x_t, t, s, cond) -> v`` predicts the v-target (Salimans & Ho 2022)
-of its input; the jump itself is a fixed function around it (CTM, Kim et al. 2024, in
-the DDPM parameterisation):
+A jump network ``net(x_t, t, s, **extra_args) -> v`` predicts the v-target (Salimans &
+Ho 2022) of its input; the jump itself, :class:`JumpModel`, is a fixed function around it
+(CTM, Kim et al. 2024, in the DDPM parameterisation):
 
     x0_hat  = a_t x_t - b_t v                    (v = a_t eps - b_t x0)
     eps_hat = b_t x_t + a_t v
@@ -19,22 +19,15 @@ from collections.abc import Callable
 import torch
 from tqdm import tqdm
 
-from iwsim.diffusion.schedule import Schedule, gaussian
+from iwsim.diffusion.schedule import Schedule
 from iwsim.errors import InputError
 
-JumpNet = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+JumpNet = Callable[..., torch.Tensor]  # net(x_t, t, s, **extra_args) -> v
 SNR_MIN, SNR_MAX = 1.0, 5.0  # loss weight: the SNR of the input level, clipped to [1, 5]
 
 
-def jump(net: JumpNet, schedule: Schedule, x_t: torch.Tensor, t: torch.Tensor, s: torch.Tensor,
-         cond: torch.Tensor) -> torch.Tensor:
-    """G(x_t; t, s): move x_t (B, ...) from levels t (B,) to levels s (B,), s <= t."""
-    v = net(x_t, t, s, cond)
-    a_t, b_t = schedule.coefficients(t, x_t)
-    a_s, b_s = schedule.coefficients(s, x_t)
-    x0_hat = a_t * x_t - b_t * v
-    eps_hat = b_t * x_t + a_t * v
-    return a_s * x0_hat + b_s * eps_hat
+def _per_sample(w: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return w.view((-1,) + (1,) * (like.ndim - 1))
 
 
 def loss_weight(schedule: Schedule, t: torch.Tensor) -> torch.Tensor:
@@ -43,26 +36,59 @@ def loss_weight(schedule: Schedule, t: torch.Tensor) -> torch.Tensor:
     return schedule.snr(t).clamp(SNR_MIN, SNR_MAX)
 
 
-def jump_loss(net: JumpNet, schedule: Schedule, x0: torch.Tensor, cond: torch.Tensor, t: torch.Tensor,
-              s: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+class JumpModel:
+    """A v-predicting jump network in the samplers' convention (:mod:`iwsim.diffusion`):
+    ``model(x_t, t, s, **extra_args)`` is the jump G(x_t; t, s) from levels t (B,) to
+    levels s (B,), s <= t; the network holds the weights, the model none."""
+
+    def __init__(self, net: JumpNet, schedule: Schedule) -> None:
+        self.net, self.schedule = net, schedule
+
+    def __call__(self, x_t: torch.Tensor, t: torch.Tensor, s: torch.Tensor, **extra_args: torch.Tensor | None
+                 ) -> torch.Tensor:
+        return self.jump(self.net(x_t, t, s, **extra_args), x_t, t, s)
+
+    def jump(self, v: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """G(x_t; t, s) around the network's output ``v``."""
+        a_t, b_t = self.schedule.coefficients(t, x_t)
+        a_s, b_s = self.schedule.coefficients(s, x_t)
+        x0_hat = a_t * x_t - b_t * v
+        eps_hat = b_t * x_t + a_t * v
+        return a_s * x0_hat + b_s * eps_hat
+
+    def loss(self, x0: torch.Tensor, t: torch.Tensor, s: torch.Tensor, eps: torch.Tensor,
+             **extra_args: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The weighted per-element error (B, ...) of the jump t -> s from x_t onto the
+        same-noise x_s, and the same network pass's jump to 0 (the estimate of x0)."""
+        x_t, x_s = self.schedule.noise(x0, t, eps), self.schedule.noise(x0, s, eps)
+        v = self.net(x_t, t, s, **extra_args)
+        out, estimate = self.jump(v, x_t, t, s), self.jump(v, x_t, t, torch.zeros_like(t))
+        return (out - x_s) ** 2 * _per_sample(loss_weight(self.schedule, t), x0), estimate
+
+
+def jump_loss(model: JumpModel, x0: torch.Tensor, t: torch.Tensor, s: torch.Tensor, eps: torch.Tensor,
+              extra_args: dict | None = None) -> torch.Tensor:
     """Per-sample weighted error (B,) of the jump t -> s from x_t onto the same-noise x_s,
-    for x0 (B, ...), levels 0 <= s < t <= T (B,) and one noise draw eps shaped like x0."""
-    x_t, x_s = schedule.noise(x0, t, eps), schedule.noise(x0, s, eps)
-    err = ((jump(net, schedule, x_t, t, s, cond) - x_s) ** 2).mean(tuple(range(1, x0.ndim)))
-    return err * loss_weight(schedule, t)
+    for x0 (B, ...), levels 0 <= s < t <= T (B,) and one noise draw eps shaped like x0
+    (the error is averaged over each sample before it is weighted)."""
+    extra_args = extra_args or {}
+    x_t, x_s = model.schedule.noise(x0, t, eps), model.schedule.noise(x0, s, eps)
+    err = ((model(x_t, t, s, **extra_args) - x_s) ** 2).mean(tuple(range(1, x0.ndim)))
+    return err * loss_weight(model.schedule, t)
 
 
-def two_jump_loss(net: JumpNet, schedule: Schedule, x0: torch.Tensor, cond: torch.Tensor,
-                  t: torch.Tensor, s: torch.Tensor, eps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+def two_jump_loss(model: JumpModel, x0: torch.Tensor, t: torch.Tensor, s: torch.Tensor, eps: torch.Tensor,
+                  extra_args: dict | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The decoder's objective: the jump t -> s onto the same-noise x_s (:func:`jump_loss`),
     then s -> 0 onto x0.
 
     Returns the scalar loss and its two terms (floats, for logging).
     """
-    x_s = schedule.noise(x0, s, eps)
-    first = jump_loss(net, schedule, x0, cond, t, s, eps).mean()
-    second = ((jump(net, schedule, x_s, s, torch.zeros_like(s), cond) - x0) ** 2).mean(tuple(range(1, x0.ndim)))
-    second = (second * loss_weight(schedule, s)).mean()
+    extra_args = extra_args or {}
+    x_s = model.schedule.noise(x0, s, eps)
+    first = jump_loss(model, x0, t, s, eps, extra_args).mean()
+    second = ((model(x_s, s, torch.zeros_like(s), **extra_args) - x0) ** 2).mean(tuple(range(1, x0.ndim)))
+    second = (second * loss_weight(model.schedule, s)).mean()
     return first + second, {"loss_jump": first.item(), "loss_to_zero": second.item()}
 
 
@@ -90,15 +116,12 @@ def jump_levels(num_jumps: int, start: int) -> list[int]:
 
 
 @torch.no_grad()
-def sample(net: JumpNet, schedule: Schedule, cond: torch.Tensor, shape: tuple[int, ...], num_jumps: int = 1,
-           generator: torch.Generator | None = None, disable: bool = True,
-           noise: torch.Tensor | None = None) -> torch.Tensor:
-    """Draw x0 (shape, batch first) given ``cond`` by ``num_jumps`` deterministic jumps
-    from clipped Gaussian noise at level T - 1 (drawn from ``generator``, or ``noise``
-    when given). The same generator state gives the same output."""
-    levels = jump_levels(num_jumps, schedule.T - 1)
-    x = gaussian(shape, generator, device=cond.device, dtype=cond.dtype) if noise is None else noise
-    b = shape[0]
+def sample_jumps(model: JumpModel, x: torch.Tensor, levels: list[int], extra_args: dict | None = None,
+                 disable: bool = True) -> torch.Tensor:
+    """Deterministic jumps of ``x`` (B, ...) from ``levels[0]`` through each of ``levels``
+    (:func:`jump_levels`) to the last."""
+    extra_args = extra_args or {}
+    b = x.shape[0]
     for t, s in tqdm(list(zip(levels[:-1], levels[1:])), desc="jumps", disable=disable):
-        x = jump(net, schedule, x, torch.full((b,), t, device=x.device), torch.full((b,), s, device=x.device), cond)
+        x = model(x, torch.full((b,), t, device=x.device), torch.full((b,), s, device=x.device), **extra_args)
     return x

@@ -1,8 +1,9 @@
 """DDPM training noise and the DDIM sampler (Ho et al. 2020; Song et al. 2021), as
 Diffusion Policy uses them: an epsilon-predicting network over a discrete schedule.
 
-``net(x, t) -> eps`` takes the noisy sample and the integer timesteps (B,); everything
-else it needs (the observation condition) is closed over.
+``net(x, t, **extra_args) -> eps`` takes the noisy sample, the integer timesteps (B,) and
+the condition; :class:`EpsDenoiser` wraps it in the samplers' convention
+(:mod:`iwsim.diffusion`).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import math
 from collections.abc import Callable
 
 import torch
+from torch.nn import functional as F
 
 
 def squared_cosine_alphas_cumprod(steps: int) -> torch.Tensor:
@@ -28,18 +30,49 @@ def add_noise(x0: torch.Tensor, eps: torch.Tensor, abar: torch.Tensor) -> torch.
     return abar.sqrt() * x0 + (1 - abar).sqrt() * eps
 
 
-def ddim_sample(net: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], alphas_cumprod: torch.Tensor,
-                noise: torch.Tensor, steps: int) -> torch.Tensor:
-    """DDIM (eta = 0, Song et al. 2021, Eq. 12) in ``steps`` evenly spaced timesteps of the
-    schedule, from ``noise`` (B, ...) to a sample clipped to [-1, 1] at every step."""
-    b = noise.shape[0]
-    timesteps = torch.linspace(len(alphas_cumprod) - 1, 0, steps).round().long().tolist()
-    x = noise
+class EpsDenoiser:
+    """An epsilon-predicting network over the schedule ``alphas_cumprod`` in the samplers'
+    convention: ``model(x, t, s, **extra_args)`` is the estimate of x0 (not clipped) from
+    the network's noise at timesteps t (B,); ``s`` is not used."""
+
+    def __init__(self, net: Callable[..., torch.Tensor], alphas_cumprod: torch.Tensor) -> None:
+        self.net, self.alphas_cumprod = net, alphas_cumprod
+
+    def _abar(self, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        return self.alphas_cumprod[t].view((-1,) + (1,) * (like.ndim - 1))
+
+    def __call__(self, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor | None = None,
+                 **extra_args: torch.Tensor) -> torch.Tensor:
+        abar = self._abar(t, x)
+        eps = self.net(x, t, **extra_args)
+        return (x - (1 - abar).sqrt() * eps) / abar.sqrt()
+
+    def loss(self, x0: torch.Tensor, eps: torch.Tensor, t: torch.Tensor, **extra_args: torch.Tensor
+             ) -> torch.Tensor:
+        """DDPM's simple loss: the mean squared error of the noise ``eps`` predicted from x0
+        noised at timesteps t (B,)."""
+        return F.mse_loss(self.net(add_noise(x0, eps, self._abar(t, x0)), t, **extra_args), eps)
+
+
+def ddim_timesteps(train_steps: int, steps: int) -> list[int]:
+    """``steps`` evenly spaced timesteps of a ``train_steps`` schedule, the last first."""
+    return torch.linspace(train_steps - 1, 0, steps).round().long().tolist()
+
+
+def sample_ddim(model: EpsDenoiser, x: torch.Tensor, timesteps: list[int], extra_args: dict | None = None
+                ) -> torch.Tensor:
+    """DDIM (eta = 0, Song et al. 2021, Eq. 12) through ``timesteps`` (:func:`ddim_timesteps`)
+    from noise ``x`` (B, ...) to a sample, its x0 estimate clipped to [-1, 1] at every step."""
+    extra_args = extra_args or {}
+    alphas_cumprod = model.alphas_cumprod
+    b = x.shape[0]
     for i, t in enumerate(timesteps):
+        last = i + 1 == len(timesteps)
+        nxt = 0 if last else timesteps[i + 1]
         abar = alphas_cumprod[t]
-        eps = net(x, torch.full((b,), t, device=x.device))
-        x0 = ((x - (1 - abar).sqrt() * eps) / abar.sqrt()).clamp(-1, 1)
-        abar_prev = alphas_cumprod[timesteps[i + 1]] if i + 1 < len(timesteps) else torch.tensor(1.0)
+        x0 = model(x, torch.full((b,), t, device=x.device), torch.full((b,), nxt, device=x.device),
+                   **extra_args).clamp(-1, 1)
+        abar_prev = torch.tensor(1.0) if last else alphas_cumprod[nxt]
         eps = (x - abar.sqrt() * x0) / (1 - abar).sqrt()  # consistent with the clipped x0
         x = abar_prev.sqrt() * x0 + (1 - abar_prev).sqrt() * eps
     return x

@@ -13,7 +13,6 @@ from collections.abc import Callable
 
 import torch
 
-from iwsim.diffusion.schedule import Schedule
 from iwsim.errors import InputError
 
 SIGMA_DATA = 1.0
@@ -35,24 +34,35 @@ def noise_input(sigma: torch.Tensor) -> torch.Tensor:
     return 250.0 * sigma.clamp_min(SIGMA_MIN).log()
 
 
-def level_sigma(schedule: Schedule, levels: torch.Tensor) -> torch.Tensor:
-    """The EDM sigma of a DDPM level: x_t / a_t = x0 + (b_t / a_t) eps."""
-    flat = levels.flatten()
-    a, b = schedule.coefficients(flat, flat.float())
-    return (b / a).view(levels.shape)
-
-
 def training_sigmas(n: int, generator: torch.Generator | None) -> torch.Tensor:
     """ln sigma ~ N(P_MEAN, P_STD^2)."""
     return (P_MEAN + P_STD * torch.randn(n, generator=generator)).exp()
 
 
-def loss(net_out: torch.Tensor, x0: torch.Tensor, x_noisy: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-    """Per-sample EDM loss (B,): lambda(sigma) c_out^2 |F - (x0 - c_skip x) / c_out|^2,
-    which is |F - target|^2 with EDM's weighting lambda = 1 / c_out^2."""
-    c_skip, _, c_out = precondition(sigma, x0)
-    target = (x0 - c_skip * x_noisy) / c_out
-    return ((net_out - target) ** 2).mean(tuple(range(1, x0.ndim)))
+class Denoiser:
+    """A network F in the samplers' convention (:mod:`iwsim.diffusion`): ``model(x, sigma,
+    s, **extra_args)`` is D(x; sigma) = c_skip x + c_out F(c_in x, c, c, **extra_args),
+    told the level c = c_noise(sigma) in both level slots; ``s`` is not used."""
+
+    def __init__(self, net: Callable[..., torch.Tensor]) -> None:
+        self.net = net
+
+    def __call__(self, x: torch.Tensor, sigma: torch.Tensor, s: torch.Tensor | None = None,
+                 **extra_args: torch.Tensor) -> torch.Tensor:
+        c_skip, c_in, c_out = precondition(sigma, x)
+        c = noise_input(sigma)
+        return c_skip * x + c_out * self.net(c_in * x, c, c, **extra_args)
+
+    def loss(self, x0: torch.Tensor, eps: torch.Tensor, sigma: torch.Tensor, **extra_args: torch.Tensor
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The per-element EDM loss (B, ...) of x0 noised by ``eps`` at ``sigma`` (B,):
+        lambda(sigma) c_out^2 |F - (x0 - c_skip x) / c_out|^2 = |F - target|^2 with EDM's
+        weighting lambda = 1 / c_out^2; and the one-pass denoised estimate D(x; sigma)."""
+        x_noisy = x0 + sigma.view((-1,) + (1,) * (x0.ndim - 1)) * eps
+        c_skip, c_in, c_out = precondition(sigma, x0)
+        c = noise_input(sigma)
+        out = self.net(c_in * x_noisy, c, c, **extra_args)
+        return (out - (x0 - c_skip * x_noisy) / c_out) ** 2, c_skip * x_noisy + c_out * out
 
 
 def karras_sigmas(steps: int) -> list[float]:
@@ -66,18 +76,15 @@ def karras_sigmas(steps: int) -> list[float]:
     return [float(s) for s in (hi + ramp * (lo - hi)) ** RHO] + [0.0]
 
 
-def sample(net: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor], noise: torch.Tensor,
-           steps: int) -> torch.Tensor:
-    """Euler steps of the denoiser D(x; sigma) = c_skip x + c_out net(c_in x, c, c) along
-    the Karras sigmas (EDM, Algorithm 1 without the second-order correction), from unit
-    ``noise`` (B, ...) scaled to SIGMA_MAX."""
-    sigmas = karras_sigmas(steps)
-    x = noise * sigmas[0]
+def sample_euler(model: Denoiser, x: torch.Tensor, sigmas: list[float], extra_args: dict | None = None
+                 ) -> torch.Tensor:
+    """Euler steps of the denoiser along ``sigmas`` (:func:`karras_sigmas`; EDM, Algorithm
+    1 without the second-order correction), from ``x`` at ``sigmas[0]`` (unit noise times
+    ``sigmas[0]``)."""
+    extra_args = extra_args or {}
     b = x.shape[0]
     for sigma, nxt in zip(sigmas[:-1], sigmas[1:]):
-        sig = torch.full((b,), sigma, device=x.device)
-        c_skip, c_in, c_out = precondition(sig, x)
-        c = noise_input(sig)
-        denoised = c_skip * x + c_out * net(c_in * x, c, c)
+        denoised = model(x, torch.full((b,), sigma, device=x.device), torch.full((b,), nxt, device=x.device),
+                         **extra_args)
         x = denoised if nxt == 0 else x + (nxt - sigma) / sigma * (x - denoised)
     return x

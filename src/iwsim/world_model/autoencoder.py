@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from iwsim.diffusion.consistency import sample, sample_levels, two_jump_loss
+from iwsim.diffusion.consistency import JumpModel, jump_levels, sample_jumps, sample_levels, two_jump_loss
 from iwsim.diffusion.schedule import Schedule, gaussian
 from iwsim.world_model.autoencoder_net import DecoderUNet
 from iwsim.world_model.codec import EncoderCodec
@@ -38,8 +38,13 @@ class Autoencoder(EncoderCodec):
         jumps from ``noise`` (B, 3, H, W) or, when not given, noise drawn from ``generator``."""
         size = self.image_size
         shape = (z.shape[0], self.cfg.decoder.image_channels, size, size)
-        return sample(self.decoder, self.schedule, z, shape, num_jumps=jumps, generator=generator,
-                      noise=noise).clamp(-1, 1)
+        x = gaussian(shape, generator, device=z.device, dtype=z.dtype) if noise is None else noise
+        return sample_jumps(self.jump_model, x, jump_levels(jumps, self.schedule.T - 1), {"z": z}).clamp(-1, 1)
+
+    @property
+    def jump_model(self) -> JumpModel:
+        """The decoder in the samplers' convention (:mod:`iwsim.diffusion`), condition ``z``."""
+        return JumpModel(self.decoder, self.schedule)
 
     def training_noise(self, batch: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """Jump levels t > s and the image noise of the decoder's two-jump loss."""
@@ -50,7 +55,7 @@ class Autoencoder(EncoderCodec):
     def loss(self, x0: torch.Tensor, z: torch.Tensor, noise: dict[str, torch.Tensor]
              ) -> tuple[torch.Tensor, dict[str, float]]:
         """The decoder's two-jump consistency loss (:func:`two_jump_loss`) given latents ``z``."""
-        return two_jump_loss(self.decoder, self.schedule, x0, z, noise["t"], noise["s"], noise["eps"])
+        return two_jump_loss(self.jump_model, x0, noise["t"], noise["s"], noise["eps"], {"z": z})
 
     def freeze_for_inference(self) -> Autoencoder:
         """Replace encoder and decoder by frozen TorchScript traces (constants folded,

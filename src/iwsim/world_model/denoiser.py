@@ -4,10 +4,11 @@ Training and inference both call a :class:`Denoiser`, the one place that knows t
 units (the context-noise std in standardised latent units, told to the network in level
 units), the objective's loss and sampler (:mod:`iwsim.world_model.objectives`) and whether
 the network generates the next latent or its change from the newest context latent
-(``predict_delta``):
+(``predict_delta``). It wraps the dynamics network once (``self.model``) in the
+samplers' convention (:mod:`iwsim.diffusion`), the conditioning as ``extra_args``:
 
     err, estimate = denoiser.loss(target, context, context_sigma, actions, levels, eps)
-    next_latent = denoiser.sample(context, context_sigma, actions, noise, steps)
+    next_latent = denoiser.sample(context, context_sigma, actions, noise, jumps, euler_steps)
 
 All latents are the dynamics' standardised latents; ``context`` (B, K, C, h, w), newest
 last; ``actions`` (B, 2, A) normalised, the one that produced the newest context latent,
@@ -21,7 +22,7 @@ import torch
 
 from iwsim.diffusion.schedule import Schedule
 from iwsim.world_model.dynamics import Dynamics
-from iwsim.world_model.objectives import OBJECTIVES, Levels, Net
+from iwsim.world_model.objectives import OBJECTIVES, ExtraArgs, Levels
 from iwsim.world_model.presets import DynamicsStageConfig
 
 LEVELS_PER_STD = 1000.0  # a context-noise std of 0.1 is told to the network as level 100
@@ -35,14 +36,16 @@ class Denoiser:
         self.network, self.cfg = network, cfg
         self.schedule = Schedule(cfg.schedule)
         self.objective = OBJECTIVES[cfg.objective]
+        self.model = self.objective.model(self._net, self.schedule)
 
-    def _net(self, context: torch.Tensor, context_sigma: torch.Tensor, actions: torch.Tensor) -> Net:
-        level = context_sigma * LEVELS_PER_STD
+    def _net(self, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor, *, context: torch.Tensor,
+             context_level: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The dynamics network as the objectives call it: ``net(x, t, s, **extra_args)``."""
+        return self.network(x, context, t.float(), s.float(), context_level, actions)
 
-        def net(x: torch.Tensor, t: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-            return self.network(x, context, t, s, level, actions)
-
-        return net
+    @staticmethod
+    def _extra_args(context: torch.Tensor, context_sigma: torch.Tensor, actions: torch.Tensor) -> ExtraArgs:
+        return {"context": context, "context_level": context_sigma * LEVELS_PER_STD, "actions": actions}
 
     def _base(self, context: torch.Tensor) -> torch.Tensor | None:
         return context[:, -1] if self.cfg.predict_delta else None
@@ -53,16 +56,19 @@ class Denoiser:
         and its one-pass estimate of that latent (what unrolled training feeds back)."""
         base = self._base(context)
         y0 = target if base is None else target - base
-        err, estimate = self.objective.loss(self._net(context, context_sigma, actions), self.schedule, y0, levels, eps)
+        extra_args = self._extra_args(context, context_sigma, actions)
+        err, estimate = self.objective.loss(self.model, y0, levels, eps, extra_args)
         return err, estimate if base is None else base + estimate
 
     def sample(self, context: torch.Tensor, context_sigma: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor,
-               steps: int | None = None) -> torch.Tensor:
+               jumps: int | None = None, euler_steps: int | None = None) -> torch.Tensor:
         """The next latent (B, C, h, w) from clipped Gaussian ``noise`` (B, C, h, w) in
-        ``steps`` consistency jumps or Euler steps (default: the config's)."""
-        if steps is None:
-            steps = self.cfg.euler_steps if self.cfg.objective == "edm" else self.cfg.jumps
-        y = self.objective.sample(self._net(context, context_sigma, actions), self.schedule, noise, steps)
+        ``jumps`` consistency jumps or ``euler_steps`` Euler steps, whichever the objective
+        takes (default: the config's)."""
+        knob = self.objective.steps_knob
+        steps = {"jumps": jumps, "euler_steps": euler_steps}[knob]
+        y = self.objective.sample(self.model, noise, getattr(self.cfg, knob) if steps is None else steps,
+                                  self._extra_args(context, context_sigma, actions))
         base = self._base(context)
         if base is None:
             return y

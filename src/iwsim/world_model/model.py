@@ -339,8 +339,7 @@ class WorldModel(nn.Module):
         the objective generates, plus the newest context latent when it generates the
         change (``predict_delta``)."""
         sigma = torch.full((context.shape[0],), self.context_label, device=context.device)
-        steps = self.euler_steps if self.cfg.objective == "edm" else self.jumps
-        return self.denoiser.sample(context, sigma, actions, noise, steps)
+        return self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps)
 
     @torch.inference_mode()
     def decode_latents(self, z: torch.Tensor, generators: Sequence[torch.Generator] | None = None) -> torch.Tensor:

@@ -1,10 +1,12 @@
-"""The dynamics objectives: one table ``{name: Objective(loss, sample)}`` that training and
+"""The dynamics objectives: one table ``{name: Objective(model, loss, sample, steps_knob)}`` that training and
 inference both use, so the two can never disagree on what a name means.
 
 Every objective generates a tensor y (B, C, h, w) (the next latent, or its change from
-the last one) from a network ``net(x, t, s) -> out`` whose conditioning (context,
-actions) is closed over; ``t`` and ``s`` (B,) are what the network is told about its
-input's noise and the level it jumps to, in embedding units (0 .. 1000).
+the last one) from a network ``net(x, t, s, **extra_args) -> out`` (the conditioning,
+context and actions, in ``extra_args``); ``t`` and ``s`` (B,) are what the network is told
+about its input's noise and the level it jumps to, in embedding units (0 .. 1000). The
+objective wraps the network once (``Objective.model``) in the samplers' convention
+(:mod:`iwsim.diffusion`) and reuses that module's loss and sampler:
 
 - ``consistency`` (ours): a consistency jump network (:mod:`iwsim.diffusion.consistency`)
   trained on jumps t -> s onto the same-noise target; sampled by jumps from pure noise.
@@ -28,7 +30,9 @@ import torch
 from iwsim.diffusion import consistency, edm
 from iwsim.diffusion.schedule import Schedule
 
-Net = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+Net = Callable[..., torch.Tensor]
+Model = Callable[..., torch.Tensor]
+ExtraArgs = dict[str, torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -40,61 +44,69 @@ class Levels:
     sigma: torch.Tensor
 
 
-def _consistency_loss(net: Net, schedule: Schedule, y0: torch.Tensor, levels: Levels, eps: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    t, s = levels.t, levels.s
-    x_t, x_s = schedule.noise(y0, t, eps), schedule.noise(y0, s, eps)
-    v = net(x_t, t.float(), s.float())
-    fixed = lambda *_: v  # noqa: E731  (one network pass serves both jumps)
-    out = consistency.jump(fixed, schedule, x_t, t, s, None)
-    estimate = consistency.jump(fixed, schedule, x_t, t, torch.zeros_like(t), None)  # x0_hat
-    w = consistency.loss_weight(schedule, t).view(-1, 1, 1, 1)
-    return (out - x_s) ** 2 * w, estimate
+def _consistency_loss(model: consistency.JumpModel, y0: torch.Tensor, levels: Levels, eps: torch.Tensor,
+                      extra_args: ExtraArgs) -> tuple[torch.Tensor, torch.Tensor]:
+    return model.loss(y0, levels.t, levels.s, eps, **extra_args)
 
 
-def _consistency_sample(net: Net, schedule: Schedule, noise: torch.Tensor, steps: int) -> torch.Tensor:
-    return consistency.sample(lambda x, t, s, _: net(x, t.float(), s.float()), schedule, None,
-                              tuple(noise.shape), steps, noise=noise)
+def _consistency_sample(model: consistency.JumpModel, noise: torch.Tensor, steps: int, extra_args: ExtraArgs
+                        ) -> torch.Tensor:
+    return consistency.sample_jumps(model, noise, consistency.jump_levels(steps, model.schedule.T - 1), extra_args)
 
 
-def _edm_loss(net: Net, schedule: Schedule, y0: torch.Tensor, levels: Levels, eps: torch.Tensor
+def _edm_loss(model: edm.Denoiser, y0: torch.Tensor, levels: Levels, eps: torch.Tensor, extra_args: ExtraArgs
               ) -> tuple[torch.Tensor, torch.Tensor]:
-    sigma = levels.sigma
-    x_noisy = y0 + sigma.view(-1, 1, 1, 1) * eps
-    c_skip, c_in, c_out = edm.precondition(sigma, y0)
-    c = edm.noise_input(sigma)
-    out = net(c_in * x_noisy, c, c)
-    return (out - (y0 - c_skip * x_noisy) / c_out) ** 2, c_skip * x_noisy + c_out * out
+    return model.loss(y0, eps, levels.sigma, **extra_args)
 
 
-def _edm_sample(net: Net, schedule: Schedule, noise: torch.Tensor, steps: int) -> torch.Tensor:
-    return edm.sample(net, noise, steps)
+def _edm_sample(model: edm.Denoiser, noise: torch.Tensor, steps: int, extra_args: ExtraArgs) -> torch.Tensor:
+    sigmas = edm.karras_sigmas(steps)
+    return edm.sample_euler(model, noise * sigmas[0], sigmas, extra_args)
 
 
-def _regression_loss(net: Net, schedule: Schedule, y0: torch.Tensor, levels: Levels, eps: torch.Tensor
+class OnePass:
+    """The regression objective's model: the network, told its input is at level T and
+    goes to level 0."""
+
+    def __init__(self, net: Net, schedule: Schedule) -> None:
+        self.net, self.top = net, float(schedule.T)
+
+    def __call__(self, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor, **extra_args: torch.Tensor
+                 ) -> torch.Tensor:
+        return self.net(x, t, s, **extra_args)
+
+
+def _regression_loss(model: OnePass, y0: torch.Tensor, levels: Levels, eps: torch.Tensor, extra_args: ExtraArgs
                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    out = _regression_sample(net, schedule, y0, 1)
+    out = _regression_sample(model, y0, 1, extra_args)
     return (out - y0) ** 2, out
 
 
-def _regression_sample(net: Net, schedule: Schedule, noise: torch.Tensor, steps: int) -> torch.Tensor:
+def _regression_sample(model: OnePass, noise: torch.Tensor, steps: int, extra_args: ExtraArgs) -> torch.Tensor:
     b = noise.shape[0]
-    return net(torch.zeros_like(noise), torch.full((b,), float(schedule.T), device=noise.device),
-               torch.zeros(b, device=noise.device))
+    return model(torch.zeros_like(noise), torch.full((b,), model.top, device=noise.device),
+                 torch.zeros(b, device=noise.device), **extra_args)
 
 
 @dataclass(frozen=True)
 class Objective:
-    """``loss(net, schedule, y0, levels, eps) -> (error (B, C, h, w), estimate of y0)``;
-    ``sample(net, schedule, noise, steps) -> y`` from clipped Gaussian ``noise`` in
-    ``steps`` jumps (consistency) or Euler steps (edm); regression ignores both."""
+    """``model(net, schedule)`` wraps the network once; ``loss(model, y0, levels, eps,
+    extra_args) -> (error (B, C, h, w), estimate of y0)``; ``sample(model, noise, steps,
+    extra_args) -> y`` from clipped Gaussian ``noise`` in ``steps`` of the inference knob
+    named ``steps_knob`` (``jumps`` or ``euler_steps``; regression ignores it)."""
 
-    loss: Callable[[Net, Schedule, torch.Tensor, Levels, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
-    sample: Callable[[Net, Schedule, torch.Tensor, int], torch.Tensor]
+    model: Callable[[Net, Schedule], Model]
+    loss: Callable[[Model, torch.Tensor, Levels, torch.Tensor, ExtraArgs], tuple[torch.Tensor, torch.Tensor]]
+    sample: Callable[[Model, torch.Tensor, int, ExtraArgs], torch.Tensor]
+    steps_knob: str
+
+
+def _edm_model(net: Net, schedule: Schedule) -> edm.Denoiser:
+    return edm.Denoiser(net)
 
 
 OBJECTIVES: dict[str, Objective] = {
-    "consistency": Objective(_consistency_loss, _consistency_sample),
-    "edm": Objective(_edm_loss, _edm_sample),
-    "regression": Objective(_regression_loss, _regression_sample),
+    "consistency": Objective(consistency.JumpModel, _consistency_loss, _consistency_sample, "jumps"),
+    "edm": Objective(_edm_model, _edm_loss, _edm_sample, "euler_steps"),
+    "regression": Objective(OnePass, _regression_loss, _regression_sample, "jumps"),
 }

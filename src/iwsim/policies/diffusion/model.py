@@ -13,9 +13,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 
-from iwsim.diffusion.ddpm import add_noise, ddim_sample, squared_cosine_alphas_cumprod
+from iwsim.diffusion.ddpm import EpsDenoiser, ddim_timesteps, sample_ddim, squared_cosine_alphas_cumprod
 from iwsim.models.blocks import sinusoidal
 from iwsim.policies.common import (
     ImageEncoder,
@@ -93,6 +92,11 @@ class DiffusionPolicy(Policy):
         self.unet = ConditionalUnet1D(self.action_dim, cfg.obs_horizon * (cfg.image_features + self.state_dim), cfg)
         self.register_buffer("alphas_cumprod", squared_cosine_alphas_cumprod(cfg.train_steps))
 
+    @property
+    def denoiser(self) -> EpsDenoiser:
+        """The noise predictor in the samplers' convention (:mod:`iwsim.diffusion`)."""
+        return EpsDenoiser(self.unet, self.alphas_cumprod)
+
     def condition(self, image: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
         """image (B, To, 3, H, W), normalised agent_pos (B, To, S) -> (B, To * (F + S))."""
         b, to = image.shape[:2]
@@ -105,16 +109,14 @@ class DiffusionPolicy(Policy):
         b = x0.shape[0]
         t = torch.randint(0, self.cfg.train_steps, (b,), device=x0.device)
         eps = torch.randn_like(x0)
-        abar = self.alphas_cumprod[t][:, None, None]
-        x_t = add_noise(x0, eps, abar)
-        loss = F.mse_loss(self.unet(x_t, t, self.condition(batch.image, batch.agent_pos)), eps)
-        return loss, {}
+        return self.denoiser.loss(x0, eps, t, cond=self.condition(batch.image, batch.agent_pos)), {}
 
     @torch.no_grad()
     def sample(self, cond: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """DDIM (eta = 0) from noise: condition (B, C) -> normalised chunk (B, Tp, A)."""
         noise = torch.randn(cond.shape[0], self.action_dim, self.cfg.horizon, generator=generator, device=cond.device)
-        x = ddim_sample(lambda x, t: self.unet(x, t, cond), self.alphas_cumprod, noise, self.cfg.inference_steps)
+        timesteps = ddim_timesteps(self.cfg.train_steps, self.cfg.inference_steps)
+        x = sample_ddim(self.denoiser, noise, timesteps, {"cond": cond})
         return x.transpose(1, 2)
 
     def reset(self) -> None:
