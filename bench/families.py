@@ -198,14 +198,15 @@ def idle(model: str | None, work: Path, episodes: int, steps: int = IDLE_STEPS) 
 
     torch.manual_seed(0)
     truth = block_state(run(None)) if model is not None else None
-    pose, fit = block_state(run(None if model is None else WorldModel.load(model)))
+    frames = run(None if model is None else WorldModel.load(model))
+    pose, fit = block_state(frames)
     result: dict[str, Any] = {"fit_per_step": np.nanmean(fit, 0).round(4).tolist(),
                               "fit_first": float(np.mean(fit[:, 0]))}
     for s in (10, 20, steps):
         result[f"fit_{s}"] = float(np.mean(fit[:, min(s, steps)]))
     if truth is not None:
         ref_pose, _ = truth
-        size = WorldModel.load(model).image_size
+        size = frames.shape[-2]
         shift_px = np.linalg.norm(pose[..., :2] - ref_pose[..., :2], axis=-1) / (2 * pixels.VIEW_HALF) * size
         turn = np.degrees(np.abs((pose[..., 2] - ref_pose[..., 2] + np.pi) % (2 * np.pi) - np.pi))
         kept = (fit >= CRISP) & (shift_px <= IN_PLACE_PX) & (turn <= IN_PLACE_DEG)  # NaN compares False
