@@ -95,6 +95,11 @@ class StreamState:
         return StreamState(torch.cat([s.context for s in states]), torch.cat([s.action for s in states]),
                            torch.cat([s.known for s in states]), [g for s in states for g in s.generators])
 
+    def previous(self, actions: torch.Tensor) -> torch.Tensor:
+        """The action (B, A) that produced the newest context latent: the known one, else
+        (right after a reset from one frame) ``actions``, the first action, stands in."""
+        return torch.where(self.known[:, None], self.action, actions)
+
     def split(self) -> list[StreamState]:
         """One state per rollout (views, no copies)."""
         return [StreamState(self.context[i:i + 1], self.action[i:i + 1], self.known[i:i + 1], [self.generators[i]])
@@ -282,7 +287,7 @@ class WorldModel(nn.Module):
         b = state.batch_size
         if actions.shape != (b, self.action_dim):
             raise InputError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
-        prev = torch.where(state.known[:, None], state.action, actions)
+        prev = state.previous(actions)
         noise = self._noise(state.generators, tuple(state.context.shape[2:]))
         z = self.predict(state.context, torch.stack([prev, actions], 1), noise)
         return (StreamState(torch.cat([state.context[:, 1:], z[:, None]], 1), actions, torch.ones_like(state.known),
@@ -324,8 +329,7 @@ class WorldModel(nn.Module):
         if self.novelty is None:
             return None
         a = self.normalize_actions(actions, state.batch_size)
-        prev = torch.where(state.known[:, None], state.action, a)
-        return self.novelty(state.context[:, -1], prev, a).cpu().numpy()
+        return self.novelty(state.context[:, -1], state.previous(a), a).cpu().numpy()
 
     @torch.inference_mode()
     def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor) -> tuple[StreamState, np.ndarray]:

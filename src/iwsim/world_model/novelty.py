@@ -16,7 +16,6 @@ model's own units so that it costs one small matrix product per step:
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -65,7 +64,3 @@ def fit_novelty(features: torch.Tensor, shrink: float = SHRINK) -> Novelty:
     nov.whiten.copy_((vecs / vals.clamp_min(1e-12).sqrt()).T.float())
     return nov
 
-
-def episode_novelty(per_step: np.ndarray) -> np.ndarray:
-    """(E, T) per-step novelty -> (E,) each episode's mean."""
-    return np.asarray(per_step, dtype=np.float64).mean(1)
