@@ -188,7 +188,7 @@ def idle(model: str | None, work: Path, episodes: int, steps: int = IDLE_STEPS) 
     the block (crisp and in place). Cached under ``work``."""
     key = {"model": model and fingerprint(model), "episodes": episodes, "steps": steps}
     cached = work / "idle" / f"{'mujoco' if model is None else fingerprint(model)}.json"
-    if cached.is_file() and (saved := load_json(cached))["key"] == key:
+    if cached.is_file() and (saved := load_json(cached))["key"] == key and (model or "pose" in saved["result"]):
         return saved["result"]
     seeds = [SEED + i for i in range(episodes)]
 
@@ -197,15 +197,16 @@ def idle(model: str | None, work: Path, episodes: int, steps: int = IDLE_STEPS) 
                        world_model=wm, record=episodes, progress=False)["frames"]
 
     torch.manual_seed(0)
-    truth = block_state(run(None)) if model is not None else None
     frames = run(None if model is None else WorldModel.load(model))
     pose, fit = block_state(frames)
     result: dict[str, Any] = {"fit_per_step": np.nanmean(fit, 0).round(4).tolist(),
                               "fit_first": float(np.mean(fit[:, 0]))}
     for s in (10, 20, steps):
         result[f"fit_{s}"] = float(np.mean(fit[:, min(s, steps)]))
-    if truth is not None:
-        ref_pose, _ = truth
+    if model is None:  # MuJoCo's poses, the reference of every model's idle run (read, not run again)
+        result["pose"] = pose.tolist()
+    else:
+        ref_pose = np.array(idle(None, work, episodes, steps)["pose"], dtype=np.float64)
         size = frames.shape[-2]
         shift_px = np.linalg.norm(pose[..., :2] - ref_pose[..., :2], axis=-1) / (2 * pixels.VIEW_HALF) * size
         turn = np.degrees(np.abs((pose[..., 2] - ref_pose[..., 2] + np.pi) % (2 * np.pi) - np.pi))

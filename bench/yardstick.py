@@ -402,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
                                                args.jobs)[0]
         report.update(family_seeds=args.family_seeds)
     if "idle" in parts:
-        mujoco["idle"] = fam.idle(None, work, args.idle_episodes)
+        mujoco["idle"] = {k: v for k, v in fam.idle(None, work, args.idle_episodes).items() if k != "pose"}
         report.update(idle_episodes=args.idle_episodes)
     report["steps"] = args.steps
     for name, ckpt in models.items():
