@@ -224,10 +224,10 @@ def generalisation_markdown(report: dict) -> list[str]:
              f"for training), {report['steps']} steps; the score of an episode is its max pixel IoU. A family is "
              "*seen* when the model's training data held its kind of motion; the targets count the unseen ones. "
              "The learned family's policies are trained on MuJoCo demonstrations of the expert, none of whose "
-             "rollouts any world model here trains on. Idle: the pushers held still for "
-             f"{fam.IDLE_STEPS} steps from {report.get('idle_episodes')} fresh starts; a frame keeps the block "
-             f"when the T fits >= {fam.CRISP} and lies within {fam.IN_PLACE_PX:g} px and {fam.IN_PLACE_DEG:g} "
-             "degrees of MuJoCo's.", "",
+             "rollouts any world model here trains on." + ("" if "idle_episodes" not in report else
+             f" Idle: the pushers held still for {fam.IDLE_STEPS} steps from {report['idle_episodes']} fresh "
+             f"starts; a frame keeps the block when the T fits >= {fam.CRISP} and lies within "
+             f"{fam.IN_PLACE_PX:g} px and {fam.IN_PLACE_DEG:g} degrees of MuJoCo's."), "",
              "| model | unseen: max abs offset | unseen: r | unseen: MMRV | all: r | all: MMRV | idle: block kept "
              "| idle: T fit @10/@20/@50 | trust: rho(novelty, abs error) | minutes |",
              "|---|---|---|---|---|---|---|---|---|---|",

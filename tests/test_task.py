@@ -46,6 +46,20 @@ def test_pusht_keeps_its_keys_motion_and_scorer():
     assert task.score(blank).shape == (1,) and task.is_success(np.array([0.95, 0.5])).tolist() == [True, False]
 
 
+
+def test_pusht_agent_pos_is_the_setpoint_unless_the_frame_shows_the_pusher_held_back():
+    obs, _ = gym.make("iwsim/BimanualPushT-v0").reset(seed=3)
+    frame, true = obs["pixels"][None], obs["agent_pos"].astype(np.float64)[None]
+    task, previous = get_task("pusht"), np.full((1, 4), 0.1, np.float32)
+    near = true + np.array([[0.003, -0.002, -0.002, 0.003]])  # a pixel reading's error, not contact
+    np.testing.assert_allclose(task.observe(frame, near, previous)[1], near, atol=1e-6)
+    far = true + np.array([[0.02, 0.0, 0.0, -0.02]])  # commanded 2 cm further than the pushers are
+    seen = task.observe(frame, far, previous)[1]
+    apart = np.linalg.norm((seen - far).reshape(2, 2), axis=1)
+    assert np.abs(seen - true).max() < 0.004 and apart.min() > 0.015
+    blank = np.full_like(frame, 255)  # no pusher seen: the previous positions
+    np.testing.assert_array_equal(task.observe(blank, near, previous)[1], previous)
+
 def test_the_shipped_checkpoint_and_models_built_in_code_are_pusht():
     config = json.loads((ROOT / "checkpoints" / "pusht-64" / "config.json").read_text())
     assert isinstance(task_from_config(config), PushTTask)

@@ -12,11 +12,13 @@ from the same state in both environments; ``"dataset"`` for any other robot's ta
 first frame of its store's episode ``seed % episodes``), ``"store"`` (a random frame of
 the episode store ``store``), or ``reset(options={"frame": f})``.
 
-For T-push, ``agent_pos`` is read from the frame (the pushers' colours), and
-``info["iou"]`` and the reward come from the pixel scorer, so nothing but the model's
-pixels is used; actions are commanded targets, approached at the task's speed limit
-exactly as MuJoCo does (:func:`iwsim.envs.pusht.limit_targets`, starting from the
-pushers' positions at reset). A task without a scorer reports ``info["score"] = None``
+For T-push, ``agent_pos`` is the executed setpoint where the frame shows the pusher near
+it and the pusher the frame shows where it is held back (by contact;
+:meth:`iwsim.envs.pusht_task.PushTTask.observe`), and ``info["iou"]`` and the reward come
+from the pixel scorer, so nothing but the model's pixels and the commands is used;
+actions are commanded targets, approached at the task's speed limit exactly as MuJoCo
+does (:func:`iwsim.envs.pusht.limit_targets`, starting from the pushers' positions at
+reset). A task without a scorer reports ``info["score"] = None``
 and reward 0, and its ``agent_pos`` is the executed command. Either way the model is
 conditioned on the executed motion (``info["target"]``).
 
@@ -41,6 +43,10 @@ from iwsim.tasks import StoreStarts, get_task, task_of
 from iwsim.world_model import WorldModel
 
 STORE = "store"
+# What the environment observes, versioned: results measured in an environment of another
+# version are other results (:func:`iwsim.experiments.common.fingerprint`). 2: T-push's
+# ``agent_pos`` at the setpoints of pushers seen near them (issue 41).
+OBSERVATION_VERSION = 2
 
 
 class Starts:

@@ -1,6 +1,6 @@
 """Bimanual T-pushing as a :class:`~iwsim.envs.task.Task`: the pushers' speed limit as the
-command-to-executed map, the pixel IoU as the scorer, pusher positions read from pixels as
-``agent_pos``, MuJoCo resets as initial frames and MuJoCo itself side by side in play.
+command-to-executed map, the pixel IoU as the scorer, ``agent_pos`` from the setpoints and
+the pushers seen in the frame, MuJoCo resets as initial frames and MuJoCo itself side by side in play.
 The one place outside ``envs/pusht.py`` and ``envs/pixels.py`` that knows about them."""
 
 from __future__ import annotations
@@ -30,6 +30,11 @@ from iwsim.envs.task import Bindings, Start, Task
 KEY_SPEED = 0.2  # m/s of a target under a held key or a full stick (one key tap: 2 cm)
 DRAG_SPEED = 0.3  # m/s at most when a target follows the mouse (the play data's top speed)
 SPEC = TaskSpec()
+# A pusher seen within this distance (m) of its setpoint is reported at the setpoint. MuJoCo's
+# pushers track their setpoints to ~1.3 mm in free space and stop up to ~25 mm short in
+# contact (the expert squeezes 20 mm into the stem); a world model draws them 2-4 mm off
+# (median; p90 8-9 mm, about a pixel at 64 px), enough to stall the expert's 4 mm approach.
+SETPOINT_TOLERANCE = 0.008
 
 # WASD moves the left pusher, IJKL the right one; the left stick the left, the right stick the right.
 BINDINGS = Bindings(
@@ -81,9 +86,15 @@ class PushTTask(Task):
 
     def observe(self, frames: np.ndarray, setpoint: np.ndarray, previous: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel IoU (B,) and the pushers' positions (B, 4) read from frames (B, H, W, 3) in
-        one pass; a pusher not seen keeps its ``previous`` position."""
+        """Pixel IoU (B,) and the pushers' positions (B, 4) after a step that executed
+        ``setpoint`` (B, 4), from frames (B, H, W, 3) in one pass: a pusher seen within
+        :data:`SETPOINT_TOLERANCE` of its setpoint is at the setpoint (the frame draws it
+        only to about a pixel), one seen further away (held back by contact) where it is
+        seen, and one not seen keeps its ``previous`` position."""
         iou, pos, found = read_frames(frames)
+        setpoint = np.asarray(setpoint, np.float64)
+        near = np.linalg.norm((pos - setpoint).reshape(*pos.shape[:-1], 2, 2), axis=-1) <= SETPOINT_TOLERANCE
+        pos = np.where(np.repeat(near, 2, axis=-1), setpoint, pos)
         return iou, _hold_unseen(pos, found, previous)
 
     def read_agent_pos(self, frames: np.ndarray, previous: np.ndarray) -> np.ndarray:

@@ -35,6 +35,7 @@ from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
 from iwsim.tasks import DEFAULT_TASK, task_from_config
 from iwsim.training.policy import train_policy
 from iwsim.world_model import WorldModel
+from iwsim.world_model_env import OBSERVATION_VERSION
 
 log = logging.getLogger(__name__)
 # The studies' task, in one place: their ground truth is MuJoCo's T-push (the default task),
@@ -114,9 +115,11 @@ def check_study_model(world_model: str | os.PathLike | None) -> None:
 
 
 def fingerprint(world_model: str | os.PathLike) -> str:
-    """A short content hash of a world-model checkpoint (its weights and config), so that
-    demonstrations and evaluations of a retrained model at the same path are told apart."""
-    h = hashlib.sha256()
+    """A short content hash of a world-model checkpoint (its weights and config) and of the
+    environment's :data:`~iwsim.world_model_env.OBSERVATION_VERSION`, so that
+    demonstrations and evaluations of a retrained model at the same path, or of an
+    environment that observes otherwise, are told apart."""
+    h = hashlib.sha256(f"observation {OBSERVATION_VERSION}".encode())
     for name in ("config.json", "model.safetensors"):
         path = Path(world_model) / name
         if not path.is_file():
