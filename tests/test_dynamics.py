@@ -35,10 +35,11 @@ def tiny_cfg(name: str = "ours"):
     return dataclasses.replace(cfg, dynamics=dataclasses.replace(cfg.dynamics, **points))
 
 
-def tiny_world_model(seed: int = 0, name: str = "ours") -> WorldModel:
-    """A tiny randomly initialised world model, ours or a benchmark variant (see VARIANTS)."""
+def tiny_world_model(seed: int = 0, name: str = "ours", **inference) -> WorldModel:
+    """A tiny randomly initialised world model, ours or a benchmark variant (see VARIANTS),
+    with ``inference`` options of the stage-2 config (e.g. ``rest_threshold``)."""
     torch.manual_seed(seed)
-    cfg = tiny_cfg(name)
+    cfg = dataclasses.replace(tiny_cfg(name), **inference)
     ae = Autoencoder(AE_PRESETS["tiny"])
     return WorldModel(ae, randomise(Dynamics(cfg.dynamics), seed), cfg, LOW, HIGH).eval()
 
@@ -51,6 +52,23 @@ def test_blobs_sit_where_the_action_points():
     assert divmod(int(b[0, 0, 0].argmax()), 16) == (10, 3)
     assert divmod(int(b[0, 0, 1].argmax()), 16) in {(7, 7), (7, 8), (8, 7), (8, 8)}  # the centre
     assert b.max() == pytest.approx(1.0, abs=0.05)
+
+
+
+@torch.no_grad()
+def test_a_scene_at_rest_stays_at_rest_while_the_setpoint_holds():
+    """``rest_threshold``: from a still start with the setpoint held, every next latent is
+    the first one exactly, and a moving setpoint changes it; off (0), a still scene creeps."""
+    size = tiny_world_model().image_size
+    frame = torch.randint(0, 256, (2, size, size, 3), generator=torch.Generator().manual_seed(0), dtype=torch.uint8)
+    held = torch.tensor([[0.1, -0.2, 0.3, 0.0]] * 2)
+    for threshold in (0.05, 0.0):
+        wm = tiny_world_model(rest_threshold=threshold)
+        z0 = wm.encode(frame)
+        wm.reset(frame)
+        still = [torch.equal(wm.step_latent(held), z0) for _ in range(4)]
+        assert still == [threshold > 0] * 4
+        assert not torch.equal(wm.step_latent(held + 0.1), z0)
 
 
 @pytest.mark.parametrize("spatial,film", [(True, False), (False, True)])

@@ -26,6 +26,7 @@ from iwsim.world_model.objectives import OBJECTIVES, ExtraArgs, Levels
 from iwsim.world_model.presets import DynamicsStageConfig
 
 LEVELS_PER_STD = 1000.0  # a context-noise std of 0.1 is told to the network as level 100
+ACTION_STILL = 1e-6  # normalised actions this close are the same setpoint (rest_threshold)
 
 
 class Denoiser:
@@ -74,4 +75,8 @@ class Denoiser:
             return y
         if self.cfg.delta_deadband > 0:  # a cell's change under the deadband is no change
             y = y * (y.abs().amax(1, keepdim=True) > self.cfg.delta_deadband)
+        if self.cfg.rest_threshold > 0 and context.shape[1] > 1:  # a scene at rest stays at rest
+            still = (actions[:, 1] - actions[:, 0]).abs().amax(1) <= ACTION_STILL
+            resting = (context[:, -1] - context[:, -2]).abs().flatten(1).amax(1) < self.cfg.rest_threshold
+            y = y * ~(still & resting)[:, None, None, None]
         return base + y

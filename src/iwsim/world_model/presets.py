@@ -116,6 +116,12 @@ class DynamicsStageConfig:
     # under this (standardised units) is taken as no change, so that what nothing touches
     # cannot creep by a small systematic change each step (the idle drift, issue 41). 0: off.
     delta_deadband: float = 0.0
+    # Inference (predict_delta): a scene at rest stays at rest. When the executed setpoint
+    # holds still and the newest latent changed by less than this (a cell's largest channel,
+    # standardised), the next latent is the newest. In the T-push data, 96% of such steps
+    # (setpoint still, change < 0.05) are followed by a change under 0.05, half by none at
+    # all; without it, a still scene creeps (the idle drift, issue 41). 0: off.
+    rest_threshold: float = 0.0
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
     holdout_every: int = 20
     eval_episodes: int = 4  # held-out episodes rolled out open-loop at each evaluation
