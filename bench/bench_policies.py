@@ -36,6 +36,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 from iwsim.eval.policy import evaluate, summarize  # noqa: E402
 from iwsim.policies.factory import load_policy  # noqa: E402
+from iwsim.tasks import get_task  # noqa: E402
 
 
 def _expert_episode(seed_steps: tuple[int, int]) -> float:
@@ -50,7 +51,7 @@ def expert(seeds: list[int], steps: int) -> dict:
     t0 = time.perf_counter()
     with mp.get_context("spawn").Pool(2) as pool:
         max_iou = np.array(pool.map(_expert_episode, [(s, steps) for s in seeds]))
-    return {**summarize(max_iou, seeds), "seconds": time.perf_counter() - t0}
+    return {**summarize(max_iou, seeds, get_task("pusht").success_score), "seconds": time.perf_counter() - t0}
 
 
 def training_minutes(run: Path) -> dict[int, float]:

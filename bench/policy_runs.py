@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
                 torch.manual_seed(0)  # the policy's sampling noise: the same evaluation gives the same scores
                 result = rollout(load_policy(ckpts[step], **execution), "pusht", seeds, args.eval_steps,
                                  progress=sys.stderr.isatty())
-                r = {**summarize(result["iou"].max(1), seeds), "seconds": result["seconds"]}
+                r = {**summarize(result["iou"].max(1), seeds, result["success_score"]), "seconds": result["seconds"]}
                 path.parent.mkdir(parents=True, exist_ok=True)
                 write_json_atomic(path, r)
             row = {"run": args.name, "step": step, "execution": execution, "split": split, "episodes": len(seeds),

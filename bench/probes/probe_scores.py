@@ -22,7 +22,7 @@ def score_checkpoints(policy: torch.nn.Module, run: Path, name: str, steps: list
         torch.manual_seed(0)  # the policy's sampling noise
         t0 = time.time()
         r = rollout(policy, "pusht", seeds, 600, progress=False)
-        res = summarize(r["iou"].max(1), seeds)
+        res = summarize(r["iou"].max(1), seeds, r["success_score"])
         print(f"{name} @{step}: mean max IoU {res['mean_max_iou']:.3f} success {res['success_rate']:.2f} "
               f"({time.time() - t0:.0f}s)", flush=True)
         with open(run / out, "a") as f:

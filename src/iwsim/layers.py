@@ -55,9 +55,7 @@ GROUND_TRUTH_TOOLING = {
 # iwsim.experiments.common.STUDY). Modules that still spell one out (the shipped checkpoint's
 # path, or a module-level get_task("pusht")), each with why; tests/test_layers.py checks
 # that no other module does and that the list only shrinks.
-T_PUSH_DEFAULTS_SPELLED = {
-    "iwsim.eval.policy": "a module-level get_task(\"pusht\") for summarize's success threshold (issue 43)",
-}
+T_PUSH_DEFAULTS_SPELLED: dict[str, str] = {}
 
 
 def within(module: str, names: tuple[str, ...] | dict) -> bool:

@@ -34,8 +34,6 @@ from iwsim.eval.video import upscale, write_video
 from iwsim.tasks import get_task
 from iwsim.world_model_env import WorldModelVectorEnv, score_key
 
-PUSHT = get_task("pusht")
-
 ENVS = ("pusht", "world-model")
 # An episode whose mean novelty is above this strays from the training data (about 1 for
 # steps like the training data's). On the yardstick novelty did not rank the episodes by
@@ -135,7 +133,7 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
             "novelty": np.stack(novelty, 1) if novelty else None, "seconds": seconds}
 
 
-def summarize(max_iou: np.ndarray, seeds: list[int], success_score: float = PUSHT.success_score) -> dict[str, Any]:
+def summarize(max_iou: np.ndarray, seeds: list[int], success_score: float) -> dict[str, Any]:
     """Per-episode scores and the statistics over episodes."""
     success = max_iou >= success_score
     k, n = int(success.sum()), len(success)

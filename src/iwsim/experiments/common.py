@@ -233,8 +233,8 @@ def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps
     wm = WorldModel.load(world_model) if env == "world-model" else None
     image_size = wm.image_size if wm is not None else getattr(policy, "image_size", 64)
     run = rollout(policy, env, seeds, steps, world_model=wm, image_size=image_size, progress=progress)
-    result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds), **trust(run["novelty"]),
-              "seconds": run["seconds"], "iou_per_step": np.round(run["iou"], 4).tolist()}
+    result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds, run["success_score"]),
+              **trust(run["novelty"]), "seconds": run["seconds"], "iou_per_step": np.round(run["iou"], 4).tolist()}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(path, result, sort_keys=False)
     return result
