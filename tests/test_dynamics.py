@@ -57,18 +57,23 @@ def test_blobs_sit_where_the_action_points():
 
 @torch.no_grad()
 def test_a_scene_at_rest_stays_at_rest_while_the_setpoint_holds():
-    """``rest_threshold``: from a still start with the setpoint held, every next latent is
-    the first one exactly, and a moving setpoint changes it; off (0), a still scene creeps."""
+    """``rest_threshold``: from a still start whose held setpoint is known, every next
+    latent is the first one exactly while the setpoint holds, and a moving setpoint
+    changes it; off (0), a still scene creeps; with the held setpoint unknown, the first
+    step is the network's."""
     size = tiny_world_model().image_size
     frame = torch.randint(0, 256, (2, size, size, 3), generator=torch.Generator().manual_seed(0), dtype=torch.uint8)
     held = torch.tensor([[0.1, -0.2, 0.3, 0.0]] * 2)
     for threshold in (0.05, 0.0):
         wm = tiny_world_model(rest_threshold=threshold)
         z0 = wm.encode(frame)
-        wm.reset(frame)
+        wm.reset_latents(z0[:, None], held=held)
         still = [torch.equal(wm.step_latent(held), z0) for _ in range(4)]
         assert still == [threshold > 0] * 4
         assert not torch.equal(wm.step_latent(held + 0.1), z0)
+    wm = tiny_world_model(rest_threshold=0.05)
+    wm.reset_latents(z0[:, None])
+    assert not torch.equal(wm.step_latent(held), z0)
 
 
 @pytest.mark.parametrize("spatial,film", [(True, False), (False, True)])

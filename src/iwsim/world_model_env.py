@@ -142,7 +142,7 @@ class WorldModelEnv(gym.Env):
             start = self.task.start_from_frame(frame, options.get("agent_pos"))
         else:
             start = self._starts.draw(draw, options.get("source"), options.get("reset_to_state"))
-        self.model.reset(start.frame[None], seed=draw)
+        self.model.reset(start.frame[None], seed=draw, held=np.asarray(start.command, np.float32)[None])
         self._frame, self._agent_pos = start.frame, np.asarray(start.agent_pos, dtype=np.float32)
         self._setpoint = np.asarray(start.command, np.float64)
         return self._obs(), self._info(self.task.score(self._frame[None]))
@@ -233,10 +233,10 @@ class WorldModelVectorEnv(VectorEnv):
         else:
             drawn = [self._starts.draw(s, options.get("source")) for s in seeds]
             frames = np.stack([d.frame for d in drawn])
-        self.model.reset(frames, seed=seeds)
+        self._setpoint = np.stack([d.command for d in drawn]).astype(np.float64)
+        self.model.reset(frames, seed=seeds, held=self._setpoint.astype(np.float32))
         self._frames = frames
         self._agent_pos = np.stack([d.agent_pos for d in drawn]).astype(np.float32)
-        self._setpoint = np.stack([d.command for d in drawn]).astype(np.float64)
         self._t, self._needs_reset = 0, False
         return self._obs(), self._info(self.task.score(self._frames))
 

@@ -301,7 +301,7 @@ class Engine:
         T-push, a dataset episode's first frame otherwise) or a store frame."""
         seed = int(self._rng.integers(proto.MAX_SEED)) if seed is None else seed
         start = self.starts.draw(seed, source)
-        s.state = self.model.reset_state(start.frame[None], seed=seed)
+        s.state = self.model.reset_state(start.frame[None], seed=seed, held=np.asarray(start.command, np.float32)[None])
         s.start, s.source, s.seed, s.step = start, source, seed, 0
         s.frame, s.agent_pos = start.frame, start.agent_pos.astype(np.float32)
         # the robot holds still: the command is where it is (T-push: MuJoCo's position

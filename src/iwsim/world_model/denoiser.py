@@ -62,10 +62,12 @@ class Denoiser:
         return err, estimate if base is None else base + estimate
 
     def sample(self, context: torch.Tensor, context_sigma: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor,
-               jumps: int | None = None, euler_steps: int | None = None) -> torch.Tensor:
+               jumps: int | None = None, euler_steps: int | None = None,
+               still: torch.Tensor | None = None) -> torch.Tensor:
         """The next latent (B, C, h, w) from clipped Gaussian ``noise`` (B, C, h, w) in
         ``jumps`` consistency jumps or ``euler_steps`` Euler steps, whichever the objective
-        takes (default: the config's)."""
+        takes (default: the config's). ``still`` (B,) bool: whether the executed setpoint
+        holds still (``rest_threshold``; default: the two actions are the same)."""
         knob = self.objective.steps_knob
         steps = {"jumps": jumps, "euler_steps": euler_steps}[knob]
         y = self.objective.sample(self.model, noise, getattr(self.cfg, knob) if steps is None else steps,
@@ -76,7 +78,8 @@ class Denoiser:
         if self.cfg.delta_deadband > 0:  # a cell's change under the deadband is no change
             y = y * (y.abs().amax(1, keepdim=True) > self.cfg.delta_deadband)
         if self.cfg.rest_threshold > 0 and context.shape[1] > 1:  # a scene at rest stays at rest
-            still = (actions[:, 1] - actions[:, 0]).abs().amax(1) <= ACTION_STILL
+            if still is None:
+                still = (actions[:, 1] - actions[:, 0]).abs().amax(1) <= ACTION_STILL
             resting = (context[:, -1] - context[:, -2]).abs().flatten(1).amax(1) < self.cfg.rest_threshold
             y = y * ~(still & resting)[:, None, None, None]
         return base + y

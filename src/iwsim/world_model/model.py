@@ -60,7 +60,7 @@ from iwsim.normalize import scale
 from iwsim.tasks import task_from_config
 from iwsim.world_model.codec import Codec
 from iwsim.world_model.codecs import WM_KIND, build_codec, codec_class, world_model_codec
-from iwsim.world_model.denoiser import Denoiser
+from iwsim.world_model.denoiser import ACTION_STILL, Denoiser
 from iwsim.world_model.dynamics import Dynamics
 from iwsim.world_model.novelty import Novelty
 from iwsim.world_model.presets import OBJECTIVES, DynamicsStageConfig
@@ -73,7 +73,10 @@ class StreamState:
     """The state of B rollouts between two steps: the window ``context`` (B, K, C, h, w)
     of standardised latents, newest last; the normalised action (B, A) that produced the
     newest one and whether it is known (B,) (not right after a reset from one frame,
-    where the first action stands in for it); each item's noise generator.
+    where the first action stands in for it); whether ``action`` is the setpoint the robot
+    holds at the newest latent (``held`` (B,): known, or given at the reset though the
+    network is shown the stand-in; what ``rest_threshold`` compares with); each item's
+    noise generator.
 
     Stepping returns a new state and leaves the old one's tensors as they were; the
     generators are shared and advance, so a state is stepped once."""
@@ -81,6 +84,7 @@ class StreamState:
     context: torch.Tensor
     action: torch.Tensor
     known: torch.Tensor
+    held: torch.Tensor
     generators: list[torch.Generator]
 
     @property
@@ -93,7 +97,8 @@ class StreamState:
         if not states:
             raise InputError("StreamState.cat needs at least one state.")
         return StreamState(torch.cat([s.context for s in states]), torch.cat([s.action for s in states]),
-                           torch.cat([s.known for s in states]), [g for s in states for g in s.generators])
+                           torch.cat([s.known for s in states]), torch.cat([s.held for s in states]),
+                           [g for s in states for g in s.generators])
 
     def previous(self, actions: torch.Tensor) -> torch.Tensor:
         """The action (B, A) that produced the newest context latent: the known one, else
@@ -102,8 +107,8 @@ class StreamState:
 
     def split(self) -> list[StreamState]:
         """One state per rollout (views, no copies)."""
-        return [StreamState(self.context[i:i + 1], self.action[i:i + 1], self.known[i:i + 1], [self.generators[i]])
-                for i in range(self.batch_size)]
+        return [StreamState(self.context[i:i + 1], self.action[i:i + 1], self.known[i:i + 1], self.held[i:i + 1],
+                            [self.generators[i]]) for i in range(self.batch_size)]
 
 
 class WorldModel(nn.Module):
@@ -258,10 +263,12 @@ class WorldModel(nn.Module):
     # -- functional core: explicit states ------------------------------------------------------
     @torch.inference_mode()
     def reset_state_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
-                            seed: int | Sequence[int] = 0) -> StreamState:
+                            seed: int | Sequence[int] = 0, held: torch.Tensor | None = None) -> StreamState:
         """The state of rollouts from context latents (B, K0, C, h, w) (as ``encode`` returns
         them) and the normalised actions (B, K0-1, A) between them. The window keeps the
-        last K; fewer are padded by repeating the first, as in training at an episode's start."""
+        last K; fewer are padded by repeating the first, as in training at an episode's start.
+        ``held``: the normalised setpoints (B, A) the robot holds at the newest frame, when
+        the caller knows them (a still robot then keeps a still scene from the first step)."""
         b, k0 = latents.shape[:2]
         z = self.standardize(latents.to(self.device))
         if k0 > 1 and (actions is None or actions.shape[:2] != (b, k0 - 1)):
@@ -272,8 +279,11 @@ class WorldModel(nn.Module):
         seeds = [seed + i for i in range(b)] if isinstance(seed, int) else list(seed)
         if len(seeds) != b:
             raise InputError(f"got {len(seeds)} seeds for a batch of {b}.")
-        action = torch.zeros(b, self.action_dim, device=self.device) if k0 == 1 else actions[:, -1].to(self.device)
-        return StreamState(z[:, -k:].contiguous(), action, torch.full((b,), k0 > 1, device=self.device),
+        if held is not None and tuple(held.shape) != (b, self.action_dim):
+            raise InputError(f"expected held setpoints ({b}, {self.action_dim}), got {tuple(held.shape)}.")
+        action = actions[:, -1] if k0 > 1 else held if held is not None else torch.zeros(b, self.action_dim)
+        known = torch.full((b,), k0 > 1, device=self.device)
+        return StreamState(z[:, -k:].contiguous(), action.to(self.device), known, known | (held is not None),
                            [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
 
     def _noise(self, generators: Sequence[torch.Generator], shape: tuple[int, ...]) -> torch.Tensor:
@@ -289,9 +299,11 @@ class WorldModel(nn.Module):
             raise InputError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
         prev = state.previous(actions)
         noise = self._noise(state.generators, tuple(state.context.shape[2:]))
-        z = self.predict(state.context, torch.stack([prev, actions], 1), noise)
-        return (StreamState(torch.cat([state.context[:, 1:], z[:, None]], 1), actions, torch.ones_like(state.known),
-                            state.generators), self.unstandardize(z))
+        still = state.held & ((actions - state.action).abs().amax(1) <= ACTION_STILL)
+        z = self.predict(state.context, torch.stack([prev, actions], 1), noise, still)
+        done = torch.ones_like(state.known)
+        return (StreamState(torch.cat([state.context[:, 1:], z[:, None]], 1), actions, done, done, state.generators),
+                self.unstandardize(z))
 
     @torch.inference_mode()
     def step_state_images(self, state: StreamState, actions: torch.Tensor) -> tuple[StreamState, torch.Tensor]:
@@ -306,9 +318,10 @@ class WorldModel(nn.Module):
         return state, images
 
     def reset_state(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
-                    seed: int | Sequence[int] = 0) -> StreamState:
+                    seed: int | Sequence[int] = 0, held: np.ndarray | torch.Tensor | None = None) -> StreamState:
         """The state of B rollouts from one context frame each, uint8 (B, H, W, 3), or from
-        K frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them."""
+        K frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them;
+        ``held``: the setpoints (B, A) the robot holds at the newest frame, if known."""
         x = torch.as_tensor(frames)
         x = self.check_frames(x[:, None] if x.ndim == 4 else x, 5)
         b, k = x.shape[:2]
@@ -319,7 +332,8 @@ class WorldModel(nn.Module):
             a = self.normalize_actions(actions, b)
             if a.shape != (b, k - 1, self.action_dim):
                 raise InputError(f"expected actions ({b}, {k - 1}, {self.action_dim}), got {tuple(a.shape)}.")
-        return self.reset_state_latents(self.encode(x.flatten(0, 1)).unflatten(0, (b, k)), a, seed)
+        return self.reset_state_latents(self.encode(x.flatten(0, 1)).unflatten(0, (b, k)), a, seed,
+                                        None if held is None else self.normalize_actions(held, b))
 
     @torch.inference_mode()
     def novelty_of(self, state: StreamState, actions: np.ndarray | torch.Tensor) -> np.ndarray | None:
@@ -337,13 +351,15 @@ class WorldModel(nn.Module):
         state, images = self.step_state_images(state, self.normalize_actions(actions, state.batch_size))
         return state, to_uint8(images)
 
-    def predict(self, context: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    def predict(self, context: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor,
+                still: torch.Tensor | None = None) -> torch.Tensor:
         """The next standardised latent (B, C, h, w) from the window (B, K, C, h, w), the
         previous and current normalised actions (B, 2, A) and the noise (B, C, h, w): what
         the objective generates, plus the newest context latent when it generates the
-        change (``predict_delta``)."""
+        change (``predict_delta``). ``still`` (B,): whether the setpoint holds still
+        (:meth:`Denoiser.sample`; default: the two actions are the same)."""
         sigma = torch.full((context.shape[0],), self.context_label, device=context.device)
-        return self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps)
+        return self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps, still)
 
     @torch.inference_mode()
     def decode_latents(self, z: torch.Tensor, generators: Sequence[torch.Generator] | None = None) -> torch.Tensor:
@@ -386,10 +402,11 @@ class WorldModel(nn.Module):
 
     # -- the stateful wrapper: the rollouts' state kept in ``self.state`` ----------------------
     def reset(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
-              seed: int | Sequence[int] = 0) -> None:
+              seed: int | Sequence[int] = 0, held: np.ndarray | torch.Tensor | None = None) -> None:
         """Start B rollouts from one context frame each, uint8 (B, H, W, 3), or from K
-        frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them."""
-        self._state = self.reset_state(frames, actions, seed)
+        frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them
+        (``held``: see :meth:`reset_state`)."""
+        self._state = self.reset_state(frames, actions, seed, held)
 
     def step(self, actions: np.ndarray | torch.Tensor) -> np.ndarray:
         """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)."""
@@ -397,9 +414,9 @@ class WorldModel(nn.Module):
         return frames
 
     def reset_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
-                      seed: int | Sequence[int] = 0) -> None:
+                      seed: int | Sequence[int] = 0, held: torch.Tensor | None = None) -> None:
         """``reset`` from context latents (see :meth:`reset_state_latents`)."""
-        self._state = self.reset_state_latents(latents, actions, seed)
+        self._state = self.reset_state_latents(latents, actions, seed, held)
 
     def step_latent(self, actions: torch.Tensor) -> torch.Tensor:
         """Normalised actions (B, A) -> the next latents (B, C, h, w), as ``encode`` gives them."""
