@@ -1,7 +1,8 @@
 """Bimanual T-pushing as a :class:`~iwsim.envs.task.Task`: the pushers' speed limit as the
 command-to-executed map, the pixel IoU as the scorer, ``agent_pos`` from the setpoints and
-the pushers seen in the frame, MuJoCo resets as initial frames and MuJoCo itself side by side in play.
-The one place outside ``envs/pusht.py`` and ``envs/pixels.py`` that knows about them."""
+the pushers seen in the frame, MuJoCo resets as initial frames and MuJoCo itself side by
+side in play. The one place outside ``envs/pusht.py`` and ``envs/pixels.py`` that knows
+about them."""
 
 from __future__ import annotations
 
