@@ -54,7 +54,6 @@ def test_blobs_sit_where_the_action_points():
     assert b.max() == pytest.approx(1.0, abs=0.05)
 
 
-
 @torch.no_grad()
 def test_a_scene_at_rest_stays_at_rest_while_the_setpoint_holds():
     """``rest_threshold``: from a still start whose held setpoint is known, every next

@@ -46,7 +46,6 @@ def test_pusht_keeps_its_keys_motion_and_scorer():
     assert task.score(blank).shape == (1,) and task.is_success(np.array([0.95, 0.5])).tolist() == [True, False]
 
 
-
 def test_pusht_agent_pos_is_the_setpoint_unless_the_frame_shows_the_pusher_held_back():
     obs, _ = gym.make("iwsim/BimanualPushT-v0").reset(seed=3)
     frame, true = obs["pixels"][None], obs["agent_pos"].astype(np.float64)[None]
@@ -59,6 +58,7 @@ def test_pusht_agent_pos_is_the_setpoint_unless_the_frame_shows_the_pusher_held_
     assert np.abs(seen - true).max() < 0.004 and apart.min() > 0.015
     blank = np.full_like(frame, 255)  # no pusher seen: the previous positions
     np.testing.assert_array_equal(task.observe(blank, near, previous)[1], previous)
+
 
 def test_the_shipped_checkpoint_and_models_built_in_code_are_pusht():
     config = json.loads((ROOT / "checkpoints" / "pusht-64" / "config.json").read_text())

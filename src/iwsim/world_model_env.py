@@ -12,14 +12,14 @@ from the same state in both environments; ``"dataset"`` for any other robot's ta
 first frame of its store's episode ``seed % episodes``), ``"store"`` (a random frame of
 the episode store ``store``), or ``reset(options={"frame": f})``.
 
-For T-push, ``agent_pos`` is the executed setpoint where the frame shows the pusher near
-it and the pusher the frame shows where it is held back (by contact;
-:meth:`iwsim.envs.pusht_task.PushTTask.observe`), and ``info["iou"]`` and the reward come
-from the pixel scorer, so nothing but the model's pixels and the commands is used;
-actions are commanded targets, approached at the task's speed limit exactly as MuJoCo
+For T-push, each pusher's ``agent_pos`` is its executed setpoint where the frame shows it
+near the setpoint, and where the frame shows it when contact holds it back
+(:meth:`iwsim.envs.pusht_task.PushTTask.observe`); ``info["iou"]`` and the reward come
+from the pixel scorer, so nothing but the model's pixels and the commands is used.
+Actions are commanded targets, approached at the task's speed limit exactly as MuJoCo
 does (:func:`iwsim.envs.pusht.limit_targets`, starting from the pushers' positions at
-reset). A task without a scorer reports ``info["score"] = None``
-and reward 0, and its ``agent_pos`` is the executed command. Either way the model is
+reset). A task without a scorer reports ``info["score"] = None`` and reward 0, and its
+``agent_pos`` is the executed command. Either way the model is
 conditioned on the executed motion (``info["target"]``).
 
 :class:`WorldModelVectorEnv` steps many environments in one forward pass. Its episodes
