@@ -16,10 +16,10 @@ import argparse
 
 import numpy as np
 import torch
-import zarr
 from safetensors.torch import load_file
 
 from iwsim.checkpoint import load_json
+from iwsim.data.store import EpisodeStore
 
 
 def main() -> None:
@@ -29,9 +29,9 @@ def main() -> None:
     p.add_argument("--model", default="checkpoints/pusht-64", help="world model whose latent scale to use")
     p.add_argument("--thresholds", default="0.02,0.05,0.1,0.2")
     args = p.parse_args()
-    root = zarr.open(args.data, mode="r")
-    ends = np.asarray(root["meta/episode_ends"][:])
-    target = np.asarray(root["data/target"][:])
+    store = EpisodeStore.open(args.data, "r")
+    ends = store.episode_ends.astype(np.int64)
+    target = np.asarray(store.array("target")[:])
     z = load_file(args.latents)["latents"].float() / load_json(f"{args.model}/config.json")["latent_norm"]["scale"]
     if len(z) != len(target):
         raise SystemExit(f"error: {args.latents} holds {len(z)} latents but {args.data} {len(target)} frames.")

@@ -1,8 +1,9 @@
 """Is a family's offset the model's dynamics or what the policy observes in it? (issue 41)
 
 For one operator family (``bench/families.py``) from its first states:
-1. open loop: MuJoCo's own actions of each episode replayed in the world model from the
-   same first frame, scored beside MuJoCo (the dynamics alone);
+1. open loop: the motion MuJoCo executed in each episode (its speed-limited setpoints,
+   what the model is conditioned on) replayed in the world model from the same first
+   frame, scored beside MuJoCo (the dynamics alone);
 2. closed loop: the family driven inside the world model, and its actions replayed in
    MuJoCo (what the policy did there, scored by the ground truth);
 3. the pushers as read from the open-loop model frames against MuJoCo's frames (mm).
@@ -61,7 +62,7 @@ def main() -> None:
     for name in args.families.split(","):
         cfg = families.FAMILIES[name][0]
         m = rollout(ScriptedBatch(cfg), "pusht", seeds, args.steps, record=len(seeds), progress=False)
-        open_loop = wm.rollout(m["frames"][:, 0], m["action"], seed=list(range(len(seeds))))
+        open_loop = wm.rollout(m["frames"][:, 0], m["target"], seed=list(range(len(seeds))))
         open_iou = np.array([[pixel_iou(f) for f in ep] for ep in open_loop]).max(1)
         w = rollout(ScriptedBatch(cfg), "world-model", seeds, args.steps, world_model=wm, progress=False)
         back = rollout(Replay(w["action"]), "pusht", seeds, args.steps, progress=False)
