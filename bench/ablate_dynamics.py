@@ -6,7 +6,10 @@ them (and any checkpoint) on held-out episodes of smooth actions.
         --steps 300 --data data/play.zarr --ae runs/ae_shipped --latent-cache runs/latents_play.safetensors
     # score runs or checkpoints on a store of episodes never used in training
     MUJOCO_GL=egl python bench/ablate_dynamics.py eval --models ours=runs/ablate/ours,... \\
-        --data data/play_eval.zarr --out bench/results/dynamics
+        --data data/play_eval.zarr --out bench/results/dynamics --table bench/results/ablations.md
+
+The table goes to ``OUT/table.md``; tracked files change only when named (``--out``,
+``--table``, which appends to a record).
 
 A variant's curriculum (``unroll``) is scaled with its step budget, so a short run goes
 through the same stages as the preset's full run.
@@ -30,11 +33,12 @@ import numpy as np
 import torch
 
 from iwsim import WorldModel
-from iwsim.checkpoint import resolve_checkpoint
+from iwsim.checkpoint import resolve_checkpoint, write_text_atomic
 from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
 from iwsim.envs import pixels
 from iwsim.envs.pusht import VIEW_HALF
+from iwsim.errors import reporting_errors
 from iwsim.metrics import psnr
 from iwsim.world_model.presets import DYNAMICS_PRESETS, variant
 from iwsim.world_model.train_dynamics import train_dynamics
@@ -262,8 +266,10 @@ def evaluate(args: argparse.Namespace) -> None:
              "| model | " + " | ".join(c for c, *_ in ROWS) + " |", "|---" * (len(ROWS) + 1) + "|"]
     for name, r in results.items():
         lines.append(f"| {name} (step {r['step']}) | " + " | ".join(cell(r, *row) for row in ROWS) + " |")
-    with open(args.table, "a") as f:
-        f.write("\n".join(lines) + "\n")
+    write_text_atomic(out / "table.md", "\n".join(lines) + "\n")
+    if args.table:
+        with open(args.table, "a") as f:
+            f.write("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
@@ -286,12 +292,12 @@ def main() -> None:
     q.add_argument("--episodes", type=int, default=20)
     q.add_argument("--horizon", type=int, default=192)
     q.add_argument("--threads", type=int, default=2)
-    q.add_argument("--out", default="bench/results/dynamics")
-    q.add_argument("--table", default="bench/results/ablations.md")
+    q.add_argument("--out", default="outputs/ablate_eval", help="results, frames and table.md (default: %(default)s)")
+    q.add_argument("--table", help="a markdown file the table is also appended to, e.g. bench/results/ablations.md")
     q.set_defaults(func=evaluate)
     args = p.parse_args()
     args.func(args)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("ablate_dynamics.py", main))

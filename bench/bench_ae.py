@@ -23,6 +23,7 @@ import torch
 from iwsim.checkpoint import resolve_checkpoint
 from iwsim.data.frames import FrameSource, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
+from iwsim.errors import reporting_errors
 from iwsim.eval.profiling import latency_ms
 from iwsim.metrics import psnr, ssim
 from iwsim.world_model.codec import Codec, reconstruct
@@ -149,4 +150,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("bench_ae.py", main))

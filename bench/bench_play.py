@@ -33,6 +33,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
+from iwsim.errors import reporting_errors
 from iwsim.play.protocol import unpack_frame  # noqa: E402
 
 SERVER_LOG = REPO / "outputs" / "bench_play_server.log"  # the last server's log
@@ -285,4 +286,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("bench_play.py", main))

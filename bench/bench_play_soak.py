@@ -32,6 +32,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_play import REPO, Server, client, summary  # noqa: E402
 
+from iwsim.errors import reporting_errors  # noqa: E402
+
 SERVER_LOG = REPO / "outputs" / "bench_play_soak_server.log"
 FLOOD_MESSAGES = [  # sent after each valid action
     "{not json",
@@ -231,4 +233,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("bench_play_soak.py", main))

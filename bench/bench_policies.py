@@ -34,6 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
+from iwsim.errors import reporting_errors
 from iwsim.eval.policy import evaluate, summarize  # noqa: E402
 from iwsim.policies.factory import load_policy  # noqa: E402
 from iwsim.tasks import get_task  # noqa: E402
@@ -196,4 +197,4 @@ def markdown(r: dict) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("bench_policies.py", main))

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from iwsim.errors import reporting_errors
+
 RESULTS = Path(__file__).parent / "results"
 EVAL_SEEDS = range(100000, 100050)  # Diffusion Policy's evaluation-seed convention
 
@@ -198,4 +200,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("bench_task.py", main))

@@ -17,6 +17,7 @@ from pathlib import Path
 from yardstick import goal_frames, reconstruction_scores
 
 from iwsim.envs import pixels
+from iwsim.errors import reporting_errors
 from iwsim.experiments.demos import PUSHT
 from iwsim.resources import set_threads
 from iwsim.world_model import WorldModel
@@ -44,4 +45,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(reporting_errors("codec_ceiling.py", main))

@@ -65,6 +65,9 @@ TRAINING_FAMILIES: dict[str, tuple[str, ...]] = {
     "play-broad": ("play", "still", "pause", "lag3", "lag6", "jitter"),
     # the noisy expert through slow or pausing hands: a person's kind of teleoperation
     "expert-hands": ("expert", "jitter", "lag3", "lag6", "pause", "person"),
+    # the expert's motions with a learned policy's imprecision: grips off the grip points,
+    # blind carries (counted as covering the misses, conservatively)
+    "expert-imprecise": ("expert", "miss"),
 }
 IDLE_STEPS = 50
 CRISP = 0.9  # a T fits crisply (the codec's reconstructions of first frames fit ~0.92)

@@ -27,6 +27,7 @@ import torch
 
 from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.config import from_dict, to_dict
+from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout, summarize
 from iwsim.experiments.common import checkpoints
 from iwsim.policies import POLICIES, PRESETS, PolicyStageConfig
@@ -119,4 +120,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(reporting_errors("policy_runs.py", main))

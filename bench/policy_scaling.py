@@ -26,6 +26,7 @@ import policy_runs  # noqa: E402
 from bench_policies import training_minutes  # noqa: E402
 
 from iwsim.checkpoint import load_json, write_text_atomic  # noqa: E402
+from iwsim.errors import reporting_errors
 from iwsim.eval.figures import pyplot, save_figure  # noqa: E402
 
 DATA = "runs/experiments/demos/sim_expert.zarr"
@@ -136,4 +137,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(reporting_errors("policy_scaling.py", main))

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout
 from iwsim.policies.factory import load_policy
 
@@ -37,4 +38,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("policy_strip.py", main))

@@ -20,6 +20,7 @@ from safetensors.torch import load_file
 
 from iwsim.checkpoint import load_json
 from iwsim.data.store import EpisodeStore
+from iwsim.errors import reporting_errors
 
 
 def main() -> None:
@@ -57,4 +58,4 @@ def main() -> None:
 
 if __name__ == "__main__":
     torch.set_num_threads(1)
-    main()
+    raise SystemExit(reporting_errors("rest_stats.py", main))

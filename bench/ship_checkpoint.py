@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from iwsim.checkpoint import write_json_atomic
+from iwsim.errors import reporting_errors
 from iwsim.eval.benchmark import training_info
 from iwsim.eval.rollout import against_mujoco
 from iwsim.world_model import WorldModel
@@ -99,4 +100,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("ship_checkpoint.py", main))

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from wm_studies_check import strip
 
+from iwsim.errors import reporting_errors
 from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.resources import set_threads
@@ -41,4 +42,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(reporting_errors("wm_strip.py", main))

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from iwsim.checkpoint import load_json, write_json_atomic
+from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import evaluate_policies, fingerprint
@@ -153,4 +154,4 @@ def markdown(r: dict, command: str) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(reporting_errors("wm_studies_check.py", main))

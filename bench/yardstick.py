@@ -55,6 +55,7 @@ from wm_studies_check import TELEOP_SEED, strip, teleop
 from iwsim.checkpoint import load_json, resolve_checkpoint, write_json_atomic, write_text_atomic
 from iwsim.data.store import EpisodeStore
 from iwsim.envs import pixels
+from iwsim.errors import reporting_errors
 from iwsim.eval.profiling import speed, stability
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import evaluate_policies, fingerprint
@@ -447,4 +448,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(reporting_errors("yardstick.py", main))

@@ -106,6 +106,15 @@ def _result() -> dict:
                                      "accuracy": acc(21.0), "speed": {**speed, "step_ms": 90.0}}}}
 
 
+def test_the_frames_figure_spans_the_rollout():
+    from iwsim.eval.figures import figure_steps
+
+    assert figure_steps(192) == [0, 48, 96, 144, 192]
+    assert figure_steps(24) == [0, 6, 12, 18, 24]
+    assert figure_steps(2) == [0, 1, 2]  # no step twice
+    assert figure_steps(0) == [0]
+
+
 def test_markdown_table():
     md = report.markdown(_result())
     assert "| MSE ↓ | PSNR ↑ | SSIM ↑ | UIQI ↑ | LPIPS ↓ | FID ↓ | FVD ↓ | IOU_ERR ↓ |" in md

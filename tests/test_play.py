@@ -362,6 +362,8 @@ def test_token_comes_from_a_file_or_the_environment(tmp_path):
             resolve_token(None, file, {})
     with pytest.raises(ValueError, match="cannot read the token file"):
         resolve_token(None, tmp_path / "missing", {})
+    with pytest.raises(ValueError, match=r"\$IWSIM_PLAY_TOKEN must be at least 8"):  # set but empty
+        resolve_token("from-the-flag", None, {TOKEN_ENV: ""})
 
 
 def test_play_never_logs_the_token(tmp_path, monkeypatch, caplog):

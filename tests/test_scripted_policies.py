@@ -148,10 +148,42 @@ def test_scripted_config_names_the_hand_and_still_holds():
     assert not np.allclose(missing, ScriptedBatch("expert").predict_action(obs))
 
 
-@pytest.mark.parametrize("name", ["play-broad", "expert-hands"])
-def test_broad_play_and_the_hands_expert_are_seeded_and_touch_the_block(name):
+@pytest.mark.parametrize("name", ["play-broad", "expert-hands", "expert-imprecise"])
+def test_broad_play_and_the_hands_and_imprecise_experts_are_seeded_and_touch_the_block(name):
     a = record_episode("pusht", name, seed=5, steps=120)
     assert all(np.array_equal(a[k], record_episode("pusht", name, seed=5, steps=120)[k]) for k in a)
     assert not np.array_equal(a["action"], record_episode("pusht", name, seed=6, steps=120)["action"])
     assert (a["n_contacts"] > 0).mean() >= 0.05
     assert np.abs(np.diff(a["block_pose"], axis=0)).sum() > 0.02  # the block moved
+
+
+
+@pytest.mark.parametrize("blind", [True, False])
+def test_the_imprecise_expert_carries_blind_by_dead_reckoning(blind):
+    """Once pinched, a blind carry's actions no longer depend on where the block is."""
+    import copy
+
+    from iwsim.envs.scripted import ImpreciseExpertPolicy
+
+    env = BimanualPushTEnv(64)
+    seed = next(s for s in range(100) if _drawn_blind(s) == blind)
+    policy = ImpreciseExpertPolicy(seed)
+    obs, info = env.reset(seed=0)
+    policy.reset(obs, info)
+    for _ in range(200):
+        if policy.pinch.phase == "carry":
+            break
+        obs, _, _, _, info = env.step(policy(obs, info))
+    env.close()
+    assert policy.pinch.phase == "carry", "the pinch never closed"
+    moved = dict(info, block_pose=info["block_pose"] + np.array([0.05, 0.0, 0.3]))
+    same = np.allclose(copy.deepcopy(policy)(obs, info), copy.deepcopy(policy)(obs, moved))
+    assert same == blind
+
+
+def _drawn_blind(seed: int) -> bool:
+    from iwsim.envs.scripted import ImpreciseExpertPolicy
+
+    p = ImpreciseExpertPolicy(seed)
+    p.reset({"agent_pos": np.zeros(4, np.float32)}, {})
+    return p.blind

@@ -22,6 +22,19 @@ def test_shipped_checkpoint_is_complete_and_small():
     assert "iwsim collect" in readme and "iwsim train ae" in readme and "iwsim train dynamics" in readme
 
 
+def test_the_shipped_checkpoint_is_found_from_any_working_directory(tmp_path, monkeypatch):
+    from iwsim.checkpoint import CheckpointError, resolve_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    assert resolve_checkpoint("checkpoints/pusht-64") == SHIPPED
+    assert WorldModel.load("checkpoints/pusht-64").image_size == 64
+    (tmp_path / "checkpoints" / "pusht-64").mkdir(parents=True)  # one here comes first
+    with pytest.raises(CheckpointError, match="neither a checkpoint directory"):
+        resolve_checkpoint("checkpoints/pusht-64")
+    with pytest.raises(CheckpointError, match=f"a relative path: looked for in {tmp_path}"):
+        resolve_checkpoint("checkpoints/missing")
+
+
 @pytest.mark.parametrize("i", range(4))
 def test_shipped_checkpoint_reaches_its_recorded_psnr_against_mujoco(i):
     recorded = json.loads((SHIPPED / "metrics.json").read_text())["mujoco_rollout"]

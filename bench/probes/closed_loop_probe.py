@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import families  # noqa: E402  (bench/families.py)
 
 from iwsim.envs.pixels import pixel_iou, pusher_positions  # noqa: E402
+from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout  # noqa: E402
 from iwsim.policies.scripted import ScriptedBatch  # noqa: E402
 from iwsim.world_model import WorldModel  # noqa: E402
@@ -76,4 +77,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("closed_loop_probe.py", main))

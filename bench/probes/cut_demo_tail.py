@@ -10,6 +10,7 @@ import argparse
 import numpy as np
 
 from iwsim.data.store import EpisodeStore
+from iwsim.errors import reporting_errors
 
 
 def main() -> None:
@@ -33,4 +34,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("cut_demo_tail.py", main))

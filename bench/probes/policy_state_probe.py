@@ -23,6 +23,7 @@ from probe_scores import score_checkpoints
 from iwsim.envs import geometry as geo
 from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import VIEW_HALF
+from iwsim.errors import reporting_errors
 from iwsim.policies import PRESETS
 from iwsim.policies.data import parse_mixture
 from iwsim.policies.diffusion.model import DiffusionPolicy
@@ -109,4 +110,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(reporting_errors("policy_state_probe.py", main))

@@ -35,6 +35,7 @@ from iwsim.resources import human_bytes, read_capped, require_memory
 
 # What each ``config.json`` kind holds, for messages.
 KINDS = {"autoencoder": "an autoencoder", "world_model": "a world model", "policy": "a policy"}
+PROJECT_ROOT = Path(__file__).resolve().parents[2]  # the checkout the package is installed from (editable)
 
 
 class CheckpointError(IwsimError, ValueError):
@@ -109,12 +110,28 @@ def build_within_memory(make: Callable[[], M], what: str) -> M:
     return make()
 
 
-def load_model_dir(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
-    """The ``config.json`` and the tensors of the model directory ``path``, whose config
-    must say ``kind`` (one of :data:`KINDS`); a CheckpointError naming the file otherwise."""
+def locate(path: str | Path) -> Path:
+    """``path``; or, when it is relative and missing from the working directory, the same
+    path in the project's checkout if it is there (the shipped ``checkpoints/`` are found
+    from any working directory)."""
     path = Path(path)
+    if not path.is_absolute() and not path.exists() and (PROJECT_ROOT / path).exists():
+        return PROJECT_ROOT / path
+    return path
+
+
+def _where(path: Path) -> str:
+    """What a missing relative path was looked up against, for an error message."""
+    return "" if path.is_absolute() else f" (a relative path: looked for in {Path.cwd()} and {PROJECT_ROOT})"
+
+
+def load_model_dir(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """The ``config.json`` and the tensors of the model directory ``path`` (:func:`locate`),
+    whose config must say ``kind`` (one of :data:`KINDS`); a CheckpointError naming the
+    file otherwise."""
+    path = locate(path)
     if not path.is_dir():
-        raise CheckpointError(f"{path} is not a checkpoint directory (model.safetensors + config.json).")
+        raise CheckpointError(f"{path} is not a checkpoint directory (model.safetensors + config.json){_where(path)}.")
     config = load_json(path / "config.json")
     if not isinstance(config, dict) or not isinstance(config.get("kind"), str):
         raise CheckpointError(f"{path} is not an iwsim checkpoint: its config.json is not a JSON object with a "
@@ -126,14 +143,16 @@ def load_model_dir(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[st
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
-    """A checkpoint directory, or a run directory (its ``checkpoints/last``)."""
-    path = Path(path)
+    """A checkpoint directory, or a run directory (its ``checkpoints/last``); relative
+    paths as :func:`locate` finds them."""
+    path = locate(path)
     if (path / "model.safetensors").is_file():
         return path
     last = last_checkpoint(path / "checkpoints")
     if last is None:
+        where = _where(path) if not path.exists() else ""
         raise CheckpointError(f"{path} is neither a checkpoint directory (model.safetensors + config.json) "
-                              "nor a run directory with checkpoints.")
+                              f"nor a run directory with checkpoints{where}.")
     return last
 
 

@@ -9,12 +9,10 @@ import os
 import sys
 from collections.abc import Sequence
 
-from iwsim.errors import InputError, IwsimError
+from iwsim.errors import EXIT_USER_ERROR, InputError, reporting_errors
 from iwsim.resources import human_bytes, set_threads
 
 log = logging.getLogger("iwsim")
-
-EXIT_USER_ERROR = 1  # bad values the library rejected (argparse's own usage errors exit 2)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -290,24 +288,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     # PyOpenGL (under MuJoCo's renderer) says at import, at INFO, that its optional
     # accelerator is missing: noise, and a user error must stay one line.
     logging.getLogger("OpenGL").setLevel(logging.WARNING)
-    try:
+    def body() -> int:
         set_threads(args.threads)
         return args.func(args)
-    except BrokenPipeError:  # e.g. `iwsim data info x | head`: the reader left, nothing to say
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return EXIT_USER_ERROR
-    except (IwsimError, OSError) as e:  # a user's error (see iwsim.errors); anything else is a bug
-        print(f"iwsim: error: {_one_line(e)}", file=sys.stderr)
-        return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print("iwsim: interrupted", file=sys.stderr)
-        return 130
 
-
-def _one_line(e: BaseException) -> str:
-    if isinstance(e, OSError) and e.strerror and e.filename is not None:
-        return f"{e.filename}: {e.strerror}."
-    return " ".join(str(e).split()) or type(e).__name__
+    return reporting_errors("iwsim", body)
 
 
 def _collect(args: argparse.Namespace) -> int:

@@ -25,7 +25,8 @@ if "iwsim/WorldModel-v0" not in registry:
 
 TASKS = {"pusht": "iwsim/BimanualPushT-v0"}
 IMAGE_SIZES = (64, 96, 128)  # what the MuJoCo tasks render
-POLICIES = ("play", "play-broad", "expert", "expert-noisy", "expert-lagged", "expert-hands")
+POLICIES = ("play", "play-broad", "expert", "expert-noisy", "expert-lagged", "expert-hands",
+            "expert-imprecise")
 
 
 def check_task(task: str) -> str:

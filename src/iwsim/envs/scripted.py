@@ -144,8 +144,9 @@ class Pinch:
     """
 
     def __init__(self, speed: float = MAX_STEP, carry_speed: float = 0.012, turn_speed: float = 0.3,
-                 gain: float = 2.0) -> None:
+                 gain: float = 2.0, squeeze: float = SQUEEZE) -> None:
         self.speed, self.carry_speed, self.turn_speed, self.gain = speed, carry_speed, turn_speed, gain
+        self.squeeze = squeeze
         self.reset()
 
     def reset(self) -> None:
@@ -168,6 +169,18 @@ class Pinch:
     def _points(self, x: float) -> np.ndarray:
         return np.stack([self.sides * x, np.full(2, GRIP_Y)], axis=1)
 
+    def carry_step(self, pose: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """How far the carry commands the grasp past ``pose`` (x, y, angle) towards ``target``."""
+        err = np.array([*(target[:2] - pose[:2]), geo.wrap_angle(target[2] - pose[2])])
+        # Command past the target (gain > 1): the grasp lags the command by what friction
+        # costs, so a plain proportional command would stall short of it.
+        step = self.gain * err
+        n = np.linalg.norm(step[:2])
+        if n > self.carry_speed:
+            step[:2] *= self.carry_speed / n
+        step[2] = np.clip(step[2], -self.turn_speed, self.turn_speed)
+        return step
+
     def __call__(self, pushers: np.ndarray, pose: np.ndarray, target: np.ndarray) -> np.ndarray:
         if self.sides is None:
             self.sides = self._assign(pushers, pose)
@@ -176,15 +189,7 @@ class Pinch:
             if np.max(np.linalg.norm(pushers - contacts, axis=1)) > 0.012:
                 self._restart(pushers, pose)
             else:
-                err = np.array([*(target[:2] - pose[:2]), geo.wrap_angle(target[2] - pose[2])])
-                # Command past the target (gain > 1): the grasp lags the command by what
-                # friction costs, so a plain proportional command would stall short of it.
-                step = self.gain * err
-                n = np.linalg.norm(step[:2])
-                if n > self.carry_speed:
-                    step[:2] *= self.carry_speed / n
-                step[2] = np.clip(step[2], -self.turn_speed, self.turn_speed)
-                return to_world(self._points(CONTACT_X - SQUEEZE), pose + step)
+                return to_world(self._points(CONTACT_X - self.squeeze), pose + self.carry_step(pose, target))
         if self.phase == "close":
             self.closing_steps += 1
             dist = np.array([geo.distance_to_t(p, pose) for p in pushers])
@@ -192,11 +197,11 @@ class Pinch:
                 self.phase = "carry"
             elif self.closing_steps > 5:
                 self._restart(pushers, pose)
-            return to_world(self._points(CONTACT_X - SQUEEZE), pose)
+            return to_world(self._points(CONTACT_X - self.squeeze), pose)
         pre = to_world(self._points(PRE_GRIP_X), pose)
         if np.max(np.linalg.norm(pushers - pre, axis=1)) < 0.004:
             self.phase, self.closing_steps = "close", 0
-            return to_world(self._points(CONTACT_X - SQUEEZE), pose)
+            return to_world(self._points(CONTACT_X - self.squeeze), pose)
         moved = np.inf if self._prev is None else np.max(np.linalg.norm(pushers - self._prev, axis=1))
         self._prev = pushers.copy()
         self.stalled_steps = self.stalled_steps + 1 if moved < 0.001 else 0
@@ -465,16 +470,21 @@ class BroadPlayPolicy(PlayPolicy):
         return self._last_command.astype(np.float32)
 
 
-class HandExpertPolicy(ExpertPolicy):
+class SeededExpertPolicy(ExpertPolicy):
+    """The expert (block pose from state) with a random generator seeded per policy, the
+    base of its randomised variants."""
+
+    def __init__(self, seed: int) -> None:
+        super().__init__()
+        self.rng = np.random.default_rng(seed)
+
+
+class HandExpertPolicy(SeededExpertPolicy):
     """The noisy expert (:class:`NoisyExpertPolicy`'s smooth command noise of 0-12 mm)
     through a person's hand drawn per episode (:class:`Hand`: half of them slow, time
     constant 1.5-4 steps; half starting a pause at 0.5-3% of steps), for world-model data of goal-directed
     contact as people perform it. No overshoot and no latency (held out, see
     :class:`BroadPlayPolicy`)."""
-
-    def __init__(self, seed: int) -> None:
-        super().__init__()
-        self.rng = np.random.default_rng(seed)
 
     def reset(self, obs: dict, info: dict) -> None:
         super().reset(obs, info)
@@ -487,7 +497,45 @@ class HandExpertPolicy(ExpertPolicy):
         return np.clip(self.hand(super().__call__(obs, info)), -WORKSPACE, WORKSPACE).astype(np.float32)
 
 
-class NoisyExpertPolicy(ExpertPolicy):
+class ImpreciseExpertPolicy(SeededExpertPolicy):
+    """The expert with a learned policy's imprecision, for world-model data of contact that
+    goes wrong: each episode draws a persistent error in where the policy believes the
+    block is (a few mm and degrees, plus a slow wobble), a squeeze of 0.5-3 cm, a carry
+    speed of 6-20 mm a step, and, half the time, a blind carry: once it has pinched, it
+    carries by dead reckoning (it assumes the block follows its commands and never checks),
+    as a policy replaying the expert's motion does. Grips land off the grip points, blocks
+    slip, turn or are left behind, and the motions still look like the expert's."""
+
+    POSE_BIAS = (0.008, 0.008, 0.25)  # std of the per-episode belief error: m, m, rad
+    WOBBLE = (0.003, 0.003, 0.08)  # stationary std of its slow AR(1) drift
+
+    def reset(self, obs: dict, info: dict) -> None:
+        super().reset(obs, info)
+        rng = self.rng
+        self.bias = rng.normal(0.0, self.POSE_BIAS)
+        self.wobble = rng.normal(0.0, self.WOBBLE)
+        self.pinch = Pinch(carry_speed=float(rng.uniform(0.006, 0.02)), squeeze=float(rng.uniform(0.005, 0.03)))
+        self.blind = bool(rng.random() < 0.5)
+        self.belief: np.ndarray | None = None  # the blind carry's dead-reckoned pose
+
+    def block_pose(self, obs: dict, info: dict) -> np.ndarray | None:
+        if self.blind and self.pinch.phase == "carry" and self.belief is not None:
+            return self.belief
+        self.wobble = 0.9 * self.wobble + self.rng.normal(0.0, np.asarray(self.WOBBLE) * np.sqrt(1 - 0.81))
+        return super().block_pose(obs, info) + self.bias + self.wobble
+
+    def __call__(self, obs: dict, info: dict) -> np.ndarray:
+        pose = self.block_pose(obs, info)
+        pushers = np.asarray(obs["agent_pos"], dtype=np.float64).reshape(2, 2)
+        targets = self.pinch(pushers, pose, self.goal_pose)
+        # the command leads the grasp by the gain: the block is believed to follow it
+        in_carry = self.pinch.phase == "carry"
+        self.belief = pose + self.pinch.carry_step(pose, self.goal_pose) / self.pinch.gain if in_carry else None
+        self._last = np.clip(targets.reshape(4), -WORKSPACE, WORKSPACE).astype(np.float32)
+        return self._last
+
+
+class NoisyExpertPolicy(SeededExpertPolicy):
     """The expert (block pose from state) with smooth command noise, for world-model data
     around goal-directed contact: each episode draws a noise level of 0-12 mm and adds
     an AR(1) drift of that std (correlated over ~5 steps) to every command. The expert
@@ -495,10 +543,6 @@ class NoisyExpertPolicy(ExpertPolicy):
     nearby actions."""
 
     MAX_NOISE = 0.012
-
-    def __init__(self, seed: int) -> None:
-        super().__init__()
-        self.rng = np.random.default_rng(seed)
 
     def reset(self, obs: dict, info: dict) -> None:
         super().reset(obs, info)
@@ -534,7 +578,8 @@ def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
     of a person's and a policy's breadth), ``expert`` (deterministic, block pose from
     state), ``expert-noisy`` (the expert with command noise drawn from ``seed``),
     ``expert-lagged`` (that, executed 0-5 steps late) or ``expert-hands`` (that, through a
-    person's slow or pausing hand)."""
+    person's slow or pausing hand) or ``expert-imprecise`` (the expert with a learned
+    policy's imprecise grip and blind carry)."""
     if name not in POLICIES:
         raise InputError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
     if name == "expert":
@@ -543,6 +588,8 @@ def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
         return LaggedExpertPolicy(seed)
     if name == "expert-hands":
         return HandExpertPolicy(seed)
+    if name == "expert-imprecise":
+        return ImpreciseExpertPolicy(seed)
     if name == "play-broad":
         return BroadPlayPolicy(seed)
     return NoisyExpertPolicy(seed) if name == "expert-noisy" else PlayPolicy(seed)

@@ -9,7 +9,7 @@
 - Stability: one long rollout per model under the scripted play policy's actions, driven
   by MuJoCo (which renders the same actions), with frame statistics and block
   detectability over time.
-- A figure of predicted and true frames at steps 0, 48, 96, 144 and 192.
+- A figure of predicted and true frames at five steps from 0 to the horizon (0, 48, ..., 192).
 
 LPIPS, FID and FVD need pretrained networks (:mod:`iwsim.eval.features`); when their
 weights are missing the report says so in their columns instead of giving a number.

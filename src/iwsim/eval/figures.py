@@ -8,7 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-FIGURE_STEPS = (0, 48, 96, 144, 192)
+FIGURE_COLUMNS = 5  # frames a row: the context, then evenly spaced to the last step
+
+
+def figure_steps(horizon: int, columns: int = FIGURE_COLUMNS) -> list[int]:
+    """The steps a frames figure shows for a rollout of ``horizon`` steps: step 0 (the
+    context frame), then ``columns - 1`` evenly spaced steps ending at ``horizon``
+    (0, 48, 96, 144, 192 for 192 steps)."""
+    return sorted({round(horizon * k / (columns - 1)) for k in range(columns)}) if horizon > 0 else [0]
 
 
 def save_figure(fig, path: Path, dpi: int = 110) -> None:  # noqa: ANN001  (a matplotlib Figure)
@@ -33,10 +40,11 @@ def pyplot():  # noqa: ANN202  (the matplotlib.pyplot module)
 
 def frames_figure(context: np.ndarray, truth: np.ndarray, preds: dict[str, np.ndarray], path: Path,
                   episodes: tuple[int, ...] = (0, 1)) -> None:
-    """Rows truth, then each model, at FIGURE_STEPS (step 0 is the context frame), for
-    the given episode indices. context (E, H, W, 3); truth and preds (E, S, H, W, 3)."""
+    """Rows truth, then each model, at :func:`figure_steps` of the rollout's length (step 0
+    is the context frame), for the given episode indices. context (E, H, W, 3); truth and
+    preds (E, S, H, W, 3)."""
     plt = pyplot()
-    steps = [s for s in FIGURE_STEPS if s <= truth.shape[1]]
+    steps = figure_steps(truth.shape[1])
     episodes = tuple(e for e in episodes if e < len(truth))
     names = ["MuJoCo (truth)", *preds]
     fig, axes = plt.subplots(len(names) * len(episodes), len(steps), squeeze=False,

@@ -64,7 +64,7 @@ def resolve_token(flag: str | None = None, file: str | os.PathLike | None = None
         except (OSError, UnicodeDecodeError) as e:
             raise InputError(f"cannot read the token file {file}: {getattr(e, 'strerror', None) or e}.") from None
         token, source = (lines[0].strip() if lines else ""), f"--token-file {file}"
-    elif env.get(TOKEN_ENV):
+    elif TOKEN_ENV in env:  # set but empty is a mistake to report, not a wish for a random token
         token, source = env[TOKEN_ENV].strip(), f"${TOKEN_ENV}"
     elif flag is not None:
         token, source = flag.strip(), "--token"

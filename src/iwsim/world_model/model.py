@@ -48,6 +48,7 @@ from iwsim.checkpoint import (
     build_within_memory,
     load_json,
     load_model_dir,
+    locate,
     resolve_checkpoint,
     save_model_dir,
 )
@@ -456,7 +457,7 @@ class WorldModel(nn.Module):
         written by ``iwsim train dynamics`` or ``iwsim export-model``. Checkpoints from
         before the codec seam (an ``ae`` config and ``ae.*`` weights: the consistency
         autoencoder) load as they are."""
-        path = Path(path)
+        path = locate(path)
         config, tensors = load_model_dir(path, KIND)
         prefix, codec_kind, codec_cfg = world_model_codec(config)
         for part, value in (("codec", codec_cfg), *((p, config.get(p)) for p in ("stage2", "action_norm",
