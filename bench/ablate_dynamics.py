@@ -116,49 +116,50 @@ def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0
     t_idx = torch.arange(0, ep.length - 1, 2)
     win = (t_idx[:, None] + torch.arange(-(k - 1), 1)).clamp_min(0)
     ctx = z[:, win].flatten(0, 1)  # (E*T, K, C, h, w)
-    acts = torch.stack([a[:, (t_idx - 1).clamp_min(0)], a[:, t_idx]], 2).flatten(0, 1)
+    ctx_actions = a[:, (win[:, 1:] - 1).clamp_min(0)].flatten(0, 1)  # (E*T, K-1, A): frame t came from action t-1
+    now = a[:, t_idx].flatten(0, 1)
     true, prev = z[:, t_idx + 1].flatten(0, 1), z[:, t_idx].flatten(0, 1)
     changed = ((true - prev).abs().amax(1, keepdim=True) > CHANGED).expand_as(true)
-    g = torch.Generator().manual_seed(seed)
 
-    def one_step(context: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        return wm.predict(context, actions, torch.randn(context[:, -1].shape, generator=g))
+    def one_step() -> torch.Tensor:
+        """The standardised next latents (E*T, C, h, w), the same noise at every call."""
+        state = wm.reset_state(wm.unstandardize(ctx), ctx_actions, seed, latents=True)
+        return wm.standardize(wm.step_state(state, now, latents=True)[1])
 
+    reencode, wm.reencode = wm.reencode, False  # one step from true latents: nothing to feed back
     for lab in (0.0, wm.cfg.context_label, 0.3):
         wm.context_label = lab
-        err = (one_step(ctx, acts) - true) ** 2
+        err = (one_step() - true) ** 2
         out[f"one_step_label{lab:g}"] = err.mean().item()
         if lab == wm.cfg.context_label:
             out["one_step"], out["one_step_changed"] = err.mean().item(), err[changed].mean().item()
-    wm.context_label = wm.cfg.context_label
+    wm.context_label, wm.reencode = wm.cfg.context_label, reencode
     copy = (prev - true) ** 2
     out["copy_prev"], out["copy_prev_changed"] = copy.mean().item(), copy[changed].mean().item()
     # Open loop from the first frame: true and shuffled actions (another episode's).
     true_z = z[:, 1:horizon + 1]
 
-    def rollout(actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Standardised latents (E, S, C, h, w) and, with ``wm.reencode``, the frames shown."""
-        wm.reset_latents(wm.unstandardize(z[:, :1]), seed=seed)
-        latents, images = [], []
+    def rollout(actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The standardised latents (E, S, C, h, w) the rollout continues from (with
+        ``wm.reencode``, the encodings of the decoded frames) and its predictions (E, S, C, h, w),
+        as ``encode`` gives them."""
+        state = wm.reset_state(wm.unstandardize(z[:, :1]), seed=seed, latents=True)
+        context, predicted = [], []
         for i in range(horizon):
-            if wm.reencode:  # the frame is decoded at every step, and its encoding is the context
-                images.append(wm.step_frames(actions[:, i]))
-                latents.append(wm.state.context[:, -1].clone())
-            else:
-                latents.append(wm.standardize(wm.step_latent(actions[:, i])))
-        return torch.stack(latents, 1), torch.stack(images, 1) if images else None
+            state, latent = wm.step_state(state, actions[:, i], latents=True)
+            context.append(state.context[:, -1])
+            predicted.append(latent)
+        return torch.stack(context, 1), torch.stack(predicted, 1)
 
-    pred, shown = rollout(a)
+    pred, predicted = rollout(a)
     err = ((pred - true_z) ** 2).mean((2, 3, 4))  # (E, S)
     shuf = ((rollout(a.roll(1, 0))[0] - true_z) ** 2).mean((2, 3, 4))
     for s in STEPS:
         out[f"latent_err_{s}"] = err[:, s - 1].mean().item()
     out["action_gap_5"] = (shuf[:, 4].mean() / err[:, 4].mean()).item()
     out["action_gap_10"] = (shuf[:, 9].mean() / err[:, 9].mean()).item()
-    # Frames: PSNR, pushers and the block.
-    if shown is None:
-        wm.reset_latents(wm.unstandardize(z[:, :1]), seed=seed)  # fresh generators for decoding
-        shown = wm.decode_latents(wm.unstandardize(pred))
+    # Frames: PSNR, pushers and the block; the predictions decoded with fresh generators.
+    shown = wm.decode_latents(predicted, [torch.Generator(wm.device).manual_seed(seed + i) for i in range(ep.n)])
     frames = shown.clamp(-1, 1)
     truth = to_model(ep.img[:, 1:horizon + 1]).to(frames.device)
     first = to_model(ep.img[:, :1]).expand_as(truth)

@@ -66,13 +66,13 @@ def test_a_scene_at_rest_stays_at_rest_while_the_setpoint_holds():
     for threshold in (0.05, 0.0):
         wm = tiny_world_model(rest_threshold=threshold)
         z0 = wm.encode(frame)
-        wm.reset_latents(z0[:, None], held=held)
-        still = [torch.equal(wm.step_latent(held), z0) for _ in range(4)]
+        wm.reset(z0[:, None], held=held, latents=True)
+        still = [torch.equal(wm.step(held, latents=True), z0) for _ in range(4)]
         assert still == [threshold > 0] * 4
-        assert not torch.equal(wm.step_latent(held + 0.1), z0)
+        assert not torch.equal(wm.step(held + 0.1, latents=True), z0)
     wm = tiny_world_model(rest_threshold=0.05)
-    wm.reset_latents(z0[:, None])
-    assert not torch.equal(wm.step_latent(held), z0)
+    wm.reset(z0[:, None], latents=True)
+    assert not torch.equal(wm.step(held, latents=True), z0)
 
 
 @pytest.mark.parametrize("spatial,film", [(True, False), (False, True)])
@@ -211,10 +211,10 @@ def test_a_short_training_run_learns_to_follow_the_action(positional):
         opt.step()
     wm = WorldModel(Autoencoder(AE_PRESETS["tiny"]), module.dynamics.eval(), cfg, LOW, HIGH)
     z, a = action_world(64, torch.Generator().manual_seed(1), positional)
-    ctx = z[:, :1].expand(64, k, 4, 16, 16)
     with torch.no_grad():
-        def predict(actions: torch.Tensor) -> torch.Tensor:
-            return wm.predict(ctx, torch.stack([a[:, 0], actions], 1), torch.randn(64, 4, 16, 16))
+        def predict(actions: torch.Tensor) -> torch.Tensor:  # one step from K copies of frame 0, made by a[:, 0]
+            state = wm.reset_state(z[:, :1].expand(64, k, 4, 16, 16), a[:, :1].expand(64, k - 1, 4), latents=True)
+            return wm.step_state(state, actions, latents=True)[1]
 
         y = predict(a[:, 1])
         true = ((y - z[:, 1]) ** 2).mean().item()

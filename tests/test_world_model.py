@@ -1,12 +1,13 @@
 """The WorldModel (tiny, random weights): the sliding window, batching, resets from several
-frames, the functional core under the stateful wrapper, joining and splitting states,
-checkpoints, and bad input."""
+frames, the functional core under the stateful wrapper, its latents mode, joining and
+splitting states, checkpoints, and bad input."""
 
 import numpy as np
 import pytest
 import torch
 
 from iwsim.checkpoint import CheckpointError, load_tensors, save_model_dir
+from iwsim.data.frames import to_uint8
 from iwsim.world_model import StreamState, WorldModel
 from iwsim.world_model.presets import VARIANTS
 from tests.test_dynamics import tiny_world_model
@@ -154,3 +155,32 @@ def test_the_functional_core_equals_the_stateful_wrapper_and_keeps_no_state():
         out.append(frame)
     np.testing.assert_array_equal(np.stack(out, 1), expected)
     assert wm.state is held  # the wrapper's rollout is untouched
+
+
+@pytest.mark.parametrize("reencode", [False, True])
+def test_the_latents_mode_is_the_same_step_in_the_models_units(reencode, monkeypatch):
+    """``latents=True`` steps as the frames mode does, in the model's units: decoding its
+    latents from where the generators stand gives the frame, and it decodes nothing itself
+    unless ``reencode``, which both modes apply alike (the same states), one decoding per step."""
+    wm = tiny_world_model()
+    wm.reencode = reencode
+    rng = np.random.default_rng(2)
+    frames = rng.integers(0, 256, (2, 64, 64, 3), dtype=np.uint8)
+    acts = rng.uniform(-0.2, 0.2, (2, 4, 4)).astype(np.float32)
+    decodes = []
+    decode = wm.codec.decode
+    monkeypatch.setattr(wm.codec, "decode", lambda *args: decodes.append(1) or decode(*args))
+    frames_state = wm.reset_state(frames, seed=3)
+    latents_state = wm.reset_state(wm.encode(frames)[:, None], seed=3, latents=True)
+    assert torch.equal(latents_state.context, frames_state.context)
+    for t in range(acts.shape[1]):
+        frames_state, frame = wm.step_state(frames_state, acts[:, t])
+        assert len(decodes) == 1
+        latents_state, z = wm.step_state(latents_state, wm.normalize_actions(acts[:, t]), latents=True)
+        assert len(decodes) == 1 + reencode and z.shape == (2, 4, 16, 16)
+        if not reencode:
+            np.testing.assert_array_equal(to_uint8(wm.decode_latents(z, latents_state.generators)), frame)
+        assert torch.equal(latents_state.context, frames_state.context)
+        decodes.clear()
+    with pytest.raises(ValueError, match="context latents"):
+        wm.reset_state(wm.encode(frames), latents=True)

@@ -46,7 +46,7 @@ def speed(wm: WorldModel, frame: np.ndarray, batch: int = 64, n: int = 100) -> d
     wm.reset(frame[None])
     step_ms = latency_ms(lambda: wm.step(a[:1]), n)
     a1 = wm.normalize_actions(a[:1])
-    dyn_ms = latency_ms(lambda: wm.step_latent(a1), n)
+    dyn_ms = latency_ms(lambda: wm.step(a1, latents=True), n)
     wm.reset(np.repeat(frame[None], batch, 0))
     batch_ms = latency_ms(lambda: wm.step(a), max(5, n // 10), warmup=2)
     return {"step_ms": step_ms, "steps_per_s": 1000 / step_ms, "dynamics_step_ms": dyn_ms,
@@ -73,7 +73,7 @@ def stability(models: dict[str, WorldModel], steps: int, seed: int = 100000, eve
             obs, info = tr.next_obs, tr.next_info
             frames = {}
             for name, wm in models.items():  # conditioned on the motion MuJoCo executed
-                z = wm.step_latent(wm.normalize_actions(info["target"][None]))
+                z = wm.step(wm.normalize_actions(info["target"][None]), latents=True)
                 if t % every == 0 or t == steps:
                     frames[name] = to_uint8(wm.decode_latents(z))[0]
             if not frames:

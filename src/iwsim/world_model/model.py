@@ -11,6 +11,13 @@ The core is functional, on an explicit :class:`StreamState` the model does not k
     state, frame = wm.step_state(state, actions) # the same as step, returning the next state
 
 ``reset / step / rollout`` are a thin stateful wrapper around it (the state in ``wm.state``).
+With ``latents=True``, reset and step take and give the model's units instead (no decoding)::
+
+    state = wm.reset_state(wm.encode(frames)[:, None], latents=True)  # latents (B, K, C, h, w)
+    state, z = wm.step_state(state, wm.normalize_actions(actions), latents=True)  # -> (B, C, h, w)
+
+``wm.reencode = True`` feeds back the encoding of each decoded frame as the newest context
+latent instead of the predicted one, in either mode.
 
 A step predicts the next latent from a sliding window of the last K latents (older ones
 are dropped), so a step costs the same at step 10 and at step 10,000, and memory stays
@@ -253,7 +260,7 @@ class WorldModel(nn.Module):
         g = torch.Generator(self.device).manual_seed(seed)
         return to_uint8(self.codec.decode(z, None, 1, g))
 
-    # -- streaming rollout on latents ---------------------------------------------------------
+    # -- the dynamics' latent units -----------------------------------------------------------
     def standardize(self, z: torch.Tensor) -> torch.Tensor:
         """Autoencoder latents (..., C, h, w) -> the dynamics' standardised latents."""
         return (z - self.latent_mean) / self.latent_scale
@@ -263,17 +270,59 @@ class WorldModel(nn.Module):
 
     # -- functional core: explicit states ------------------------------------------------------
     @torch.inference_mode()
-    def reset_state_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
-                            seed: int | Sequence[int] = 0, held: torch.Tensor | None = None) -> StreamState:
-        """The state of rollouts from context latents (B, K0, C, h, w) (as ``encode`` returns
-        them) and the normalised actions (B, K0-1, A) between them. The window keeps the
-        last K; fewer are padded by repeating the first, as in training at an episode's start.
-        ``held``: the normalised setpoints (B, A) the robot holds at the newest frame, when
-        the caller knows them (a still robot then keeps a still scene from the first step)."""
+    def reset_state(self, context: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
+                    seed: int | Sequence[int] = 0, held: np.ndarray | torch.Tensor | None = None, *,
+                    latents: bool = False) -> StreamState:
+        """The state of B rollouts from one context frame each, uint8 (B, H, W, 3), or from
+        K frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them, in
+        the data's units; ``held``: the setpoints (B, A) the robot holds at the newest
+        frame, when the caller knows them (a still robot then keeps a still scene from the
+        first step). Item i's noise comes from a generator seeded ``seed + i`` (or ``seed[i]``).
+
+        ``latents=True``: everything in the model's units: context latents (B, K, C, h, w)
+        as ``encode`` gives them, ``actions`` and ``held`` normalised (``normalize_actions``)."""
+        if latents:
+            z = torch.as_tensor(context, dtype=torch.float32, device=self.device)
+            if z.ndim != 5 or tuple(z.shape[2:]) != self.latent_shape:
+                raise InputError(f"expected context latents (B, K, {', '.join(map(str, self.latent_shape))}), "
+                                 f"got shape {tuple(z.shape)}.")
+            a, h = (None if v is None else torch.as_tensor(v, dtype=torch.float32, device=self.device)
+                    for v in (actions, held))
+        else:
+            x = torch.as_tensor(context)
+            x = self.check_frames(x[:, None] if x.ndim == 4 else x, 5)
+            b, k = x.shape[:2]
+            a = self.normalize_actions(actions, b) if k > 1 and actions is not None else None
+            h = None if held is None else self.normalize_actions(held, b)
+            z = self.encode(x.flatten(0, 1)).unflatten(0, (b, k))
+        return self._reset(z, a, seed, h)
+
+    @torch.inference_mode()
+    def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor, *,
+                   latents: bool = False) -> tuple[StreamState, np.ndarray | torch.Tensor]:
+        """Actions (B, A) in the data's units -> the next state and frames, uint8 (B, H, W, 3).
+
+        ``latents=True``: normalised actions (B, A) -> the next state and the predicted
+        latents (B, C, h, w), as ``encode`` gives them; nothing is decoded unless ``reencode``
+        (which makes the state's newest latent the encoding of their decoded frame)."""
+        if latents:
+            state, z, _ = self._step(state, torch.as_tensor(actions, dtype=torch.float32, device=self.device))
+            return state, z
+        state, _, images = self._step(state, self.normalize_actions(actions, state.batch_size), decode=True)
+        return state, to_uint8(images)
+
+    def _reset(self, latents: torch.Tensor, actions: torch.Tensor | None, seed: int | Sequence[int],
+               held: torch.Tensor | None) -> StreamState:
+        """The state from context latents (B, K0, C, h, w) (as ``encode`` gives them), the
+        normalised actions (B, K0-1, A) between them and held setpoints (B, A). The window
+        keeps the last K; fewer are padded by repeating the first, as in training at an
+        episode's start."""
         b, k0 = latents.shape[:2]
-        z = self.standardize(latents.to(self.device))
-        if k0 > 1 and (actions is None or actions.shape[:2] != (b, k0 - 1)):
-            raise InputError(f"{k0} context frames need actions (B, {k0 - 1}, A) between them.")
+        z = self.standardize(latents)
+        if k0 > 1 and actions is None:
+            raise InputError(f"{k0} context frames need the {k0 - 1} actions (B, {k0 - 1}, A) between them.")
+        if k0 > 1 and tuple(actions.shape) != (b, k0 - 1, self.action_dim):
+            raise InputError(f"expected actions ({b}, {k0 - 1}, {self.action_dim}), got {tuple(actions.shape)}.")
         k = self.cfg.dynamics.context
         if k0 < k:
             z = torch.cat([z[:, :1].expand(b, k - k0, *z.shape[2:]), z], 1)
@@ -287,54 +336,43 @@ class WorldModel(nn.Module):
         return StreamState(z[:, -k:].contiguous(), action.to(self.device), known, known | (held is not None),
                            [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
 
-    def _noise(self, generators: Sequence[torch.Generator], shape: tuple[int, ...]) -> torch.Tensor:
-        """Clipped Gaussian noise (B, *shape), item i from generator i."""
-        return torch.cat([gaussian((1, *shape), g, self.device) for g in generators])
-
-    @torch.inference_mode()
-    def step_state_latent(self, state: StreamState, actions: torch.Tensor) -> tuple[StreamState, torch.Tensor]:
-        """Normalised actions (B, A) -> the next state and the next latents (B, C, h, w), as
-        ``encode`` gives them."""
+    def _step(self, state: StreamState, actions: torch.Tensor,
+              decode: bool = False) -> tuple[StreamState, torch.Tensor, torch.Tensor | None]:
+        """The one step: normalised actions (B, A) -> the next state, the next latents
+        (B, C, h, w) as ``encode`` gives them and, with ``decode`` or ``reencode``, their
+        images (B, 3, H, W) in [-1, 1] (else None). With ``reencode``, the newest context
+        latent becomes the encoding of the decoded frame (the decoder renders a clean frame
+        and the encoder projects it back onto the data) instead of the predicted latent."""
         b = state.batch_size
         if actions.shape != (b, self.action_dim):
             raise InputError(f"expected actions of shape ({b}, {self.action_dim}), got {tuple(actions.shape)}.")
         prev = state.previous(actions)
         noise = self._noise(state.generators, tuple(state.context.shape[2:]))
         still = state.held & ((actions - state.action).abs().amax(1) <= ACTION_STILL)
-        z = self.predict(state.context, torch.stack([prev, actions], 1), noise, still)
-        done = torch.ones_like(state.known)
-        return (StreamState(torch.cat([state.context[:, 1:], z[:, None]], 1), actions, done, done, state.generators),
-                self.unstandardize(z))
-
-    @torch.inference_mode()
-    def step_state_images(self, state: StreamState, actions: torch.Tensor) -> tuple[StreamState, torch.Tensor]:
-        """Normalised actions (B, A) -> the next state and images (B, 3, H, W) in [-1, 1].
-        With ``reencode``, the newest context latent becomes the encoding of the decoded
-        frame (the decoder renders a clean frame and the encoder projects it back onto the
-        data), instead of the predicted latent."""
-        state, z = self.step_state_latent(state, actions)
-        images = self.decode_latents(z, state.generators)
+        new = self._predict(state.context, torch.stack([prev, actions], 1), noise, still)
+        z = self.unstandardize(new)
+        images = None
+        if decode or self.reencode:  # the decoder draws after the dynamics, from the same generators
+            images = self.decode_latents(z, state.generators)
         if self.reencode:
-            state.context[:, -1] = self.standardize(self.codec.encode(images.clamp(-1, 1)))
-        return state, images
+            new = self.standardize(self.codec.encode(images.clamp(-1, 1)))
+        done = torch.ones_like(state.known)
+        return (StreamState(torch.cat([state.context[:, 1:], new[:, None]], 1), actions, done, done, state.generators),
+                z, images)
 
-    def reset_state(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
-                    seed: int | Sequence[int] = 0, held: np.ndarray | torch.Tensor | None = None) -> StreamState:
-        """The state of B rollouts from one context frame each, uint8 (B, H, W, 3), or from
-        K frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them;
-        ``held``: the setpoints (B, A) the robot holds at the newest frame, if known."""
-        x = torch.as_tensor(frames)
-        x = self.check_frames(x[:, None] if x.ndim == 4 else x, 5)
-        b, k = x.shape[:2]
-        a = None
-        if k > 1:
-            if actions is None:
-                raise InputError(f"{k} context frames need the {k - 1} actions (B, {k - 1}, A) between them.")
-            a = self.normalize_actions(actions, b)
-            if a.shape != (b, k - 1, self.action_dim):
-                raise InputError(f"expected actions ({b}, {k - 1}, {self.action_dim}), got {tuple(a.shape)}.")
-        return self.reset_state_latents(self.encode(x.flatten(0, 1)).unflatten(0, (b, k)), a, seed,
-                                        None if held is None else self.normalize_actions(held, b))
+    def _noise(self, generators: Sequence[torch.Generator], shape: tuple[int, ...]) -> torch.Tensor:
+        """Clipped Gaussian noise (B, *shape), item i from generator i."""
+        return torch.cat([gaussian((1, *shape), g, self.device) for g in generators])
+
+    def _predict(self, context: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor,
+                 still: torch.Tensor | None = None) -> torch.Tensor:
+        """The next standardised latent (B, C, h, w) from the window (B, K, C, h, w), the
+        previous and current normalised actions (B, 2, A) and the noise (B, C, h, w): what
+        the objective generates, plus the newest context latent when it generates the
+        change (``predict_delta``). ``still`` (B,): whether the setpoint holds still
+        (:meth:`Denoiser.sample`; default: the two actions are the same)."""
+        sigma = torch.full((context.shape[0],), self.context_label, device=context.device)
+        return self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps, still)
 
     @torch.inference_mode()
     def novelty_of(self, state: StreamState, actions: np.ndarray | torch.Tensor) -> np.ndarray | None:
@@ -345,22 +383,6 @@ class WorldModel(nn.Module):
             return None
         a = self.normalize_actions(actions, state.batch_size)
         return self.novelty(state.context[:, -1], state.previous(a), a).cpu().numpy()
-
-    @torch.inference_mode()
-    def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor) -> tuple[StreamState, np.ndarray]:
-        """Actions (B, A) in the data's units -> the next state and frames, uint8 (B, H, W, 3)."""
-        state, images = self.step_state_images(state, self.normalize_actions(actions, state.batch_size))
-        return state, to_uint8(images)
-
-    def predict(self, context: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor,
-                still: torch.Tensor | None = None) -> torch.Tensor:
-        """The next standardised latent (B, C, h, w) from the window (B, K, C, h, w), the
-        previous and current normalised actions (B, 2, A) and the noise (B, C, h, w): what
-        the objective generates, plus the newest context latent when it generates the
-        change (``predict_delta``). ``still`` (B,): whether the setpoint holds still
-        (:meth:`Denoiser.sample`; default: the two actions are the same)."""
-        sigma = torch.full((context.shape[0],), self.context_label, device=context.device)
-        return self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps, still)
 
     @torch.inference_mode()
     def decode_latents(self, z: torch.Tensor, generators: Sequence[torch.Generator] | None = None) -> torch.Tensor:
@@ -395,40 +417,26 @@ class WorldModel(nn.Module):
         out = []
         with torch.inference_mode():
             for i in tqdm(range(a.shape[1]), desc="rollout", disable=not progress):
-                state, images = self.step_state_images(state, a[:, i])
+                state, _, images = self._step(state, a[:, i], decode=True)
                 self._state = state
                 out.append(to_uint8(images))
         return np.stack(out, 1) if out else np.zeros((state.batch_size, 0, self.image_size, self.image_size, 3),
                                                      np.uint8)
 
     # -- the stateful wrapper: the rollouts' state kept in ``self.state`` ----------------------
-    def reset(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
-              seed: int | Sequence[int] = 0, held: np.ndarray | torch.Tensor | None = None) -> None:
+    def reset(self, context: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
+              seed: int | Sequence[int] = 0, held: np.ndarray | torch.Tensor | None = None, *,
+              latents: bool = False) -> None:
         """Start B rollouts from one context frame each, uint8 (B, H, W, 3), or from K
         frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them
-        (``held``: see :meth:`reset_state`)."""
-        self._state = self.reset_state(frames, actions, seed, held)
+        (``held`` and ``latents``: see :meth:`reset_state`)."""
+        self._state = self.reset_state(context, actions, seed, held, latents=latents)
 
-    def step(self, actions: np.ndarray | torch.Tensor) -> np.ndarray:
-        """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)."""
-        self._state, frames = self.step_state(self.state, actions)
-        return frames
-
-    def reset_latents(self, latents: torch.Tensor, actions: torch.Tensor | None = None,
-                      seed: int | Sequence[int] = 0, held: torch.Tensor | None = None) -> None:
-        """``reset`` from context latents (see :meth:`reset_state_latents`)."""
-        self._state = self.reset_state_latents(latents, actions, seed, held)
-
-    def step_latent(self, actions: torch.Tensor) -> torch.Tensor:
-        """Normalised actions (B, A) -> the next latents (B, C, h, w), as ``encode`` gives them."""
-        self._state, z = self.step_state_latent(self.state, actions)
-        return z
-
-    def step_frames(self, actions: torch.Tensor) -> torch.Tensor:
-        """Normalised actions (B, A) -> the next images (B, 3, H, W) in [-1, 1] (see
-        :meth:`step_state_images`)."""
-        self._state, images = self.step_state_images(self.state, actions)
-        return images
+    def step(self, actions: np.ndarray | torch.Tensor, *, latents: bool = False) -> np.ndarray | torch.Tensor:
+        """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)
+        (``latents``: see :meth:`step_state`)."""
+        self._state, out = self.step_state(self.state, actions, latents=latents)
+        return out
 
     # -- checkpoints ----------------------------------------------------------------------------
     def export(self) -> dict[str, torch.Tensor]:

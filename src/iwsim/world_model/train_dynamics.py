@@ -103,10 +103,10 @@ def evaluate_open_loop(wm: WorldModel, data: DynamicsData, episodes: int, steps:
     eps = [e for e in data.heldout_episodes if data.ends[e] - data.starts[e] > 1][:episodes]
     steps = min([steps] + [int(data.ends[e] - data.starts[e]) - 1 for e in eps])
     first = torch.as_tensor(data.starts[eps])
-    state = wm.reset_state_latents(data.latents[first][:, None].to(wm.device), seed=0)
+    state = wm.reset_state(data.latents[first][:, None], seed=0, latents=True)
     preds = []
     for k in range(steps):
-        state, z = wm.step_state_latent(state, data.actions[first + k].to(wm.device))
+        state, z = wm.step_state(state, data.actions[first + k], latents=True)
         preds.append(z)
     pred = torch.stack(preds, 1)  # (E, S, C, h, w)
     true_idx = first[:, None] + torch.arange(1, steps + 1)
