@@ -10,6 +10,8 @@ For one operator family (``bench/families.py``) from its first states:
 
     MUJOCO_GL=egl python bench/probes/closed_loop_probe.py --model checkpoints/pusht-64 \
         --families expert,lag3,pause --episodes 8
+    # learned policies: each checkpoint (or every checkpoint of a run) from the same first states
+    MUJOCO_GL=egl python bench/probes/closed_loop_probe.py --families "" --zoo RUN/checkpoints/00003000 ...
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import families  # noqa: E402  (bench/families.py)
 from iwsim.envs.pixels import pixel_iou, pusher_positions  # noqa: E402
 from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout  # noqa: E402
+from iwsim.policies.factory import load_policy  # noqa: E402
 from iwsim.policies.scripted import ScriptedBatch  # noqa: E402
 from iwsim.world_model import WorldModel  # noqa: E402
 
@@ -53,6 +56,8 @@ def main() -> None:
     p.add_argument("--families", default="expert,lag3,pause")
     p.add_argument("--episodes", type=int, default=8)
     p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--zoo", nargs="*", default=[], help="policy checkpoints or runs: the learned family, "
+                   "each checkpoint from --episodes first states")
     args = p.parse_args()
     torch.set_num_threads(1)
     wm = WorldModel.load(args.model)
@@ -60,12 +65,15 @@ def main() -> None:
     print("| family | MuJoCo | open loop in the model | closed loop in the model | its actions in MuJoCo "
           "| pusher read, model vs MuJoCo frames: median / p90 mm |")
     print("|---|---|---|---|---|---|")
-    for name in args.families.split(","):
-        cfg = families.FAMILIES[name][0]
-        m = rollout(ScriptedBatch(cfg), "pusht", seeds, args.steps, record=len(seeds), progress=False)
+    runs = [(name, lambda name=name: ScriptedBatch(families.FAMILIES[name][0]))
+            for name in args.families.split(",") if name]
+    runs += [(f"{Path(c).parent.parent.name}-{Path(c).name}", lambda c=c: load_policy(c, torch.device("cpu")))
+             for c in families.zoo_sources(args.zoo)]
+    for name, make in runs:
+        m = rollout(make(), "pusht", seeds, args.steps, record=len(seeds), progress=False)
         open_loop = wm.rollout(m["frames"][:, 0], m["target"], seed=list(range(len(seeds))))
         open_iou = np.array([[pixel_iou(f) for f in ep] for ep in open_loop]).max(1)
-        w = rollout(ScriptedBatch(cfg), "world-model", seeds, args.steps, world_model=wm, progress=False)
+        w = rollout(make(), "world-model", seeds, args.steps, world_model=wm, progress=False)
         back = rollout(Replay(w["action"]), "pusht", seeds, args.steps, progress=False)
         size = m["frames"].shape[-2]
         truth, _ = pusher_positions(m["frames"][:, 1:].reshape(-1, size, size, 3))

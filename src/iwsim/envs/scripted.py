@@ -500,13 +500,17 @@ class HandExpertPolicy(SeededExpertPolicy):
 class ImpreciseExpertPolicy(SeededExpertPolicy):
     """The expert with a learned policy's imprecision, for world-model data of contact that
     goes wrong: each episode draws a persistent error in where the policy believes the
-    block is (a few mm and degrees, plus a slow wobble), a squeeze of 0.5-3 cm, a carry
+    block is (a few mm and degrees, plus a slow wobble), a squeeze of 0.5-8 cm, a carry
     speed of 6-20 mm a step, and, half the time, a blind carry: once it has pinched, it
     carries by dead reckoning (it assumes the block follows its commands and never checks),
     as a policy replaying the expert's motion does. Grips land off the grip points, blocks
     slip, turn or are left behind, and the motions still look like the expert's."""
 
     POSE_BIAS = (0.008, 0.008, 0.25)  # std of the per-episode belief error: m, m, rad
+    # How far past the stem the grip's targets lie (m): up to through the other pusher, so
+    # the pushers press the block and stay centimetres from their setpoints, as learned
+    # policies' do (their setpoint-to-pusher gap: p90 29-45 mm, p99 ~70 mm; the expert's 20 mm)
+    SQUEEZE = (0.005, 0.08)
     WOBBLE = (0.003, 0.003, 0.08)  # stationary std of its slow AR(1) drift
 
     def reset(self, obs: dict, info: dict) -> None:
@@ -514,7 +518,7 @@ class ImpreciseExpertPolicy(SeededExpertPolicy):
         rng = self.rng
         self.bias = rng.normal(0.0, self.POSE_BIAS)
         self.wobble = rng.normal(0.0, self.WOBBLE)
-        self.pinch = Pinch(carry_speed=float(rng.uniform(0.006, 0.02)), squeeze=float(rng.uniform(0.005, 0.03)))
+        self.pinch = Pinch(carry_speed=float(rng.uniform(0.006, 0.02)), squeeze=float(rng.uniform(*self.SQUEEZE)))
         self.blind = bool(rng.random() < 0.5)
         self.belief: np.ndarray | None = None  # the blind carry's dead-reckoned pose
 
