@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 CHROMIUM := /usr/bin/chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test test-fast lint install clean
+.PHONY: demo test test-fast lint install clean rebuild-pusht-64
 
 # torch is pinned and installed first: an unpinned torch would pull the CUDA build.
 $(STAMP): pyproject.toml
@@ -34,6 +34,11 @@ test: $(STAMP) $(CHROMIUM)
 # The inner loop: without the tests marked slow, browser or ddp (pyproject.toml).
 test-fast: $(STAMP)
 	MUJOCO_GL=egl $(PY) -m pytest -q -m "not slow and not browser and not ddp"
+
+# The shipped world model's whole recipe (about 7.2 core-hours), resumable across sessions:
+# rerun it after an interruption. It ends with the rebuilt model's yardstick row.
+rebuild-pusht-64: $(STAMP)
+	IWSIM=$(VENV)/bin/iwsim PYTHON=$(PY) bash checkpoints/pusht-64/recipe.sh
 
 lint: $(STAMP)
 	$(PY) -m ruff check src tests bench

@@ -56,3 +56,28 @@ def test_shipped_rollout_holds_its_recorded_values():
     recorded = [205.9049, 205.9434, 205.9587, 205.9804, 205.975, 205.9714]
     np.testing.assert_allclose(frames.reshape(6, -1).mean(1), recorded, atol=0.02)
     assert abs(float(wm.encode(obs["pixels"][None]).abs().sum()) - 424.4131) < 0.01
+
+
+@pytest.mark.slow
+def test_the_recipe_rebuilds_a_model_and_resumes(tmp_path):
+    """checkpoints/pusht-64/recipe.sh, shrunk to seconds: every step of the chain runs, and
+    a second run resumes everything (no episode collected twice, no training restarted)."""
+    import os
+    import subprocess
+    import sys
+
+    from iwsim.data.store import EpisodeStore
+
+    bin_dir = Path(sys.executable).parent
+    env = {**os.environ, "SCALE": "tiny", "YARDSTICK": "0", "OUT": str(tmp_path / "out"),
+           "DATA": str(tmp_path / "data"), "IWSIM": str(bin_dir / "iwsim"), "PYTHON": sys.executable}
+    recipe = SHIPPED / "recipe.sh"
+    first = subprocess.run(["bash", str(recipe)], env=env, cwd=SHIPPED.parents[1], capture_output=True, text=True)
+    assert first.returncode == 0, first.stderr[-2000:]
+    model = WorldModel.load(tmp_path / "out" / "pusht-64")
+    assert model.cfg.rest_threshold == 0.05 and model.image_size == 64
+    episodes = EpisodeStore.open(tmp_path / "data" / "contact.zarr").n_episodes
+    again = subprocess.run(["bash", str(recipe)], env=env, cwd=SHIPPED.parents[1], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert again.stderr.count("resuming from") == 6  # the codec, the dynamics, the decoder, three fine-tunes
+    assert EpisodeStore.open(tmp_path / "data" / "contact.zarr").n_episodes == episodes

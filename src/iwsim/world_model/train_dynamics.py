@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from iwsim.checkpoint import resolve_checkpoint
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.errors import InputError
 from iwsim.metrics import psnr
@@ -135,7 +136,7 @@ class DynamicsTask:
     """Stage 2 for the generic training loop: the data (:class:`DynamicsData`), the loss
     module, open-loop evaluation of held-out episodes, and the world model it exports.
 
-    With ``init`` (a world-model checkpoint) training fine-tunes it: its autoencoder,
+    With ``init`` (a world-model checkpoint, or a run: its last) training fine-tunes it: its autoencoder,
     normalisation, stage-2 config (network, objective, context noise) and weights are the
     start, only ``cfg.train`` is taken from ``cfg`` (``ae_path`` is ignored), and the
     unroll curriculum, which the model has been through, starts at its longest."""
@@ -145,6 +146,7 @@ class DynamicsTask:
                  latent_cache: Path | None = None, init: str | Path | None = None) -> None:
         wm = None
         if init is not None:
+            init = resolve_checkpoint(init)  # a checkpoint, or a run's last one
             wm = WorldModel.load(init, device)
             longest = max(n for _, n in wm.cfg.unroll) if wm.cfg.unroll else 1
             cfg = replace(wm.cfg, train=cfg.train, unroll=((0, longest),))  # its objective, noise, ...
