@@ -70,9 +70,11 @@ def main() -> None:
     runs += [(f"{Path(c).parent.parent.name}-{Path(c).name}", lambda c=c: load_policy(c, torch.device("cpu")))
              for c in families.zoo_sources(args.zoo)]
     for name, make in runs:
+        torch.manual_seed(0)  # a learned policy's sampling noise, as the studies seed it
         m = rollout(make(), "pusht", seeds, args.steps, record=len(seeds), progress=False)
         open_loop = wm.rollout(m["frames"][:, 0], m["target"], seed=list(range(len(seeds))))
         open_iou = np.array([[pixel_iou(f) for f in ep] for ep in open_loop]).max(1)
+        torch.manual_seed(0)
         w = rollout(make(), "world-model", seeds, args.steps, world_model=wm, progress=False)
         back = rollout(Replay(w["action"]), "pusht", seeds, args.steps, progress=False)
         size = m["frames"].shape[-2]
