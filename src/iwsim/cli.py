@@ -401,20 +401,6 @@ def _check_frames_memory(what: str, frames: int, copies: int = 1) -> None:
     require_memory(frames * copies * 64 * 64 * 3, f"{what} (at least {frames * copies} frames in memory)")
 
 
-MUJOCO_ENV_BYTES = 38 << 20  # one MuJoCo environment with its renderer (measured: 38 MB at 64 px)
-STEP_RECORD_BYTES = 64  # what evaluation keeps of each step of an episode (score, positions, actions)
-
-
-def _check_episodes_memory(episodes: int, steps: int, env: str) -> None:
-    """Refuse ``iwsim eval policy --episodes N`` when its episodes, which run together, cannot
-    fit: a lower bound of an environment each (MuJoCo's), two observed frames (uint8 and
-    the policy's float copy) and a record of every step."""
-    from iwsim.resources import require_memory
-
-    per_episode = (MUJOCO_ENV_BYTES if env == "pusht" else 0) + 2 * 64 * 64 * 3 * 5 + steps * STEP_RECORD_BYTES
-    require_memory(episodes * per_episode, f"--episodes {episodes} of {steps} steps in {env}, run together")
-
-
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
     """Each named integer flag, when given, must be >= 1."""
     for name in names:
@@ -453,33 +439,25 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
     return cfg
 
 
-# Peak memory per sample of one training step on CPU at 64x64, measured with the pusht-64
-# (ae, dynamics) and dp presets as the growth of peak RSS from batch 4 to 64 (2 to 16 for
-# dynamics), rounded down: enough to refuse a batch that cannot fit before allocating it.
-TRAIN_MIB_PER_SAMPLE = {"ae": 20.0, "decoder-finetune": 20.0, "dynamics": 60.0, "policy": 0.75}
-
-
 def _check_batch_memory(stage: str, batch_size: int, data: str) -> None:
-    """Refuse a global batch that cannot fit in this machine's memory (this process's share
-    of it under torchrun), scaled to the frame size of the training stores."""
+    """Refuse a global batch that cannot fit in memory at the largest frame size of the
+    training stores (:func:`iwsim.training.trainer.check_batch_memory`)."""
     from iwsim.data.store import EpisodeStore, StoreError
-    from iwsim.resources import MiB, require_memory
+    from iwsim.training.trainer import check_batch_memory
 
     if stage == "policy":
         from iwsim.policies.data import parse_mixture
 
-        paths = [src.path for src in parse_mixture(data)]
+        stores = [src.path for src in parse_mixture(data)]
     else:
-        paths = [data]
+        stores = [data]
     sizes = []
-    for path in paths:
+    for path in stores:
         try:
             sizes.append(int(EpisodeStore.open(path).attrs.get("image_size") or 64))
         except (StoreError, TypeError, ValueError):
             pass  # training reports a bad store itself
-    per_sample = TRAIN_MIB_PER_SAMPLE[stage] * MiB * (max(sizes, default=64) / 64) ** 2
-    per_rank = -(-batch_size // int(os.environ.get("WORLD_SIZE", "1")))
-    require_memory(per_rank * per_sample, f"--batch-size {batch_size} (about {human_bytes(per_sample)} per sample)")
+    check_batch_memory(stage, batch_size, max(sizes, default=64))
 
 
 def _print_metrics(metrics: dict[str, float]) -> None:
@@ -542,10 +520,7 @@ def _eval_policy(args: argparse.Namespace) -> int:
     from iwsim.policies.factory import load_policy
     from iwsim.training.trainer import resolve_device
 
-    check_args(args.episodes, args.seed, args.steps, args.videos)
-    _check_frames_memory(f"--steps {args.steps} with --videos {args.videos}",
-                         args.steps * min(args.videos, args.episodes))
-    _check_episodes_memory(args.episodes, args.steps, args.env)
+    check_args(args.episodes, args.seed, args.steps, args.videos, args.env)
     device = resolve_device(args.device)
     policy = load_policy(args.checkpoint, device, n_action_steps=args.action_steps)
     wm = None
@@ -672,29 +647,16 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
-# Resident memory of one open play session (its state, queues, buffers), measured with 60
-# sessions (about 12 MiB each), plus the frames of a full recording (max_record_steps).
-SESSION_MIB = 12.0
-RECORD_STEPS = 6000  # PlayConfig.max_record_steps
-
-
-def _check_sessions_memory(sessions: int) -> None:
-    from iwsim.resources import require_memory
-
-    per = SESSION_MIB * 2**20 + RECORD_STEPS * 64 * 64 * 3
-    require_memory(sessions * per, f"--max-sessions {sessions} (about {human_bytes(per)} per session, "
-                                   "a full recording included)")
-
-
 def _play(args: argparse.Namespace) -> int:
     from iwsim.play.access import LOOPBACK, Access, bind, check_bind, resolve_token
+    from iwsim.play.engine import check_sessions_memory
 
-    # Before the slow imports and the model: a bad token, too many sessions for this
-    # machine's memory or a taken port fails at once.
+    # Before the model loads: a bad token, too many sessions for this machine's memory or a
+    # taken port fails at once.
     token, source = resolve_token(args.token, args.token_file)
     bindings = None if args.bindings is None else _read_json(args.bindings, "--bindings")
     _check_positive(args, "max_sessions")
-    _check_sessions_memory(args.max_sessions)
+    check_sessions_memory(args.max_sessions)
     check_bind(args.host, token)
     sock = bind(args.host, args.port)
     try:

@@ -26,11 +26,12 @@ from torch import nn
 from tqdm import tqdm
 
 from iwsim.checkpoint import write_json_atomic
-from iwsim.envs import make_env
+from iwsim.envs import IMAGE_SIZES, make_env
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.eval.video import upscale, write_video
+from iwsim.resources import require_memory
 from iwsim.tasks import get_task
 from iwsim.world_model_env import WorldModelVectorEnv, score_key
 
@@ -168,8 +169,16 @@ def no_score(seeds: list[int]) -> dict[str, Any]:
 MAX_SEED = 2**32 - 1  # numpy's SeedSequence, behind gymnasium's reset(seed=), takes 32-bit seeds here
 
 
-def check_args(episodes: int, seed: int, steps: int, videos: int) -> None:
-    """Raise ValueError for evaluation flags that cannot work (before anything is loaded)."""
+MUJOCO_ENV_BYTES = 38 << 20  # one MuJoCo environment with its renderer (measured: 38 MB at 64 px)
+STEP_RECORD_BYTES = 64  # what evaluation keeps of each step of an episode (score, positions, actions)
+
+
+def check_args(episodes: int, seed: int, steps: int, videos: int, env: str = "world-model") -> None:
+    """Raise ValueError for evaluation flags that cannot work (before anything is loaded),
+    and a ResourceError for episodes (run together) or videos that cannot fit in memory: a
+    lower bound of an environment each (a simulator's, unless ``env`` is the world model),
+    two observed frames (uint8 and the policy's float copy) and a record of every step,
+    counted at the smallest frame size."""
     for name, v in (("episodes", episodes), ("steps", steps)):
         if v < 1:
             raise InputError(f"--{name} must be a positive integer, got {v}.")
@@ -178,6 +187,11 @@ def check_args(episodes: int, seed: int, steps: int, videos: int) -> None:
     if not 0 <= seed <= MAX_SEED - episodes + 1:  # episode i uses the MuJoCo seed seed + i
         raise InputError(f"--seed must be in 0..{MAX_SEED - episodes + 1} for {episodes} episodes (MuJoCo seeds "
                          f"are 0..2**32-1), got {seed}.")
+    frame = min(IMAGE_SIZES) ** 2 * 3
+    kept = steps * min(videos, episodes)
+    require_memory(kept * frame, f"--steps {steps} with --videos {videos} (at least {kept} frames in memory)")
+    per_episode = (0 if env == "world-model" else MUJOCO_ENV_BYTES) + 2 * frame * 5 + steps * STEP_RECORD_BYTES
+    require_memory(episodes * per_episode, f"--episodes {episodes} of {steps} steps in {env}, run together")
 
 
 def disagreement(scores: np.ndarray, partner_scores: np.ndarray) -> dict[str, Any]:
@@ -198,7 +212,7 @@ def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: in
     write ``results.json`` and videos of the first ``videos`` episodes. With ``partner``
     (a second world model, for ``env="world-model"``), the policy also runs in it from the
     same seeds and the result gains ``disagreement`` (:func:`disagreement`)."""
-    check_args(episodes, seed, steps, videos)
+    check_args(episodes, seed, steps, videos, env)
     if partner is not None and env != "world-model":
         raise InputError("a partner world model (--trust-model) applies to evaluations inside a world model.")
     seeds = [seed + i for i in range(episodes)]

@@ -40,9 +40,11 @@ import torch
 
 import iwsim
 from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.envs import IMAGE_SIZES
 from iwsim.envs.task import Bindings, Start, Task
 from iwsim.errors import InputError
 from iwsim.play import protocol as proto
+from iwsim.resources import MiB, human_bytes, require_memory
 from iwsim.world_model import StreamState, WorldModel
 from iwsim.world_model_env import STORE, Starts, resolve_task, score_key
 
@@ -75,6 +77,19 @@ class PlayConfig:
             raise InputError(f"max sessions must be a positive integer, got {self.max_sessions!r}.")
         if not (isinstance(self.max_record_steps, int) and self.max_record_steps >= 1):
             raise InputError(f"max record steps must be a positive integer, got {self.max_record_steps!r}.")
+
+
+# Resident memory of one open play session (its state, queues, buffers), measured with 60
+# sessions (about 12 MiB each); a session may also hold a full recording's frames.
+SESSION_MIB = 12.0
+
+
+def check_sessions_memory(sessions: int, record_steps: int = PlayConfig.max_record_steps) -> None:
+    """Refuse ``sessions`` play sessions that cannot all fit in memory, each holding a full
+    recording of ``record_steps`` frames (a lower bound: frames of the smallest size)."""
+    per = SESSION_MIB * MiB + record_steps * min(IMAGE_SIZES) ** 2 * 3
+    require_memory(sessions * per, f"--max-sessions {sessions} (about {human_bytes(per)} per session, "
+                                   "a full recording included)")
 
 
 @dataclass
