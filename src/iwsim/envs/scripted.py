@@ -509,7 +509,7 @@ class ImpreciseExpertPolicy(SeededExpertPolicy):
     POSE_BIAS = (0.008, 0.008, 0.25)  # std of the per-episode belief error: m, m, rad
     # How far past the stem the grip's targets lie (m): up to through the other pusher, so
     # the pushers press the block and stay centimetres from their setpoints, as learned
-    # policies' do (their setpoint-to-pusher gap: p90 29-45 mm, p99 ~70 mm; the expert's 20 mm)
+    # policies' do (their setpoint-to-pusher gap: p90 21-50 mm, p99 up to ~70 mm; the data's <= 21 mm)
     SQUEEZE = (0.005, 0.08)
     WOBBLE = (0.003, 0.003, 0.08)  # stationary std of its slow AR(1) drift
 
