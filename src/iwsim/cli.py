@@ -395,10 +395,11 @@ def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
 
 def _check_frames_memory(what: str, frames: int, copies: int = 1) -> None:
     """Refuse flags that keep more frames in memory than fit: a lower bound, counted as RGB
-    frames of the smallest image size (64x64; the model's may be larger)."""
+    frames of the smallest image size (the model's may be larger)."""
+    from iwsim.envs import SMALLEST_FRAME_BYTES
     from iwsim.resources import require_memory
 
-    require_memory(frames * copies * 64 * 64 * 3, f"{what} (at least {frames * copies} frames in memory)")
+    require_memory(frames * copies * SMALLEST_FRAME_BYTES, f"{what} (at least {frames * copies} frames in memory)")
 
 
 def _check_positive(args: argparse.Namespace, *names: str) -> None:

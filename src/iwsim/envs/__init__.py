@@ -25,6 +25,7 @@ if "iwsim/WorldModel-v0" not in registry:
 
 TASKS = {"pusht": "iwsim/BimanualPushT-v0"}
 IMAGE_SIZES = (64, 96, 128)  # what the MuJoCo tasks render
+SMALLEST_FRAME_BYTES = min(IMAGE_SIZES) ** 2 * 3  # an RGB frame's lower bound, for memory checks
 POLICIES = ("play", "play-broad", "expert", "expert-noisy", "expert-lagged", "expert-hands",
             "expert-imprecise")
 

@@ -26,7 +26,7 @@ from torch import nn
 from tqdm import tqdm
 
 from iwsim.checkpoint import write_json_atomic
-from iwsim.envs import IMAGE_SIZES, make_env
+from iwsim.envs import SMALLEST_FRAME_BYTES, make_env
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.stats import beta_posterior, clopper_pearson
@@ -187,7 +187,7 @@ def check_args(episodes: int, seed: int, steps: int, videos: int, env: str = "wo
     if not 0 <= seed <= MAX_SEED - episodes + 1:  # episode i uses the MuJoCo seed seed + i
         raise InputError(f"--seed must be in 0..{MAX_SEED - episodes + 1} for {episodes} episodes (MuJoCo seeds "
                          f"are 0..2**32-1), got {seed}.")
-    frame = min(IMAGE_SIZES) ** 2 * 3
+    frame = SMALLEST_FRAME_BYTES
     kept = steps * min(videos, episodes)
     require_memory(kept * frame, f"--steps {steps} with --videos {videos} (at least {kept} frames in memory)")
     per_episode = (0 if env == "world-model" else MUJOCO_ENV_BYTES) + 2 * frame * 5 + steps * STEP_RECORD_BYTES

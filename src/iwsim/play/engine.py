@@ -40,7 +40,7 @@ import torch
 
 import iwsim
 from iwsim.data.store import EpisodeStore, StoreError
-from iwsim.envs import IMAGE_SIZES
+from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.task import Bindings, Start, Task
 from iwsim.errors import InputError
 from iwsim.play import protocol as proto
@@ -87,7 +87,7 @@ SESSION_MIB = 12.0
 def check_sessions_memory(sessions: int, record_steps: int = PlayConfig.max_record_steps) -> None:
     """Refuse ``sessions`` play sessions that cannot all fit in memory, each holding a full
     recording of ``record_steps`` frames (a lower bound: frames of the smallest size)."""
-    per = SESSION_MIB * MiB + record_steps * min(IMAGE_SIZES) ** 2 * 3
+    per = SESSION_MIB * MiB + record_steps * SMALLEST_FRAME_BYTES
     require_memory(sessions * per, f"--max-sessions {sessions} (about {human_bytes(per)} per session, "
                                    "a full recording included)")
 
