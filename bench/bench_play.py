@@ -33,7 +33,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
-from iwsim.errors import reporting_errors
+from iwsim.errors import reporting_errors  # noqa: E402
 from iwsim.play.protocol import unpack_frame  # noqa: E402
 
 SERVER_LOG = REPO / "outputs" / "bench_play_server.log"  # the last server's log

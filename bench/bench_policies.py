@@ -34,7 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
-from iwsim.errors import reporting_errors
+from iwsim.errors import reporting_errors  # noqa: E402
 from iwsim.eval.policy import evaluate, summarize  # noqa: E402
 from iwsim.policies.factory import load_policy  # noqa: E402
 from iwsim.tasks import get_task  # noqa: E402

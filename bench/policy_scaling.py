@@ -26,7 +26,7 @@ import policy_runs  # noqa: E402
 from bench_policies import training_minutes  # noqa: E402
 
 from iwsim.checkpoint import load_json, write_text_atomic  # noqa: E402
-from iwsim.errors import reporting_errors
+from iwsim.errors import reporting_errors  # noqa: E402
 from iwsim.eval.figures import pyplot, save_figure  # noqa: E402
 
 DATA = "runs/experiments/demos/sim_expert.zarr"

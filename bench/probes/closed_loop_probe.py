@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import families  # noqa: E402  (bench/families.py)
 
 from iwsim.envs.pixels import pixel_iou, pusher_positions  # noqa: E402
-from iwsim.errors import reporting_errors
+from iwsim.errors import reporting_errors  # noqa: E402
 from iwsim.eval.policy import rollout  # noqa: E402
 from iwsim.policies.factory import load_policy  # noqa: E402
 from iwsim.policies.scripted import ScriptedBatch  # noqa: E402
