@@ -47,8 +47,11 @@ def room(v: float) -> float:
 
 
 def settle(page) -> None:
-    """Wait until a frame has acknowledged the last action the page sent."""
-    wait(page, "window.iwsim.state.header.ack >= window.iwsim.state.seq")
+    """Wait until the page has sent its latest command (continuous motion is sent at most
+    twice per control step, so the last change may still be waiting) and a frame has
+    acknowledged it."""
+    wait(page, "(() => { const s = window.iwsim.state;"
+               " return s.sent && s.target.every((v, i) => v === s.sent[i]) && s.header.ack >= s.seq; })()")
 
 
 def hold_d_or_a(page) -> tuple[np.ndarray, np.ndarray, float]:
