@@ -13,9 +13,12 @@ import numpy as np
 import pytest
 
 from iwsim.cli import main
-from iwsim.data.collect import store_attrs
+from iwsim.data.collect import collect, store_attrs
 from iwsim.data.lock import LOCK_NAME, is_locked
 from iwsim.data.store import EpisodeStore, StoreLockedError
+from iwsim.envs.scripted import record_episode
+from iwsim.eval.policy import recorder
+from iwsim.policies.factory import load_policy
 
 IWSIM = Path(sys.executable).parent / "iwsim"  # the console script of this environment
 TINY = ["--task", "pusht", "--policy", "play", "--steps", "5", "--image-size", "64", "--seed", "3", "--no-progress"]
@@ -274,3 +277,44 @@ def test_collect_into_a_directory_that_is_not_a_store_leaves_nothing_in_it(tmp_p
                  "--workers", "1", "--no-progress", "--out", str(out)]) == 1
     assert "not" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == before
+
+
+def test_a_learned_policys_episodes_are_collected_like_scripted_ones(play_store: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``iwsim collect --policy RUN``: a trained policy's MuJoCo episodes in the store's
+    layout (step t: the frame before action t); the same command records the same store,
+    one extended in whole batches holds the same episodes; only the same policy appends."""
+    pol = tmp_path / "pol"
+    assert main(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", f"{play_store}:2",
+                 "--steps", "2", "--out", str(pol), "--no-progress"]) == 0
+    args = ["collect", "--policy", str(pol), "--steps", "5", "--seed", "50", "--no-progress"]
+    whole = tmp_path / "whole.zarr"
+    assert main([*args, "--episodes", "3", "--out", str(whole)]) == 0
+    store = EpisodeStore.open(whole, "r")
+    assert store.n_episodes == 3 and store.seeds == [50, 51, 52] and store.attrs["policy"] == f"learned:{pol}"
+    ep = store.episode(1)
+    assert ep["img"].shape == (5, 64, 64, 3) and ep["block_pose"].shape == (5, 3) and ep["n_contacts"].shape == (5,)
+    first = record_episode("pusht", "play", 51, 1)  # the same MuJoCo reset: the same first frame and state
+    np.testing.assert_array_equal(ep["img"][0], first["img"][0])
+    np.testing.assert_array_equal(ep["state"][0], first["state"][0])
+    assert np.abs(ep["target"] - ep["state"]).max() < 0.5 and np.isfinite(ep["action"]).all()
+    again = tmp_path / "again.zarr"  # the same command, the same store (each batch's noise seeded)
+    assert main([*args, "--episodes", "3", "--out", str(again)]) == 0
+    for i in range(3):
+        for k in ("img", "action", "target"):
+            np.testing.assert_array_equal(EpisodeStore.open(again, "r").episode(i)[k], store.episode(i)[k])
+    # extended in whole batches, a store holds what one recorded at once holds
+    net, rec = load_policy(pol), {}
+    for name, counts in (("once", (3,)), ("extended", (2, 3))):
+        for n in counts:
+            collect("pusht", "learned", n, out=tmp_path / f"{name}.zarr", steps=4, seed=50, progress=False,
+                    recorder=recorder(net, "pusht", 4, batch=2))
+        rec[name] = EpisodeStore.open(tmp_path / f"{name}.zarr", "r")
+    for i in range(3):
+        np.testing.assert_array_equal(rec["once"].episode(i)["action"], rec["extended"].episode(i)["action"])
+    capsys.readouterr()
+    assert main(["collect", "--policy", "play", "--steps", "5", "--seed", "50", "--episodes", "4", "--out", str(whole),
+                 "--no-progress"]) == 1
+    assert "policy" in capsys.readouterr().err and EpisodeStore.open(whole, "r").n_episodes == 3
+    assert main([*args, "--episodes", "3"]) == 1
+    assert "needs --out" in capsys.readouterr().err

@@ -25,9 +25,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="iwsim", description="Interactive world simulator for robot learning.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("collect", help="record scripted episodes of a MuJoCo task into an episode store")
+    p = sub.add_parser("collect", help="record episodes of a MuJoCo task (scripted or learned policy) into a store")
     p.add_argument("--task", default=TASK.kind, help=f"task: {', '.join(TASKS)} (default: %(default)s)")
-    p.add_argument("--policy", default="play", help=f"scripted policy: {', '.join(POLICIES)} (default: %(default)s)")
+    p.add_argument("--policy", default="play", help=f"scripted policy: {', '.join(POLICIES)}; or a learned policy's "
+                   "run or checkpoint directory (its episodes run batched in this process) (default: %(default)s)")
     p.add_argument("--episodes", type=int, required=True, help="total episodes the store should hold")
     p.add_argument("--steps", type=int, default=200, help="steps per episode (default: %(default)s)")
     p.add_argument(
@@ -296,12 +297,28 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _collect(args: argparse.Namespace) -> int:
-    from iwsim.data.collect import collect
+    from pathlib import Path
 
+    from iwsim.data.collect import collect
+    from iwsim.envs import POLICIES
+
+    recorder, policy = None, args.policy
+    if policy not in POLICIES and Path(policy).is_dir():  # a learned policy
+        from iwsim.eval.policy import recorder as learned
+        from iwsim.policies.factory import load_policy
+
+        if args.out is None:
+            raise InputError("collecting a learned policy's episodes needs --out STORE.")
+        net = load_policy(policy)
+        if net.image_size != args.image_size:
+            raise InputError(f"{policy} was trained on {net.image_size}x{net.image_size} frames, not --image-size "
+                             f"{args.image_size}.")
+        recorder = learned(net, args.task, args.steps, image_size=args.image_size)
+        policy = f"learned:{Path(policy).as_posix()}"
     out = args.out or f"data/{args.task}_{args.policy}.zarr"
     collect(
         args.task,
-        args.policy,
+        policy,
         args.episodes,
         out=out,
         steps=args.steps,
@@ -310,6 +327,7 @@ def _collect(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=not args.no_progress,
         wait_for_lock=args.wait_for_lock,
+        recorder=recorder,
     )
     return 0
 

@@ -1,4 +1,6 @@
-"""Collect scripted episodes of a MuJoCo task into an episode store (``iwsim collect``).
+"""Collect episodes of a MuJoCo task into an episode store (``iwsim collect``): under a
+scripted policy, or under any other controller given as a ``recorder`` (a learned policy's:
+:func:`iwsim.eval.policy.recorder`).
 
 A tool over the task registry (:mod:`iwsim.tasks`): it sits in the layer above it
 (:data:`iwsim.layers.LAYERS`), so nothing in ``data/`` or the registry imports it.
@@ -10,13 +12,14 @@ number of workers, and re-running it with more episodes appends only the missing
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import multiprocessing as mp
 import os
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +39,11 @@ log = logging.getLogger(__name__)
 STEP_LOWDIM_BYTES = 256  # per step besides the frame: state, action, poses, IoU, contacts (generous)
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps")
+# Records the episodes of the given seeds, in order, each in the store's layout
+# (:func:`iwsim.envs.scripted.record_episode`'s): a controller that is not a scripted policy.
+# The per-step info arrays of an episode besides frames, state, action, target and score.
+STORE_INFO = ("block_pose", "n_contacts")
+Recorder = Callable[[list[int]], Iterator[dict[str, np.ndarray]]]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +86,7 @@ def collect(
     seed: int = 0,
     progress: bool = True,
     wait_for_lock: bool = False,
+    recorder: Recorder | None = None,
 ) -> CollectStats:
     """Record episodes ``0..episodes-1`` (seeds ``seed + i``) into the store at ``out``.
 
@@ -87,8 +96,11 @@ def collect(
     episodes are appended in order as they finish. The store's lock is held throughout: a
     second writer is refused (a StoreLockedError naming it) or, with ``wait_for_lock``,
     waited for, after which only the episodes still missing are recorded.
+
+    ``recorder`` records the episodes instead of the scripted policy's workers; ``policy``
+    is then only the store's label of it (its ``policy`` attribute).
     """
-    _check_args(task, policy, episodes, steps, image_size, workers, seed)
+    _check_args(task, policy, episodes, steps, image_size, workers, seed, scripted=recorder is None)
     out = Path(out)
     attrs = store_attrs(task, policy, steps, image_size)
     if out.exists():
@@ -102,24 +114,28 @@ def collect(
         if start >= episodes:
             log.info("%s already holds %d episodes (>= %d requested); nothing to do", out, start, episodes)
             return CollectStats(0, start, 0, 0.0, 0.0, float("nan"), float("nan"), float("nan"))
-        return _collect_into(store, task, policy, start, episodes, steps, image_size, workers, seed, progress)
+        if recorder is None:
+            recorder = functools.partial(_record_scripted, task, policy, steps, image_size, workers)
+        return _collect_into(store, task, policy, start, episodes, steps, image_size, seed, progress, recorder)
 
 
 def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episodes: int, steps: int,
-                  image_size: int, workers: int, seed: int, progress: bool) -> CollectStats:
+                  image_size: int, seed: int, progress: bool, recorder: Recorder) -> CollectStats:
     """Record episodes ``start..episodes-1`` and append them to ``store``, in order."""
     out, n_new = store.path, episodes - start
     log.info(
         f"collecting {n_new} episodes (seeds {seed + start}..{seed + episodes - 1}) of {task}/{policy}: "
-        f"{steps} steps at {image_size}x{image_size}, {workers} worker(s) -> {out}"
+        f"{steps} steps at {image_size}x{image_size} -> {out}"
     )
-    jobs = [(task, policy, seed + i, steps, image_size) for i in range(start, episodes)]
+    seeds = [seed + i for i in range(start, episodes)]
     frames = contact_steps = 0
     max_ious: list[float] = []
     t0 = time.perf_counter()
     with tqdm(total=n_new, unit="ep", desc=f"collect {out.name}", disable=not progress) as bar:
-        for job, ep in zip(jobs, _record_all(jobs, workers), strict=True):
-            store.append(ep, seed=job[2])
+        for s, ep in zip(seeds, recorder(seeds), strict=True):
+            if len(ep["img"]) != steps:
+                raise RuntimeError(f"the recorder gave an episode of {len(ep['img'])} steps for seed {s}, not {steps}.")
+            store.append(ep, seed=s)
             frames += len(ep["img"])
             contact_steps += int(np.count_nonzero(ep["n_contacts"] > 0))
             max_ious.append(float(np.max(ep["iou"])))
@@ -141,10 +157,11 @@ def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episo
     return stats
 
 
-def _check_args(task: str, policy: str, episodes: int, steps: int, image_size: int, workers: int, seed: int) -> None:
+def _check_args(task: str, policy: str, episodes: int, steps: int, image_size: int, workers: int, seed: int,
+                scripted: bool = True) -> None:
     check_task(task)
     get_task(task)  # its Task: the attributes its stores carry
-    if policy not in POLICIES:
+    if scripted and policy not in POLICIES:
         raise InputError(f"unknown policy {policy!r}; expected one of {list(POLICIES)}.")
     if image_size not in IMAGE_SIZES:
         raise InputError(f"image size must be one of {list(IMAGE_SIZES)}, got {image_size!r}.")
@@ -197,6 +214,12 @@ def _check_existing(store: EpisodeStore, attrs: dict[str, Any], seed: int) -> No
 def _record(job: tuple[str, str, int, int, int]) -> dict[str, np.ndarray]:
     task, policy, seed, steps, image_size = job
     return record_episode(task, policy, seed, steps, image_size)
+
+
+def _record_scripted(task: str, policy: str, steps: int, image_size: int, workers: int,
+                     seeds: list[int]) -> Iterator[dict[str, np.ndarray]]:
+    """The scripted policy's episodes of ``seeds``, in order, recorded by ``workers`` processes."""
+    return _record_all([(task, policy, s, steps, image_size) for s in seeds], workers)
 
 
 def _record_all(jobs: list[tuple[str, str, int, int, int]], workers: int) -> Iterator[dict[str, np.ndarray]]:

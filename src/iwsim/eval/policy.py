@@ -16,16 +16,18 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from gymnasium.vector import SyncVectorEnv, VectorEnv
 from torch import nn
 from tqdm import tqdm
 
 from iwsim.checkpoint import write_json_atomic
+from iwsim.data.collect import STORE_INFO, Recorder
 from iwsim.envs import SMALLEST_FRAME_BYTES, make_env
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
@@ -74,7 +76,8 @@ def env_task(venv: VectorEnv, env: str) -> Task:
 
 def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
             image_size: int = 64, record: int = 0, progress: bool = True,
-            stop: Callable[[dict[str, np.ndarray]], bool] | None = None, start: str = "random") -> dict[str, Any]:
+            stop: Callable[[dict[str, np.ndarray]], bool] | None = None, start: str = "random",
+            keep: tuple[str, ...] = ()) -> dict[str, Any]:
     """Run ``policy`` for ``steps`` steps from each seed, all episodes together. Returns
     the task's per-step pixel score ``iou`` (E, T + 1) (T-push: the IoU; None when the task
     has no scorer; its name in ``scorer``), ``agent_pos`` (E, T + 1, A) (T-push: the
@@ -84,7 +87,8 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
     follows frame t. T = ``steps``, or fewer when ``stop(obs)``, called with each step's
     new observations, returns True. ``start``: MuJoCo's initial-state distribution
     (:func:`make_vector_env`). ``novelty`` (E, T): in a world model with a trust signal, how
-    unlike its training data each step's inputs are (:mod:`iwsim.world_model.novelty`), else None."""
+    unlike its training data each step's inputs are (:mod:`iwsim.world_model.novelty`), else None.
+    ``info``: the environment's per-step info arrays named in ``keep`` (E, T + 1, ...), from the reset on."""
     venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size, start=start)
     task = env_task(venv, env)
     key = score_key(task)
@@ -100,6 +104,7 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
         iou = info[key]
         history: deque[dict[str, np.ndarray]] = deque([obs] * policy.obs_horizon, maxlen=policy.obs_horizon)
         ious, frames, positions, actions, targets = [iou], [obs["pixels"][:record]], [obs["agent_pos"]], [], []
+        kept = {k: [info[k]] for k in keep}
         novelty: list[np.ndarray] = []
         policy.reset()
         queue: list[np.ndarray] = []
@@ -118,6 +123,8 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
             frames.append(obs["pixels"][:record])
             positions.append(obs["agent_pos"])
             targets.append(info["target"])
+            for k in keep:
+                kept[k].append(info[k])
             if "novelty" in info:
                 novelty.append(info["novelty"])
             bar.update()
@@ -131,7 +138,35 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
             "task": task.name, "success_score": task.success_score,
             "frames": np.stack(frames, 1) if record else None,
             "agent_pos": np.stack(positions, 1), "action": np.stack(actions, 1), "target": np.stack(targets, 1),
-            "novelty": np.stack(novelty, 1) if novelty else None, "seconds": seconds}
+            "novelty": np.stack(novelty, 1) if novelty else None, "info": {k: np.stack(v, 1) for k, v in kept.items()},
+            "seconds": seconds}
+
+
+RECORD_BATCH = 16  # episodes a learned policy records in lockstep (one batched forward pass per query)
+
+
+def recorder(policy: nn.Module, task: str, steps: int, *, image_size: int = 64,
+             batch: int = RECORD_BATCH) -> Recorder:
+    """``policy``'s episodes in MuJoCo, as :func:`iwsim.data.collect.collect` records them
+    (``iwsim collect --policy RUN``): the seeds ``batch`` at a time in lockstep, each batch's
+    sampling noise seeded by its first seed: the same command records the same store, and a
+    store extended in whole batches holds the episodes one recorded at once holds.
+    Step t holds the observation before action t, as a scripted episode does
+    (:func:`iwsim.envs.scripted.record_episode`)."""
+
+    def record(seeds: list[int]) -> Iterator[dict[str, np.ndarray]]:
+        for i in range(0, len(seeds), batch):
+            chunk = seeds[i:i + batch]
+            torch.manual_seed(chunk[0])
+            run = rollout(policy, task, chunk, steps, image_size=image_size, record=len(chunk), progress=False,
+                          keep=STORE_INFO)
+            for e in range(len(chunk)):
+                yield {"img": run["frames"][e, :steps], "state": run["agent_pos"][e, :steps].astype(np.float32),
+                       "action": run["action"][e], "target": run["target"][e].astype(np.float32),
+                       "iou": run["iou"][e, :steps].astype(np.float32),
+                       **{k: v[e, :steps] for k, v in run["info"].items()}}
+
+    return record
 
 
 def summarize(max_iou: np.ndarray, seeds: list[int], success_score: float) -> dict[str, Any]:
