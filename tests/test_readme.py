@@ -165,8 +165,11 @@ def semantic_problems(words: tuple[str, ...], ns: argparse.Namespace) -> list[st
     if words[:2] == ("iwsim", "collect"):
         from iwsim.envs import IMAGE_SIZES, POLICIES, TASKS
 
+        learned = "/" in ns.policy  # a policy run or checkpoint: a read (reads_and_writes)
         for flag, value, allowed in (("--task", ns.task, TASKS), ("--policy", ns.policy, POLICIES),
                                      ("--image-size", ns.image_size, IMAGE_SIZES)):
+            if flag == "--policy" and learned:
+                continue
             if value not in allowed:
                 problems.append(f"{flag} {value}: not one of {', '.join(map(str, allowed))}")
     if words[:2] == ("iwsim", "train") and getattr(ns, "train_command", None) in ("ae", "dynamics", "policy"):
@@ -243,8 +246,10 @@ def reads_and_writes(words: tuple[str, ...], ns: argparse.Namespace) -> tuple[li
             reads += paths_in(value, pairs=dest == "models")
         elif dest in WRITES:
             writes += paths_in(value, pairs=False)
-    if words[:2] == ("iwsim", "collect") and ns.out is None:
-        writes.append(f"data/{ns.task}_{ns.policy}.zarr")
+    if words[:2] == ("iwsim", "collect"):
+        reads += paths_in(ns.policy, pairs=False)  # a learned policy's run (a scripted name has no "/")
+        if ns.out is None:
+            writes.append(f"data/{ns.task}_{ns.policy}.zarr")
     if words[:2] == ("iwsim", "bench") and ns.data is None and committed(ns.checkpoint):
         # without --data it reads the store the checkpoint was trained on
         config = json.loads((ROOT / ns.checkpoint / "config.json").read_text())
