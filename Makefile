@@ -42,6 +42,7 @@ rebuild-pusht-64: $(STAMP)
 
 lint: $(STAMP)
 	$(PY) -m ruff check src tests bench
+	$(PY) -m mypy
 
 clean:
 	rm -rf $(VENV) outputs

@@ -21,10 +21,10 @@ import errno
 import json
 import os
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from itertools import chain
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import torch
 from safetensors import SafetensorError
@@ -91,7 +91,15 @@ def load_json(path: Path) -> dict[str, Any]:
         raise CheckpointError(f"checkpoint file {path} is not valid JSON: {e}.") from None
 
 
-M = TypeVar("M", bound=torch.nn.Module)
+class Weighted(Protocol):
+    """A network as build_within_memory counts it (an nn.Module, or a Codec)."""
+
+    def parameters(self, recurse: bool = True) -> Iterator[torch.nn.Parameter]: ...
+
+    def buffers(self, recurse: bool = True) -> Iterator[torch.Tensor]: ...
+
+
+M = TypeVar("M", bound=Weighted)
 
 
 def build_within_memory(make: Callable[[], M], what: str) -> M:
@@ -110,7 +118,7 @@ def build_within_memory(make: Callable[[], M], what: str) -> M:
     return make()
 
 
-def locate(path: str | Path) -> Path:
+def locate(path: str | os.PathLike[str]) -> Path:
     """``path``; or, when it is relative and missing from the working directory, the same
     path in the project's checkout if it is there (the shipped ``checkpoints/`` are found
     from any working directory)."""

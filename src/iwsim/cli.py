@@ -8,11 +8,16 @@ import math
 import os
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from iwsim.errors import EXIT_USER_ERROR, InputError, reporting_errors
 from iwsim.resources import human_bytes, set_threads
 
+if TYPE_CHECKING:
+    from pathlib import Path
+
 log = logging.getLogger("iwsim")
+C = TypeVar("C")  # a preset's config class
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -428,7 +433,7 @@ def _check_positive(args: argparse.Namespace, *names: str) -> None:
             raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
 
 
-def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
+def _resolve_preset(args: argparse.Namespace, presets: dict[str, C]) -> C | None:
     """The preset named by --preset with --steps/--batch-size/--seed (and --variant) applied; prints it
     and returns None under --dry-run."""
     import dataclasses
@@ -438,7 +443,7 @@ def _resolve_preset(args: argparse.Namespace, presets: dict) -> object:
 
     if args.preset not in presets:
         raise InputError(f"unknown preset {args.preset!r}; expected one of {sorted(presets)}.")
-    cfg = presets[args.preset]
+    cfg: Any = presets[args.preset]  # a config dataclass with a train field
     overrides = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed),
                                    ("lr", args.lr)) if v is not None}
     if getattr(args, "bf16", False):
@@ -467,7 +472,7 @@ def _check_batch_memory(stage: str, batch_size: int, data: str) -> None:
     if stage == "policy":
         from iwsim.policies.data import parse_mixture
 
-        stores = [src.path for src in parse_mixture(data)]
+        stores: list[str | Path] = [src.path for src in parse_mixture(data)]
     else:
         stores = [data]
     sizes = []
@@ -585,14 +590,15 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
         raise InputError(f"--lr must be positive, got {args.lr}.")
     if args.batch_size is not None:
         _check_batch_memory("decoder-finetune", args.batch_size, args.data)
-    noise = None
+    noise: tuple[float, float] | None = None
     if args.latent_noise is not None:
         try:
-            noise = tuple(float(v) for v in args.latent_noise.split(","))
+            parts = tuple(float(v) for v in args.latent_noise.split(","))
         except ValueError:
-            noise = ()
-        if len(noise) != 2 or not all(math.isfinite(v) for v in noise) or not 0 <= noise[0] <= noise[1]:
+            parts = ()
+        if len(parts) != 2 or not all(math.isfinite(v) for v in parts) or not 0 <= parts[0] <= parts[1]:
             raise InputError(f"--latent-noise takes LO,HI with 0 <= LO <= HI, got {args.latent_noise!r}.")
+        noise = parts
     _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
                                     steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                                     latent_noise=noise, force=args.force, progress=not args.no_progress))

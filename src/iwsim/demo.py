@@ -28,7 +28,7 @@ def main(args: argparse.Namespace) -> int:
     video = write_side_by_side(result, out / "world_model_vs_mujoco.mp4")
     s = result.summary()
     summary = {"checkpoint": str(args.checkpoint), "seed": args.seed, "policy": args.policy, "steps": args.steps,
-               **{k: round(v, 4) for k, v in s.items()}}
+               **{k: None if v is None else round(v, 4) for k, v in s.items()}}
     print(f"MuJoCo (left) | world model (right), seed {args.seed}, {args.steps} steps of the {args.policy}: "
           f"{video.resolve()}")
     print(json.dumps(summary))

@@ -28,6 +28,9 @@ def unscale(y: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Ten
 class Normalizer(nn.Module):
     """Min-max scaling of (..., D) values to [-1, 1]; its bounds travel with the weights."""
 
+    low: torch.Tensor  # (D,) buffers
+    high: torch.Tensor
+
     def __init__(self, low: np.ndarray | torch.Tensor, high: np.ndarray | torch.Tensor) -> None:
         super().__init__()
         lo, hi = widen(torch.as_tensor(low, dtype=torch.float32), torch.as_tensor(high, dtype=torch.float32), 1e-4)

@@ -18,6 +18,7 @@ Only this module and ``envs/`` import a task's module (``tests/test_layers.py``)
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,7 @@ from iwsim.envs.pusht_task import PushTTask
 from iwsim.envs.task import Bindings, Start, Task
 from iwsim.errors import InputError
 
-REGISTRY: dict[str, type[Task]] = {PushTTask.kind: PushTTask}
+REGISTRY: dict[str, Callable[[], Task]] = {PushTTask.kind: PushTTask}  # built without arguments
 # The task the commands and the studies default to: its name (``kind``), frame size
 # (``image_size``), evaluation horizon (``horizon``) and shipped world model (``checkpoint``).
 DEFAULT_TASK: type[PushTTask] = PushTTask
@@ -93,10 +94,10 @@ class StoreStarts:
         pass
 
 
-def _floats(value: object, n: int) -> tuple[float, ...] | None:
-    """``value`` as n finite floats, or None."""
+def _floats(value: Any, n: int) -> tuple[float, ...] | None:
+    """``value`` (anything) as n finite floats, or None."""
     try:
-        out = tuple(float(v) for v in value)  # type: ignore[union-attr]
+        out = tuple(float(v) for v in value)
     except (TypeError, ValueError):
         return None
     return out if len(out) == n and all(math.isfinite(v) for v in out) else None
@@ -174,7 +175,9 @@ def task_from_config(config: dict, where: str | Path = "config.json") -> Task:
             return task_from_store(data, low, high)
         except InputError:
             pass  # not a readable store any more: as if it were gone
-    n = len(low) if isinstance(low, list) and isinstance(high, list) and len(high) == len(low) else 0
+    if not (isinstance(low, list) and isinstance(high, list) and len(high) == len(low)):
+        low = high = []
+    n = len(low)
     if n and not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in [*low, *high]):
         n = 0
     if n == PushTTask().action_dim:

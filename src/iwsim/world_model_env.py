@@ -160,6 +160,7 @@ class WorldModelEnv(gym.Env):
         return self._obs(), 0.0 if score is None else float(score[0]), terminated, False, info
 
     def _obs(self) -> dict[str, np.ndarray]:
+        assert self._frame is not None  # set by reset
         return {"pixels": self._frame, "agent_pos": self._agent_pos.copy()}
 
     def _info(self, score: np.ndarray | None) -> dict[str, Any]:
@@ -262,6 +263,7 @@ class WorldModelVectorEnv(VectorEnv):
         return self._obs(), reward, np.zeros(self.num_envs, dtype=bool), truncated, info
 
     def _obs(self) -> dict[str, np.ndarray]:
+        assert self._frames is not None  # set by reset
         return {"pixels": self._frames, "agent_pos": self._agent_pos.copy()}
 
     def _info(self, score: np.ndarray | None) -> dict[str, Any]:

@@ -95,7 +95,7 @@ def chunk_frames(frame_shape: tuple[int, ...], dtype: np.dtype) -> int:
     return min(MAX_CHUNK_FRAMES, 1 << (n.bit_length() - 1))
 
 
-def dir_size(path: str | os.PathLike) -> int:
+def dir_size(path: str | os.PathLike[str]) -> int:
     """Bytes of all regular files under ``path``."""
     total = 0
     for dirpath, _, files in os.walk(path):
@@ -174,7 +174,7 @@ def _check_metadata_files(path: Path) -> None:
                 raise StoreError(f"{path} is damaged: {f.relative_to(path)} is not a JSON object.")
 
 
-class _Checked:
+class CheckedArray:
     """Read access to a data array that turns a chunk that cannot be decoded (truncated,
     another dtype than ``.zarray`` declares, ...) into a StoreError naming the array."""
 
@@ -185,7 +185,7 @@ class _Checked:
         return getattr(self._arr, name)
 
     def __len__(self) -> int:
-        return len(self._arr)
+        return self._arr.shape[0]  # zarr 3's Array has no __len__
 
     def _read(self, read: Callable[[], Any]) -> Any:
         try:
@@ -206,7 +206,7 @@ class _Checked:
 
 
 class _CheckedIndex:
-    def __init__(self, checked: _Checked) -> None:
+    def __init__(self, checked: CheckedArray) -> None:
         self._checked = checked
 
     def __getitem__(self, selection: Any) -> np.ndarray:
@@ -264,8 +264,9 @@ class EpisodeStore:
         self.path = path
         self.mode = mode
         self._lock = lock
-        self._ends_array = root["meta/episode_ends"]
-        self._data = root["data"]
+        ends_array, data = root["meta/episode_ends"], root["data"]
+        assert isinstance(ends_array, zarr.Array) and isinstance(data, zarr.Group)  # checked by _open
+        self._ends_array, self._data = ends_array, data
         self._load()
 
     def _load(self) -> None:
@@ -495,12 +496,12 @@ class EpisodeStore:
     def __len__(self) -> int:
         return self.n_episodes
 
-    def array(self, key: str) -> zarr.Array:
+    def array(self, key: str) -> CheckedArray:
         """The (N, ...) Zarr array ``data/<key>`` for chunked reads; only its first
         ``n_frames`` rows are committed."""
         if key not in self._arrays:
             raise StoreError(f"{self.path} has no array data/{key}; it has {self.keys}.")
-        return _Checked(self._arrays[key], f"{self.path} data/{key}")
+        return CheckedArray(self._arrays[key], f"{self.path} data/{key}")
 
     def __repr__(self) -> str:
         return f"EpisodeStore({str(self.path)!r}, episodes={self.n_episodes}, frames={self.n_frames})"

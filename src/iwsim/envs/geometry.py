@@ -114,6 +114,7 @@ def t_signed_distance(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         ex, ey = np.abs(u - cx) - hx, np.abs(v - cy) - hy  # distance outside each slab
         d = np.hypot(np.maximum(ex, 0), np.maximum(ey, 0)) + np.minimum(np.maximum(ex, ey), 0)
         out = d if out is None else np.minimum(out, d)
+    assert out is not None  # T_BOXES is not empty
     return out
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 from itertools import combinations
+from typing import cast
 
 import numpy as np
 
@@ -137,7 +138,7 @@ def _pusher_centroids(fractions: np.ndarray, min_pixels: float, radius: float = 
     pushers' fractions (..., 2, H, W) (see :func:`pusher_peaks`)."""
     size = fractions.shape[-1]
     pad = np.pad(fractions, [(0, 0)] * (fractions.ndim - 2) + [(1, 1), (1, 1)])
-    smooth = sum(pad[..., i:i + size, j:j + size] for i in range(3) for j in range(3)) / 9
+    smooth = cast(np.ndarray, sum(pad[..., i:i + size, j:j + size] for i in range(3) for j in range(3))) / 9
     rows, cols = np.divmod(smooth.reshape(*smooth.shape[:-2], -1).argmax(-1), size)
     yy, xx = np.mgrid[0:size, 0:size]
     near = (yy - rows[..., None, None]) ** 2 + (xx - cols[..., None, None]) ** 2 <= radius**2

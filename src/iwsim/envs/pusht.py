@@ -285,7 +285,7 @@ class BimanualPushTEnv(gym.Env):
             turn = rng.choice([-1.0, 1.0]) * rng.uniform(lo, hi)
             block = np.array([*(self.goal_pose[:2] + rng.uniform(-spread, spread, 2)),
                               geo.wrap_angle(self.goal_pose[2] + turn)])
-        pushers = []
+        pushers: list[np.ndarray] = []
         while len(pushers) < 2:
             p = rng.uniform(-WORKSPACE, WORKSPACE, 2)
             clear = geo.distance_to_t(p, block) > PUSHER_RADIUS + 0.01

@@ -21,6 +21,7 @@ from iwsim.envs.pusht import (
     SUCCESS_IOU,
     VIEW_HALF,
     WORKSPACE,
+    BimanualPushTEnv,
     TaskSpec,
     check_actions,
     limit_targets,
@@ -138,7 +139,9 @@ class MujocoStarts:
             self._env = make_env("pusht", self.image_size)
         obs, _ = self._env.reset(seed=int(seed), options=None if state is None else {"reset_to_state": state})
         pos = obs["agent_pos"]
-        return Start(obs["pixels"], pos, pos.astype(np.float64), self._env.unwrapped.get_state())
+        sim = self._env.unwrapped
+        assert isinstance(sim, BimanualPushTEnv)  # what make_env("pusht") wraps
+        return Start(obs["pixels"], pos, pos.astype(np.float64), sim.get_state())
 
     def close(self) -> None:
         if self._env is not None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import heapq
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Generator
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -167,6 +167,7 @@ class Pinch:
         self.sides = self._assign(pushers, pose)
 
     def _points(self, x: float) -> np.ndarray:
+        assert self.sides is not None  # __call__ assigns the sides first
         return np.stack([self.sides * x, np.full(2, GRIP_Y)], axis=1)
 
     def carry_step(self, pose: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -522,11 +523,13 @@ class ImpreciseExpertPolicy(SeededExpertPolicy):
         self.blind = bool(rng.random() < 0.5)
         self.belief: np.ndarray | None = None  # the blind carry's dead-reckoned pose
 
-    def block_pose(self, obs: dict, info: dict) -> np.ndarray | None:
+    def block_pose(self, obs: dict, info: dict) -> np.ndarray:
         if self.blind and self.pinch.phase == "carry" and self.belief is not None:
             return self.belief
         self.wobble = 0.9 * self.wobble + self.rng.normal(0.0, np.asarray(self.WOBBLE) * np.sqrt(1 - 0.81))
-        return super().block_pose(obs, info) + self.bias + self.wobble
+        pose = super().block_pose(obs, info)
+        assert pose is not None  # a seeded expert reads the pose from the state, never from pixels
+        return pose + self.bias + self.wobble
 
     def __call__(self, obs: dict, info: dict) -> np.ndarray:
         pose = self.block_pose(obs, info)
@@ -619,7 +622,7 @@ class Transition:
 
 
 def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, task: str = "pusht",
-                 image_size: int = 64, env: gym.Env | None = None) -> Iterator[Transition]:
+                 image_size: int = 64, env: gym.Env | None = None) -> Generator[Transition, None, None]:
     """Drive ``task`` (or ``env``) with a scripted policy (a name of :data:`POLICIES`,
     seeded by ``seed``, or a policy object) for ``steps`` steps from the reset with
     ``seed``, yielding each :class:`Transition`. An environment made here is closed when

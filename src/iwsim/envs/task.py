@@ -318,6 +318,7 @@ class Task:
 
     def page_info(self) -> dict[str, Any]:
         """What the play page needs: names, bounds, bindings, the scorer's name."""
+        assert self.bindings is not None  # __post_init__ sets them
         return {"task": self.name, "action_names": list(self.action_names), "action_low": list(self.action_low),
                 "action_high": list(self.action_high), "action_step": list(self.action_step),
                 "view_half": self.view_half, "bindings": self.bindings.to_dict(), "score_name": self.score_name,

@@ -22,6 +22,7 @@ import os
 import platform
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -109,18 +110,23 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
             if nets.i3d is not None:
                 truth_feats["fvd"] = i3d_features(nets.i3d, truth)
         scores = frame_metrics(truth, ol.pred, nets, device=device)
+        assert ol.iou_pred is not None and truth_iou is not None  # the task has a pixel scorer (checked above)
         scores["iou_err"] = np.abs(ol.iou_pred - truth_iou)
-        entry = {"checkpoint": str(paths[name]), "objective": wm.cfg.objective, **training_info(paths[name]),
-                 "accuracy": summarize(scores, set_metrics(truth_feats, ol.pred, nets)),
-                 "accuracy_seconds": time.perf_counter() - t0}
+        entry: dict[str, Any] = {"checkpoint": str(paths[name]), "objective": wm.cfg.objective,
+                                 **training_info(paths[name]),
+                                 "accuracy": summarize(scores, set_metrics(truth_feats, ol.pred, nets)),
+                                 "accuracy_seconds": time.perf_counter() - t0}
         result["models"][name] = entry
         per_step[name], preds[name] = scores, ol.pred
         log.info("%s: PSNR %.2f dB, SSIM %.3f", name, entry["accuracy"]["psnr"]["mean"],
                  entry["accuracy"]["ssim"]["mean"])
+    assert truth is not None and context is not None  # set by the first model's rollouts
     # For scale: a "model" that repeats the context frame.
     still = np.repeat(context[:, None], steps, 1)
     scores = frame_metrics(truth, still, nets, device=device)
-    scores["iou_err"] = np.abs(task.score(context)[:, None] - truth_iou)
+    context_iou = task.score(context)
+    assert context_iou is not None  # the task has a pixel scorer
+    scores["iou_err"] = np.abs(context_iou[:, None] - truth_iou)
     result["reference"] = {COPY: {"accuracy": summarize(scores, set_metrics(truth_feats, still, nets))}}
     for name, wm in wms.items():
         result["models"][name]["speed"] = speed(wm, context[0], speed_batch, speed_calls)

@@ -95,6 +95,8 @@ class LPIPS(nn.Module):
 
     channels = (64, 192, 384, 256, 256)
     taps = (1, 4, 7, 9, 11)  # indices of the five ReLUs in torchvision's alexnet.features
+    shift: torch.Tensor  # (1, 3, 1, 1) buffers
+    scale: torch.Tensor
 
     def __init__(self) -> None:
         super().__init__()

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 import torch
+from gymnasium import spaces
 from gymnasium.vector import SyncVectorEnv, VectorEnv
-from torch import nn
 from tqdm import tqdm
 
 from iwsim.checkpoint import write_json_atomic
@@ -33,6 +33,7 @@ from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.eval.video import upscale, write_video
+from iwsim.policies.common import PolicyLike
 from iwsim.resources import require_memory
 from iwsim.tasks import get_task
 from iwsim.world_model_env import WorldModelVectorEnv, score_key
@@ -48,7 +49,7 @@ DISAGREE_WARN = 0.2
 
 
 def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int = 64,
-                    start: str = "random") -> VectorEnv:
+                    start: str = "random") -> SyncVectorEnv | WorldModelVectorEnv:
     """``n`` environments in lockstep as a Gymnasium vector env: MuJoCo's in a
     :class:`~gymnasium.vector.SyncVectorEnv` (its initial states from the distribution
     ``start``, :data:`iwsim.envs.pusht.STARTS`), or the world model's batched
@@ -74,7 +75,7 @@ def env_task(venv: VectorEnv, env: str) -> Task:
     return venv.task if isinstance(venv, WorldModelVectorEnv) else get_task(env)
 
 
-def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
+def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
             image_size: int = 64, record: int = 0, progress: bool = True,
             stop: Callable[[dict[str, np.ndarray]], bool] | None = None, start: str = "random",
             keep: tuple[str, ...] = ()) -> dict[str, Any]:
@@ -93,7 +94,9 @@ def rollout(policy: nn.Module, env: str, seeds: list[int], steps: int, *, world_
     task = env_task(venv, env)
     key = score_key(task)
     want = {"action": getattr(policy, "action_dim", task.action_dim), "state": getattr(policy, "state_dim", None)}
-    have = {"action": task.action_dim, "state": venv.single_observation_space["agent_pos"].shape[0]}
+    space = venv.single_observation_space
+    assert isinstance(space, spaces.Dict) and isinstance(space["agent_pos"], spaces.Box)  # see Task.spaces
+    have = {"action": task.action_dim, "state": space["agent_pos"].shape[0]}
     for what in ("action", "state"):
         if want[what] is not None and want[what] != have[what]:
             venv.close()
@@ -240,7 +243,7 @@ def disagreement(scores: np.ndarray, partner_scores: np.ndarray) -> dict[str, An
             "above_warn": float((gap > DISAGREE_WARN).mean()), "warn": DISAGREE_WARN}
 
 
-def evaluate(policy: nn.Module, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
+def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
              image_size: int = 64, out: str | Path | None = None, videos: int = 4, progress: bool = True,
              meta: dict[str, Any] | None = None, partner: Any = None) -> dict[str, Any]:
     """Evaluate ``policy`` on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``,

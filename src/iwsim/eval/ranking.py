@@ -9,7 +9,7 @@ the world model): Pearson r, Spearman rho and MMRV, as in SIMPLER (Li et al. 202
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -90,7 +90,8 @@ def agreement(real: Sequence[float], sim: Sequence[float],
     non-finite scores raise InputError."""
     out: dict[str, Any] = {"pearson": None, "spearman": None, "mmrv": None, "undefined": {}}
     _scores(real, sim, 0, "Comparing scores")  # malformed input is an error, not an undefined statistic
-    for name, fn in (("pearson", pearson), ("spearman", spearman), ("mmrv", mmrv)):
+    stats: tuple[tuple[str, Callable[..., float]], ...] = (("pearson", pearson), ("spearman", spearman), ("mmrv", mmrv))
+    for name, fn in stats:
         try:
             out[name] = fn(real, sim, labels) if fn is not mmrv else fn(real, sim)
         except InputError as e:

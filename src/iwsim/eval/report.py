@@ -27,7 +27,8 @@ def compare(result: dict) -> list[str]:
     for name, entry in result["models"].items():
         if name == ours:
             continue
-        wins, losses = [], []
+        wins: list[str] = []
+        losses: list[str] = []
         for m in METRICS:
             if m not in mine or m not in entry["accuracy"]:
                 continue

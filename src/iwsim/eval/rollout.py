@@ -37,8 +37,9 @@ class OpenLoop:
 
     def select(self, i: int) -> OpenLoop:
         """Episode ``i`` of this result alone."""
-        return OpenLoop([self.episodes[i]], *(None if getattr(self, k) is None else getattr(self, k)[i:i + 1]
-                                              for k in ("truth", "pred", "psnr", "ssim", "iou_true", "iou_pred")))
+        iou_true, iou_pred = (None if v is None else v[i:i + 1] for v in (self.iou_true, self.iou_pred))
+        return OpenLoop([self.episodes[i]], self.truth[i:i + 1], self.pred[i:i + 1], self.psnr[i:i + 1],
+                        self.ssim[i:i + 1], iou_true, iou_pred)
 
     def summary(self) -> dict[str, float | None]:
         return {"psnr": float(self.psnr.mean()), "ssim": float(self.ssim.mean()),
@@ -106,7 +107,7 @@ def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10
     first = result.select(0)
     scores = {"episode": first.episodes[0], "steps": int(first.psnr.shape[1]), **first.summary(),
               "psnr_per_step": first.psnr[0].round(3).tolist(), "ssim_per_step": first.ssim[0].round(4).tolist(),
-              **({"iou_true": None, "iou_pred": None} if first.iou_true is None else
+              **({"iou_true": None, "iou_pred": None} if first.iou_true is None or first.iou_pred is None else
                  {"iou_true": first.iou_true[0].round(4).tolist(), "iou_pred": first.iou_pred[0].round(4).tolist()})}
     tmp = out.with_name(f".{out.stem}.json.tmp")
     tmp.write_text(json.dumps(scores, indent=1) + "\n")

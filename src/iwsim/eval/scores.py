@@ -117,6 +117,6 @@ def summarize(per_frame: dict[str, np.ndarray], sets: dict[str, float]) -> dict[
         ep = v.mean(1)
         out[k] = {"mean": float(ep.mean()), "std": float(ep.std()), "last": float(v[:, -1].mean()),
                   "last_std": float(v[:, -1].std())}
-    for k, v in sets.items():
-        out[k] = {"mean": float(v)}
+    for k, value in sets.items():
+        out[k] = {"mean": float(value)}
     return out

@@ -36,8 +36,8 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float) -> Path
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                            ffmpeg_log_level="error") as writer:
+    writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1, ffmpeg_log_level="error")
+    with writer:  # (not `as`: imageio's stub types what __enter__ returns, the writer itself, as its base class)
         for f in frames:
             writer.append_data(f)
     os.replace(tmp, path)

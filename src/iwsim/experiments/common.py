@@ -230,7 +230,10 @@ def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps
               path: Path, key: dict[str, Any], progress: bool) -> dict[str, Any]:
     torch.manual_seed(0)  # the policies' sampling noise: the same evaluation gives the same scores
     policy = _load(source)
-    wm = WorldModel.load(world_model) if env == "world-model" else None
+    wm = None
+    if env == "world-model":
+        assert world_model is not None  # evaluate_policies checks it
+        wm = WorldModel.load(world_model)
     image_size = wm.image_size if wm is not None else getattr(policy, "image_size", 64)
     run = rollout(policy, env, seeds, steps, world_model=wm, image_size=image_size, progress=progress)
     result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds, run["success_score"]),

@@ -218,7 +218,7 @@ def _run_datagen(cfg: DatagenConfig, out: Path, work: Path, preset: str, jobs: i
     sources: dict[str, Any] = {**run_dirs, "expert": ScriptedConfig("expert")}
     scores = evaluate_policies(sources, "pusht", seeds=seeds, steps=cfg.steps, world_model=None,
                                out=work / "datagen" / "eval", jobs=jobs, progress=progress)
-    results = {
+    results: dict[str, Any] = {
         "config": dataclasses.asdict(cfg),
         "preset": preset,
         "command": command(cfg, preset, out, work),

@@ -187,6 +187,7 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
         raise InputError(f"start={start!r} chooses MuJoCo's initial states; the world model starts from random ones.")
     model = None
     if env == "world-model":
+        assert world_model is not None  # _check_args checks it
         model = WorldModel.load(world_model)
         image_size = model.image_size
     wm_name = None if world_model is None or env == "pusht" else os.fspath(world_model)
@@ -272,7 +273,7 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
         expert = _NoisyExecution(dart_noise, seeds) if dart_noise else ScriptedBatch("expert")
         run = rollout(expert, env, seeds, steps, world_model=model,
                       image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores, start=start)
-        if dart_noise:
+        if isinstance(expert, _NoisyExecution):  # dart_noise
             run["action"] = np.stack(expert.clean, 1)  # the labels: what the expert meant
         ious = np.stack([PUSHT.score(run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
         for i, s in enumerate(seeds):

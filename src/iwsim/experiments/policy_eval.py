@@ -257,7 +257,7 @@ def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, 
 
     policies = [{"name": name, **info, **{env: _scores(results[env][name]) for env in ENVS}}
                 for name, info in zoo.items()]
-    report = {
+    report: dict[str, Any] = {
         "study": "policy-eval",
         "command": command(cfg, preset, out, work, jobs),
         "preset": preset,

@@ -13,6 +13,13 @@ def group_norm(channels: int) -> nn.GroupNorm:
     return nn.GroupNorm(min(8, channels), channels)
 
 
+def zero_init(conv: nn.Conv2d) -> None:
+    """Zero the weights and bias of ``conv``: a residual branch (or an output) that starts at 0."""
+    assert conv.bias is not None, "zero_init takes a convolution with a bias"
+    nn.init.zeros_(conv.weight)
+    nn.init.zeros_(conv.bias)
+
+
 class ResBlock(nn.Module):
     """GroupNorm-SiLU-conv twice with a skip; ``emb`` (B, E), if given, modulates the
     second normalisation by FiLM (Perez et al. 2018): h * (1 + scale) + shift."""
@@ -23,8 +30,7 @@ class ResBlock(nn.Module):
         self.norm2, self.conv2 = group_norm(cout), nn.Conv2d(cout, cout, 3, padding=1)
         self.film = nn.Linear(emb_dim, 2 * cout) if emb_dim else None
         self.skip = nn.Conv2d(cin, cout, 1) if cin != cout else nn.Identity()
-        nn.init.zeros_(self.conv2.weight)
-        nn.init.zeros_(self.conv2.bias)
+        zero_init(self.conv2)
 
     def forward(self, x: torch.Tensor, emb: torch.Tensor | None = None) -> torch.Tensor:
         h = self.conv1(F.silu(self.norm1(x)))

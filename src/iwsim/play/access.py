@@ -24,7 +24,7 @@ import ipaddress
 import os
 import secrets
 import socket
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from iwsim.errors import InputError, IwsimError
@@ -51,7 +51,7 @@ def check_bind(host: str, token: str | None) -> None:
 
 
 def resolve_token(flag: str | None = None, file: str | os.PathLike | None = None,
-                  env: dict[str, str] | None = None) -> tuple[str | None, str]:
+                  env: Mapping[str, str] | None = None) -> tuple[str | None, str]:
     """The token the user chose and where it came from: ``file`` (first line) over
     ``$IWSIM_PLAY_TOKEN`` over ``flag`` (the flag is visible to other users in ``ps``);
     (None, "random") when none was chosen."""

@@ -68,7 +68,7 @@ class PlayConfig:
     max_record_steps: int = 6000  # 10 minutes at 10 Hz
     checkpoint: str = ""  # recorded in the store's attributes
     wait_for_lock: bool = False  # when another process writes record_to: wait for it (else refuse)
-    bindings: dict | None = None  # teleop bindings in their JSON form, instead of the task's (Bindings.from_dict)
+    bindings: object = None  # teleop bindings in their JSON form, instead of the task's (Bindings.from_dict checks it)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.hz, (int, float)) and 0 < self.hz <= 60):
@@ -242,6 +242,7 @@ class Engine:
                 s.twin.close()
                 s.twin, s.twin_frame, s.twin_iou = None, None, None
             self.reset(s, s.source, s.seed)
+            assert s.start is not None  # set by reset
             note = "" if s.twin is None or s.start.state is not None else " (this start has no MuJoCo state)"
             return dropped + [self._status(s, f"side by side {'on' if msg.on else 'off'}: episode restarted{note}")]
         return self._command(s, msg.name)
@@ -278,6 +279,7 @@ class Engine:
         return [self._status(s, f"saving {len(episode['img'])} steps")]
 
     def _save(self, s: Session, episode: dict[str, np.ndarray], seed: int) -> None:
+        assert self.recorder is not None  # takes are recorded only with a recorder
         self._saves.append((s, episode, seed, self.recorder.save(episode, seed)))
 
     def finished_saves(self) -> list[tuple[Session, str]]:
@@ -288,6 +290,7 @@ class Engine:
         self._saves = [x for x in self._saves if not x[3].done()]
         out = []
         for s, episode, seed, future in done:
+            assert self.recorder is not None  # it made the save
             n = len(episode["img"])
             try:
                 out.append((s, proto.event("saved", episode=future.result(), steps=n,
@@ -333,16 +336,17 @@ class Engine:
     def tick(self) -> list[Session]:
         """One control step of every session: record, then step all world models in one
         batched pass, and the MuJoCo twins. Returns the sessions stepped."""
-        sessions = [s for s in self.sessions.values() if s.state is not None]
-        if not sessions:
+        ready = [(s, s.state) for s in self.sessions.values() if s.state is not None]
+        if not ready:
             return []
+        sessions = [s for s, _ in ready]
         t0 = time.perf_counter()
         for s in sessions:
             s.setpoint = self.task.executed(s.setpoint, s.target).astype(np.float32)
             if s.take is not None and len(s.take["img"]) < self.cfg.max_record_steps:
                 for key, value in zip(self.keys, (s.frame, s.agent_pos, s.target, s.setpoint, s.iou)):
                     s.take[key].append(np.asarray(value, np.uint8 if key == "img" else np.float32))
-        state = sessions[0].state if len(sessions) == 1 else StreamState.cat([s.state for s in sessions])
+        state = ready[0][1] if len(ready) == 1 else StreamState.cat([st for _, st in ready])
         # One session's step is too small to gain from a second thread, and with the browser
         # on the same two cores a second thread made it slower (p95 key-to-frame 107 vs
         # 95 ms at 25 Hz, bench/bench_play.py); batches do gain (4 sessions: 84 vs 113 ms).
@@ -354,7 +358,7 @@ class Engine:
         states = [state] if len(sessions) == 1 else state.split()
         for s, state, frame in zip(sessions, states, frames):
             s.state, s.frame = state, frame
-        ious, pos = self.task.observe(np.stack([s.frame for s in sessions]), np.stack([s.setpoint for s in sessions]),
+        ious, pos = self.task.observe(np.stack(list(frames)), np.stack([s.setpoint for s in sessions]),
                                       np.stack([s.agent_pos for s in sessions]))
         for i, (s, p) in enumerate(zip(sessions, pos)):
             s.iou, s.agent_pos, s.step = None if ious is None else float(ious[i]), p, s.step + 1
@@ -366,6 +370,7 @@ class Engine:
 
     def frame_message(self, s: Session) -> bytes:
         """The session's current frame(s) and what the page shows with them."""
+        assert s.frame is not None  # set by reset
         views, names = [s.frame], ["world_model"]
         if s.twin_frame is not None:
             views.append(s.twin_frame)

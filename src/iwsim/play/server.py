@@ -60,6 +60,7 @@ class Runner:
 
     def call(self, fn: Callable[..., Any], *args: Any) -> asyncio.Future:
         """From the event loop: ``fn(*args)`` on the engine's thread, as a future."""
+        assert self.loop is not None  # the app sets it before it serves
         future = self.loop.create_future()
         self._jobs.put((fn, args, future))
         return future
@@ -116,6 +117,7 @@ class Runner:
                 next_t = time.monotonic()
 
     def _do(self, fn: Callable[..., Any], args: tuple, future: asyncio.Future) -> None:
+        assert self.loop is not None  # a job comes from call
         try:
             result = fn(*args)
         except Exception as e:  # noqa: BLE001 - handed to the awaiting coroutine
@@ -295,7 +297,8 @@ def create_app(runner: Runner, access: Access) -> FastAPI:
                 if not budget.take():
                     await _drop(ws, sender, s.id, RATE_REASON.format(f"{budget.rate:g}"))
                     break
-                data = msg.get("text") if msg.get("text") is not None else msg.get("bytes", b"")
+                text = msg.get("text")
+                data = text if text is not None else msg.get("bytes", b"")
                 try:
                     parsed = proto.parse(data, engine.model.action_dim)
                 except proto.ProtocolError as e:

@@ -16,6 +16,7 @@ policy remembers between calls (an action queue, the ensembling buffer).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -42,10 +43,23 @@ class PolicyBatch:
         return PolicyBatch(*(t.to(device) for t in (self.image, self.agent_pos, self.action, self.action_is_pad)))
 
 
+class PolicyLike(Protocol):
+    """The execution interface (see the module docstring) of a learned or a scripted policy."""
+
+    @property
+    def obs_horizon(self) -> int: ...
+
+    def reset(self) -> None: ...
+
+    def predict_action(self, obs: dict) -> np.ndarray: ...
+
+
 class Policy(nn.Module):
     """What every policy keeps: its config, the normalisers (buffers, so saved with the
     weights), the action and state sizes, and the window it trains on: ``obs_horizon``
     observed steps and ``horizon`` actions from the first of them."""
+
+    image_size: int  # the frames it was trained on; set by iwsim.policies.factory.load_policy
 
     def __init__(self, cfg, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__()
@@ -78,6 +92,14 @@ class Policy(nn.Module):
             return action
         pos = torch.as_tensor(obs["agent_pos"], dtype=action.dtype, device=action.device)
         return action + pos[:, -1:, :]
+
+    def reset(self) -> None:
+        """Forget what the policy remembers between calls (see the module docstring)."""
+        raise NotImplementedError
+
+    def predict_action(self, obs: dict) -> np.ndarray:
+        """The actions (B, Ta, A) to execute next, in the data's units (see the module docstring)."""
+        raise NotImplementedError
 
 
 def random_shift(image: torch.Tensor, pad: int, offsets: torch.Tensor | None = None) -> torch.Tensor:

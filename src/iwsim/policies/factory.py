@@ -6,31 +6,30 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
 
 from iwsim.checkpoint import CheckpointError, build_within_memory, load_model_dir
 from iwsim.config import from_dict, to_dict
 from iwsim.errors import InputError
-from iwsim.policies.common import Normalizer
+from iwsim.policies.common import Normalizer, Policy
 from iwsim.policies.registry import POLICIES, config_class, policy_type
 
 KIND = "policy"
 
 
-def make_policy(policy: str, model: dict[str, Any], action_norm: Normalizer, state_norm: Normalizer) -> nn.Module:
+def make_policy(policy: str, model: dict[str, Any], action_norm: Normalizer, state_norm: Normalizer) -> Policy:
     """A policy of type ``policy`` with config fields ``model`` (defaults for the rest)."""
     entry = policy_type(policy)
     return entry.policy_class()(from_dict(entry.config_class, model), action_norm, state_norm)
 
 
-def describe(policy: nn.Module) -> dict[str, Any]:
+def describe(policy: Policy) -> dict[str, Any]:
     """The parts of ``config.json`` that :func:`load_policy` reads."""
     return {"kind": KIND, "policy": policy.kind, "model": to_dict(policy.cfg),
             "action_dim": policy.action_dim, "state_dim": policy.state_dim}
 
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_steps: int | None = None,
-                **execution: Any) -> nn.Module:
+                **execution: Any) -> Policy:
     """A trained policy from a checkpoint directory, or from a run (its last checkpoint).
 
     ``n_action_steps`` overrides how many actions of each predicted chunk are executed

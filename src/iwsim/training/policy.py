@@ -8,11 +8,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
 
 from iwsim.config import from_dict, to_dict
 from iwsim.policies import PolicyStageConfig, config_class
-from iwsim.policies.common import random_shift
+from iwsim.policies.common import Policy, random_shift
 from iwsim.policies.data import PolicyData, Source
 from iwsim.policies.factory import describe, make_policy
 from iwsim.training import trainer
@@ -24,7 +23,7 @@ class PolicyTask:
     """Batches of windows from the mixture; evaluation scores sampled action chunks."""
 
     def __init__(self, cfg: PolicyStageConfig, sources: list[Source]) -> None:
-        model = from_dict(config_class(cfg.policy), cfg.model)
+        model: Any = from_dict(config_class(cfg.policy), cfg.model)  # the registered policy's config dataclass
         self.data = PolicyData(sources, model.obs_horizon, model.horizon)
         self.relative = model.relative_actions
         self.action_norm, self.state_norm = self.data.normalizers(self.relative)
@@ -46,7 +45,7 @@ class PolicyTask:
         return batch.to(device)
 
     @torch.no_grad()
-    def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
+    def evaluate(self, module: Policy, step: int, out_dir: Path) -> dict[str, float]:
         """The training loss and the error of the chunk the policy would sample, on fixed
         windows of the training data (closed-loop success is ``iwsim eval policy``'s job)."""
         batch = self.data.batch(self.eval_steps, self.action_norm, self.state_norm,
@@ -61,7 +60,7 @@ class PolicyTask:
                                    obs).cpu()
         return {"loss": loss.item(), "action_mae": (pred - truth).abs().mean().item()}
 
-    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+    def export(self, module: Policy) -> dict[str, torch.Tensor]:
         return dict(module.state_dict())
 
     def config(self) -> dict[str, Any]:

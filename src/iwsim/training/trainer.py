@@ -23,7 +23,7 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import torch
 from torch import nn
@@ -54,19 +54,23 @@ class TrainingError(IwsimError):
     """Training cannot go on (e.g. the loss became non-finite)."""
 
 
-class TrainTask(Protocol):
-    """What a stage gives the loop."""
+M = TypeVar("M", bound=nn.Module)
 
-    module: nn.Module  # forward(batch) -> (loss, {name: float})
+
+class TrainTask(Protocol[M]):
+    """What a stage gives the loop; ``M``: the class of its module."""
+
+    @property
+    def module(self) -> M: ...  # forward(batch) -> (loss, {name: float})
 
     def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device) -> Any:
         """This rank's ``part`` of step ``step``'s global batch; draw everything random
         for the whole global batch from ``generator`` first, then slice."""
 
-    def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
+    def evaluate(self, module: M, step: int, out_dir: Path) -> dict[str, float]:
         """Score ``module`` (the EMA weights) on held-out data; may write files to out_dir."""
 
-    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+    def export(self, module: M) -> dict[str, torch.Tensor]:
         """The tensors of ``model.safetensors`` (what users load) from ``module``."""
 
 
@@ -160,7 +164,7 @@ def _setup_logging(run_dir: Path) -> logging.Handler:
     return handler
 
 
-def train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, Any], *,
+def train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str, Any], *,
           device: torch.device = torch.device("cpu"), force: bool = False, progress: bool = True) -> dict[str, float]:
     """Train ``task`` to ``cfg.steps`` in ``run_dir``, resuming from its last checkpoint.
 
@@ -204,7 +208,7 @@ def lock_run_dir(run_dir: Path) -> DirLock:
         raise InputError(e.strerror) from None
 
 
-def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, Any], device: torch.device,
+def _train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str, Any], device: torch.device,
            d: distributed.Dist, progress: bool) -> dict[str, float]:
     module = task.module.to(device)
     ema = copy.deepcopy(module).requires_grad_(False).eval()
@@ -221,7 +225,7 @@ def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, A
         log.info("%s is already trained to step %d (>= %d)", run_dir, start, cfg.steps)
         return {}
 
-    net = module
+    net: nn.Module = module
     if d.world > 1:
         net = DistributedDataParallel(module, device_ids=[device] if device.type == "cuda" else None)
     per_rank = cfg.batch_size // d.world
@@ -240,6 +244,7 @@ def _train(task: TrainTask, cfg: TrainConfig, run_dir: Path, config: dict[str, A
         )
 
     def record(row: dict[str, Any]) -> None:
+        assert metrics_file is not None  # only rank 0 records
         metrics_file.write(json.dumps(row) + "\n")
         metrics_file.flush()
 

@@ -26,9 +26,11 @@ class Autoencoder(EncoderCodec):
     config_class = AEConfig
     stochastic = True
 
+    _anchor: torch.Tensor  # an empty buffer
+
     def __init__(self, cfg: AEConfig) -> None:
         super().__init__(cfg, cfg.encoder)
-        self.decoder = DecoderUNet(cfg.decoder)
+        self.decoder: DecoderUNet | torch.jit.ScriptModule = DecoderUNet(cfg.decoder)  # see freeze_for_inference
         self.schedule = Schedule(cfg.schedule)
         self.register_buffer("_anchor", torch.zeros(0), persistent=False)  # tracks the device
 

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
 from iwsim.errors import InputError
-from iwsim.models.blocks import ResBlock, group_norm, sinusoidal
+from iwsim.models.blocks import ResBlock, group_norm, sinusoidal, zero_init
 
 
 @dataclass(frozen=True)
@@ -105,8 +106,7 @@ class DecoderUNet(nn.Module):
             self.up.append(blocks)
         self.norm_out = group_norm(c)
         self.conv_out = nn.Conv2d(c, cfg.image_channels, 3, padding=1)
-        nn.init.zeros_(self.conv_out.weight)
-        nn.init.zeros_(self.conv_out.bias)
+        zero_init(self.conv_out)
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """x_t (B, 3, H, W), levels t and s (B,), latent z (B, C, h, w) (any h | H) -> v (B, 3, H, W)."""
@@ -117,13 +117,13 @@ class DecoderUNet(nn.Module):
         skips = []
         for i, (blocks, down) in enumerate(zip(self.down, self.downsample)):
             h = h + self.z_in[i](F.interpolate(z, size=h.shape[-2:], mode="nearest"))
-            for block in blocks:
+            for block in cast(nn.ModuleList, blocks):
                 h = block(h, emb)
                 skips.append(h)
             h = down(h)
         h = self.mid(h, emb)
         for i, blocks in enumerate(self.up):
-            for block in blocks:
+            for block in cast(nn.ModuleList, blocks):
                 h = block(torch.cat([h, skips.pop()], dim=1), emb)
             if i < len(self.up) - 1:  # nearest upsampling; the next block's convs smooth it
                 h = F.interpolate(h, scale_factor=2.0, mode="nearest")

@@ -16,7 +16,8 @@ it trains any codec; checkpoints name the codec's ``kind`` beside its config, an
 
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable
+from collections.abc import Iterator, Mapping
+from typing import Any, Protocol, Self, runtime_checkable
 
 import torch
 from torch import nn
@@ -32,7 +33,10 @@ class Codec(Protocol):
     """Frames (B, 3, H, W) in [-1, 1] <-> latents (B, *latent_shape)."""
 
     kind: str  # the name checkpoints store
-    config_class: type  # of cfg
+
+    @property
+    def config_class(self) -> type: ...  # of cfg
+
     # the config: a dataclass with image_size, train (TrainConfig) and stage 1's fields
     # holdout_every, eval_images, eval_jumps, freeze_encoder, latent_noise, latent_noise_scale
     cfg: Any
@@ -78,7 +82,18 @@ class Codec(Protocol):
         [-1, 1] before fresh training (e.g. a background image); most codecs need nothing."""
         ...
 
-    # and nn.Module's state_dict / load_state_dict / to / eval
+    # and what every codec inherits from nn.Module:
+    def parameters(self, recurse: bool = True) -> Iterator[nn.Parameter]: ...
+
+    def buffers(self, recurse: bool = True) -> Iterator[torch.Tensor]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False) -> Any: ...
+
+    def to(self, *args: Any, **kwargs: Any) -> Self: ...
+
+    def eval(self) -> Self: ...
 
 
 class EncoderCodec(nn.Module):
@@ -88,7 +103,9 @@ class EncoderCodec(nn.Module):
     def __init__(self, cfg: Any, encoder: EncoderConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.encoder = Encoder(encoder)
+        # a TorchScript trace after Autoencoder.freeze_for_inference, without the Encoder's cfg
+        self.encoder: Encoder | torch.jit.ScriptModule = Encoder(encoder)
+        self._encoder_cfg = encoder
 
     @property
     def image_size(self) -> int:
@@ -96,8 +113,8 @@ class EncoderCodec(nn.Module):
 
     @property
     def latent_shape(self) -> tuple[int, int, int]:
-        h = self.cfg.image_size // self.encoder.cfg.downsampling
-        return (self.encoder.cfg.latent_channels, h, h)
+        h = self.cfg.image_size // self._encoder_cfg.downsampling
+        return (self._encoder_cfg.latent_channels, h, h)
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) in [-1, 1] -> latents (B, C, h, w)."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 
@@ -15,10 +15,23 @@ from iwsim.world_model.codec import DEFAULT_KIND, KIND, Codec
 from iwsim.world_model.conv_codec import ConvCodec
 
 WM_KIND = "world_model"  # a world-model checkpoint's kind (iwsim.world_model.model.KIND)
-CODECS: dict[str, type] = {cls.kind: cls for cls in (Autoencoder, ConvCodec)}
 
 
-def codec_class(kind: str) -> type:
+class CodecClass(Protocol):
+    """A codec's class: its name in checkpoints, its config's class, and the codec from a config."""
+
+    kind: str
+
+    @property
+    def config_class(self) -> type: ...
+
+    def __call__(self, cfg: Any) -> Codec: ...
+
+
+CODECS: dict[str, CodecClass] = {cls.kind: cls for cls in (Autoencoder, ConvCodec)}
+
+
+def codec_class(kind: str) -> CodecClass:
     if kind not in CODECS:
         raise InputError(f"unknown codec {kind!r}; expected one of {', '.join(CODECS)}.")
     return CODECS[kind]
@@ -38,9 +51,10 @@ def build_codec(kind: str, config: dict[str, Any]) -> Codec:
     return cls(from_dict(cls.config_class, config))
 
 
-def world_model_codec(config: dict[str, Any]) -> tuple[str, str, dict[str, Any] | None]:
-    """(weights prefix, codec kind, codec config) of a world-model ``config.json``; a
-    checkpoint from before the codec seam holds the consistency autoencoder as ``ae``."""
+def world_model_codec(config: dict[str, Any]) -> tuple[str, Any, Any]:
+    """(weights prefix, codec kind, codec config) of a world-model ``config.json``, the last
+    two as the JSON holds them (unchecked, possibly None); a checkpoint from before the codec
+    seam holds the consistency autoencoder as ``ae``."""
     if "codec" in config:
         part = config["codec"] if isinstance(config["codec"], dict) else {}
         return "codec", part.get("kind"), part.get("config")

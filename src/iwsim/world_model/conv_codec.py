@@ -11,6 +11,7 @@ ambiguous. See :mod:`iwsim.world_model.codec` for the interface.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import torch
 from torch import nn
@@ -72,7 +73,7 @@ class ConvDecoder(nn.Module):
         for i, blocks in enumerate(self.levels):
             if i > 0:
                 h = F.interpolate(h, scale_factor=2.0, mode="nearest")
-            for block in blocks:
+            for block in cast(nn.ModuleList, blocks):
                 h = block(h)
         return self.conv_out(F.silu(self.norm_out(h)))
 
@@ -81,6 +82,8 @@ class ConvCodec(EncoderCodec):
     kind = "conv-ae"
     config_class = ConvCodecConfig
     stochastic = False
+
+    background: torch.Tensor  # buffer (1, 3, H, W)
 
     def __init__(self, cfg: ConvCodecConfig) -> None:
         super().__init__(cfg, cfg.encoder)

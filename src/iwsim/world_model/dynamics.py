@@ -33,7 +33,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from iwsim.errors import InputError
-from iwsim.models.blocks import ResBlock, group_norm, sinusoidal
+from iwsim.models.blocks import ResBlock, group_norm, sinusoidal, zero_init
 
 
 @dataclass(frozen=True)
@@ -66,8 +66,7 @@ class SpatialAttention(nn.Module):
         self.norm = group_norm(channels)
         self.qkv = nn.Conv2d(channels, 3 * channels, 1)
         self.out = nn.Conv2d(channels, channels, 1)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
+        zero_init(self.out)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x (N, c, h, w) -> like x."""
@@ -80,6 +79,9 @@ class SpatialAttention(nn.Module):
 class Dynamics(nn.Module):
     """F(x, context, levels, actions) -> the network output for the new latent (a v- or
     x-prediction, depending on the objective; see :mod:`iwsim.world_model.objectives`)."""
+
+    point_scale: torch.Tensor  # (A,) buffers, with cfg.point_index
+    point_offset: torch.Tensor
 
     def __init__(self, cfg: DynamicsConfig = DynamicsConfig()) -> None:
         super().__init__()
@@ -105,8 +107,7 @@ class Dynamics(nn.Module):
         self.blocks_b = nn.ModuleList(ResBlock(c, c, e) for _ in range(cfg.blocks - half))
         self.norm_out = group_norm(c)
         self.conv_out = nn.Conv2d(c, cfg.latent_channels, 3, padding=1)
-        nn.init.zeros_(self.conv_out.weight)
-        nn.init.zeros_(self.conv_out.bias)
+        zero_init(self.conv_out)
 
     def action_features(self, actions: torch.Tensor) -> list[torch.Tensor]:
         """Per-cell action maps from normalised actions (B, 2, A) (previous, current)."""

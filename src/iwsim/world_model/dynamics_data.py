@@ -198,7 +198,7 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
         for k, i in enumerate(tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress)):
             frames = np.ascontiguousarray(img[i:i + chunk])
             hashes.append(hashlib.blake2b(frames.tobytes(), digest_size=12).hexdigest())
-            if k < len(old) and old[k] in (hashes[-1], "*") and len(cached) >= i + len(frames):
+            if cached is not None and k < len(old) and old[k] in (hashes[-1], "*") and len(cached) >= i + len(frames):
                 out.append(cached[i:i + len(frames)].half())
                 continue
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):

@@ -42,9 +42,11 @@ separates them again, so each rollout keeps its own state between batched steps.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Literal, overload
 
 import numpy as np
 import torch
@@ -129,8 +131,12 @@ class WorldModel(nn.Module):
     (levels up to 100, noise std up to 0.14) would drown the differences that matter.
     """
 
+    action_low: torch.Tensor  # (A,) buffers
+    action_high: torch.Tensor
+    latent_mean: torch.Tensor  # (C, h, w) or (C, 1, 1)
+
     def __init__(self, codec: Codec, dynamics: Dynamics, cfg: DynamicsStageConfig,
-                 action_low: Sequence[float], action_high: Sequence[float],
+                 action_low: Sequence[float] | torch.Tensor, action_high: Sequence[float] | torch.Tensor,
                  latent_mean: torch.Tensor | None = None, latent_scale: float = 1.0) -> None:
         super().__init__()
         if cfg.objective not in OBJECTIVES:
@@ -192,7 +198,8 @@ class WorldModel(nn.Module):
     @property
     def latent_shape(self) -> tuple[int, int, int]:
         """(C, h, w) of one frame's latent."""
-        return tuple(self.codec.latent_shape)
+        c, h, w = self.codec.latent_shape  # three, as __init__ checked
+        return (c, h, w)
 
     @property
     def action_dim(self) -> int:
@@ -297,6 +304,18 @@ class WorldModel(nn.Module):
             z = self.encode(x.flatten(0, 1)).unflatten(0, (b, k))
         return self._reset(z, a, seed, h)
 
+    @overload
+    def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor, *,
+                   latents: Literal[False] = False) -> tuple[StreamState, np.ndarray]: ...
+
+    @overload
+    def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor, *,
+                   latents: Literal[True]) -> tuple[StreamState, torch.Tensor]: ...
+
+    @overload
+    def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor, *,
+                   latents: bool) -> tuple[StreamState, np.ndarray | torch.Tensor]: ...
+
     @torch.inference_mode()
     def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor, *,
                    latents: bool = False) -> tuple[StreamState, np.ndarray | torch.Tensor]:
@@ -309,6 +328,7 @@ class WorldModel(nn.Module):
             state, z, _ = self._step(state, torch.as_tensor(actions, dtype=torch.float32, device=self.device))
             return state, z
         state, _, images = self._step(state, self.normalize_actions(actions, state.batch_size), decode=True)
+        assert images is not None  # decode=True
         return state, to_uint8(images)
 
     def _reset(self, latents: torch.Tensor, actions: torch.Tensor | None, seed: int | Sequence[int],
@@ -319,10 +339,11 @@ class WorldModel(nn.Module):
         episode's start."""
         b, k0 = latents.shape[:2]
         z = self.standardize(latents)
-        if k0 > 1 and actions is None:
-            raise InputError(f"{k0} context frames need the {k0 - 1} actions (B, {k0 - 1}, A) between them.")
-        if k0 > 1 and tuple(actions.shape) != (b, k0 - 1, self.action_dim):
-            raise InputError(f"expected actions ({b}, {k0 - 1}, {self.action_dim}), got {tuple(actions.shape)}.")
+        if k0 > 1:
+            if actions is None:
+                raise InputError(f"{k0} context frames need the {k0 - 1} actions (B, {k0 - 1}, A) between them.")
+            if tuple(actions.shape) != (b, k0 - 1, self.action_dim):
+                raise InputError(f"expected actions ({b}, {k0 - 1}, {self.action_dim}), got {tuple(actions.shape)}.")
         k = self.cfg.dynamics.context
         if k0 < k:
             z = torch.cat([z[:, :1].expand(b, k - k0, *z.shape[2:]), z], 1)
@@ -331,7 +352,11 @@ class WorldModel(nn.Module):
             raise InputError(f"got {len(seeds)} seeds for a batch of {b}.")
         if held is not None and tuple(held.shape) != (b, self.action_dim):
             raise InputError(f"expected held setpoints ({b}, {self.action_dim}), got {tuple(held.shape)}.")
-        action = actions[:, -1] if k0 > 1 else held if held is not None else torch.zeros(b, self.action_dim)
+        if k0 > 1:
+            assert actions is not None  # checked above
+            action = actions[:, -1]
+        else:
+            action = held if held is not None else torch.zeros(b, self.action_dim)
         known = torch.full((b,), k0 > 1, device=self.device)
         return StreamState(z[:, -k:].contiguous(), action.to(self.device), known, known | (held is not None),
                            [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
@@ -354,8 +379,8 @@ class WorldModel(nn.Module):
         images = None
         if decode or self.reencode:  # the decoder draws after the dynamics, from the same generators
             images = self.decode_latents(z, state.generators)
-        if self.reencode:
-            new = self.standardize(self.codec.encode(images.clamp(-1, 1)))
+            if self.reencode:
+                new = self.standardize(self.codec.encode(images.clamp(-1, 1)))
         done = torch.ones_like(state.known)
         return (StreamState(torch.cat([state.context[:, 1:], new[:, None]], 1), actions, done, done, state.generators),
                 z, images)
@@ -419,6 +444,7 @@ class WorldModel(nn.Module):
             for i in tqdm(range(a.shape[1]), desc="rollout", disable=not progress):
                 state, _, images = self._step(state, a[:, i], decode=True)
                 self._state = state
+                assert images is not None  # decode=True
                 out.append(to_uint8(images))
         return np.stack(out, 1) if out else np.zeros((state.batch_size, 0, self.image_size, self.image_size, 3),
                                                      np.uint8)
@@ -431,6 +457,15 @@ class WorldModel(nn.Module):
         frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them
         (``held`` and ``latents``: see :meth:`reset_state`)."""
         self._state = self.reset_state(context, actions, seed, held, latents=latents)
+
+    @overload
+    def step(self, actions: np.ndarray | torch.Tensor, *, latents: Literal[False] = False) -> np.ndarray: ...
+
+    @overload
+    def step(self, actions: np.ndarray | torch.Tensor, *, latents: Literal[True]) -> torch.Tensor: ...
+
+    @overload
+    def step(self, actions: np.ndarray | torch.Tensor, *, latents: bool) -> np.ndarray | torch.Tensor: ...
 
     def step(self, actions: np.ndarray | torch.Tensor, *, latents: bool = False) -> np.ndarray | torch.Tensor:
         """Actions (B, A) in the data's units -> the next frames, uint8 (B, H, W, 3)
@@ -460,7 +495,7 @@ class WorldModel(nn.Module):
         return save_model_dir(Path(path), self.export(), {**(extra or {}), **self.describe()}, force)
 
     @classmethod
-    def load(cls, path: str | Path, device: str | torch.device = "cpu") -> WorldModel:
+    def load(cls, path: str | os.PathLike[str], device: str | torch.device = "cpu") -> WorldModel:
         """From a checkpoint directory (``model.safetensors`` + ``config.json``), e.g. one
         written by ``iwsim train dynamics`` or ``iwsim export-model``. Checkpoints from
         before the codec seam (an ``ae`` config and ``ae.*`` weights: the consistency
@@ -517,7 +552,7 @@ def export_model(run: str | Path, out: str | Path, force: bool = False, decoder:
     checkpoint carries that trust signal instead of the run's."""
     src = resolve_checkpoint(run)
     config = load_json(src / "config.json")
-    provenance = {k: config[k] for k in ("data", "ae_checkpoint", "finetuned_from") if k in config}
+    provenance: dict[str, Any] = {k: config[k] for k in ("data", "ae_checkpoint", "finetuned_from") if k in config}
     wm = WorldModel.load(src)
     if decoder is not None:
         dec_src = resolve_checkpoint(decoder)

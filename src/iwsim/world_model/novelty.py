@@ -32,6 +32,9 @@ class Novelty(nn.Module):
     """The Gaussian of the training inputs: ``mean`` (D,) and ``whiten`` (D, D) with
     whiten @ (x - mean) of unit covariance on the training data."""
 
+    mean: torch.Tensor  # buffers
+    whiten: torch.Tensor
+
     def __init__(self, dim: int) -> None:
         super().__init__()
         self.register_buffer("mean", torch.zeros(dim))

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
 
 import torch
 
@@ -33,6 +34,7 @@ from iwsim.diffusion.schedule import Schedule
 Net = Callable[..., torch.Tensor]
 Model = Callable[..., torch.Tensor]
 ExtraArgs = dict[str, torch.Tensor]
+M = TypeVar("M", bound=Model)  # an objective's model class
 
 
 @dataclass(frozen=True)
@@ -89,15 +91,15 @@ def _regression_sample(model: OnePass, noise: torch.Tensor, steps: int, extra_ar
 
 
 @dataclass(frozen=True)
-class Objective:
+class Objective(Generic[M]):
     """``model(net, schedule)`` wraps the network once; ``loss(model, y0, levels, eps,
     extra_args) -> (error (B, C, h, w), estimate of y0)``; ``sample(model, noise, steps,
     extra_args) -> y`` from clipped Gaussian ``noise`` in ``steps`` of the inference knob
     named ``steps_knob`` (``jumps`` or ``euler_steps``; regression ignores it)."""
 
-    model: Callable[[Net, Schedule], Model]
-    loss: Callable[[Model, torch.Tensor, Levels, torch.Tensor, ExtraArgs], tuple[torch.Tensor, torch.Tensor]]
-    sample: Callable[[Model, torch.Tensor, int, ExtraArgs], torch.Tensor]
+    model: Callable[[Net, Schedule], M]
+    loss: Callable[[M, torch.Tensor, Levels, torch.Tensor, ExtraArgs], tuple[torch.Tensor, torch.Tensor]]
+    sample: Callable[[M, torch.Tensor, int, ExtraArgs], torch.Tensor]
     steps_knob: str
 
 
@@ -105,7 +107,7 @@ def _edm_model(net: Net, schedule: Schedule) -> edm.Denoiser:
     return edm.Denoiser(net)
 
 
-OBJECTIVES: dict[str, Objective] = {
+OBJECTIVES: dict[str, Objective[Any]] = {
     "consistency": Objective(consistency.JumpModel, _consistency_loss, _consistency_sample, "jumps"),
     "edm": Objective(_edm_model, _edm_loss, _edm_sample, "euler_steps"),
     "regression": Objective(OnePass, _regression_loss, _regression_sample, "jumps"),

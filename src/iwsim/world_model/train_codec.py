@@ -55,6 +55,7 @@ class AETrainModule(nn.Module):
         with torch.set_grad_enabled(torch.is_grad_enabled() and not self.codec.cfg.freeze_encoder):
             z = self.codec.encode(batch.x0)
         if batch.z_eps is not None:  # stage 3: render imperfect (noised) latents cleanly
+            assert batch.z_std is not None  # drawn with z_eps
             z = z + batch.z_std.view(-1, 1, 1, 1) * batch.z_eps
         return self.codec.loss(batch.x0, z, batch.noise)
 
@@ -112,8 +113,8 @@ class AETask:
         return AEBatch(x0, noise, z_std[part], z_eps[part]).to(device)
 
     @torch.no_grad()
-    def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
-        codec: Codec = module.codec
+    def evaluate(self, module: AETrainModule, step: int, out_dir: Path) -> dict[str, float]:
+        codec = module.codec
         device = next(codec.parameters()).device
         out: dict[str, float] = {}
         x = to_model(self.eval_frames).to(device)
@@ -131,7 +132,7 @@ class AETask:
         imageio.imwrite(out_dir / f"recon_{step:08d}.png", grid)
         return out
 
-    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+    def export(self, module: AETrainModule) -> dict[str, torch.Tensor]:
         return module.codec.state_dict()
 
 
@@ -157,7 +158,7 @@ class DecoderFinetuneTask(AETask):
         return WorldModel(codec, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean,
                           wm.latent_scale)
 
-    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+    def export(self, module: AETrainModule) -> dict[str, torch.Tensor]:
         return self.world_model(module.codec).export()
 
 

@@ -151,6 +151,9 @@ class DynamicsTask:
             longest = max(n for _, n in wm.cfg.unroll) if wm.cfg.unroll else 1
             cfg = replace(wm.cfg, train=cfg.train, unroll=((0, longest),))  # its objective, noise, ...
             ae_path = init
+        if ae_path is None:
+            raise InputError("a dynamics task needs a stage-1 checkpoint (ae_path) or a world model to fine-tune "
+                             "(init).")
         self.data = DynamicsData(cfg, data, ae_path, device, progress, latent_cache, init=wm)
         self.cfg = cfg = self.data.cfg
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
@@ -174,7 +177,7 @@ class DynamicsTask:
         wm.task = self.task
         return wm
 
-    def evaluate(self, module: nn.Module, step: int, out_dir: Path) -> dict[str, float]:
+    def evaluate(self, module: DynamicsTrainModule, step: int, out_dir: Path) -> dict[str, float]:
         """Open-loop rollouts of held-out episodes (:func:`evaluate_open_loop`); a strip of
         the first is written to ``out_dir/rollout_<step>.png``."""
         wm = self.world_model(module.dynamics).eval()
@@ -188,7 +191,7 @@ class DynamicsTask:
         return {**wm.describe(), "data": str(data), "ae_checkpoint": str(self.data.ae_path),
                 "init": self.init, "split": self.data.split()}
 
-    def export(self, module: nn.Module) -> dict[str, torch.Tensor]:
+    def export(self, module: DynamicsTrainModule) -> dict[str, torch.Tensor]:
         return self.world_model(module.dynamics).export()
 
 

@@ -52,7 +52,7 @@ def _open(src: Path) -> tuple[zarr.Group, dict[str, zarr.Array], np.ndarray]:
         ends_arr = root.get("meta/episode_ends")
         if not isinstance(ends_arr, zarr.Array):
             raise FormatError(f"{where(src, 'meta/episode_ends')}: missing.")
-        raw = ends_arr[:]
+        raw = np.asarray(ends_arr[:])
     except FormatError:
         raise
     except _READ_ERRORS as e:
@@ -118,7 +118,7 @@ def _episodes(src: Path, arrays: dict[str, zarr.Array], keys: dict[str, str], en
         for name, key in keys.items():
             at = where(src, f"data/{key}", i)
             try:
-                value = arrays[key][start:stop]
+                value = np.asarray(arrays[key][start:stop])
             except _READ_ERRORS as e:
                 raise FormatError(f"{at}: unreadable ({reason(e)}).") from None
             ep[name] = _frames(value, at) if name == "img" else value
@@ -159,8 +159,8 @@ def read_zarr(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tup
         "camera": img,
         "image_size": int(h) if h == w else [int(h), int(w)],
     })
-    seeds = source.get("seeds") if isinstance(source.get("seeds"), list) else []
-    return attrs, len(ends), _episodes(src, arrays, keys, ends, seeds)
+    seeds = source.get("seeds")
+    return attrs, len(ends), _episodes(src, arrays, keys, ends, seeds if isinstance(seeds, list) else [])
 
 
 def _json_ok(value: Any) -> bool:
@@ -187,7 +187,9 @@ def validate_store(path: Path) -> list[str]:
     try:
         store = EpisodeStore.open(path, "r")
         root = zarr.open_group(path, mode="r")
-        raw = np.asarray(root["meta/episode_ends"][:])
+        ends_arr = root["meta/episode_ends"]
+        assert isinstance(ends_arr, zarr.Array)  # EpisodeStore.open checked it
+        raw = np.asarray(ends_arr[:])
     except StoreError as e:
         return [str(e)]
     except _READ_ERRORS as e:
@@ -222,18 +224,18 @@ def validate_store(path: Path) -> list[str]:
     for key in store.keys:
         arr = store.array(key)
         step = arr.chunks[0] if arr.ndim else 1
-        for a in range(0, n, step):
-            b = min(n, a + step)
+        for lo in range(0, n, step):
+            hi = min(n, lo + step)
             try:
-                block = arr[a:b]
+                block = arr[lo:hi]
             except _READ_ERRORS as e:
-                problems.append(f"{where(path, f'data/{key}')} ({_episodes_of(ends, a, b)}): "
-                                f"frames {a}..{b - 1} unreadable ({reason(e)}).")
+                problems.append(f"{where(path, f'data/{key}')} ({_episodes_of(ends, lo, hi)}): "
+                                f"frames {lo}..{hi - 1} unreadable ({reason(e)}).")
                 continue
             if key in ("state", "action") and np.issubdtype(block.dtype, np.floating):
                 rows = np.flatnonzero(~np.isfinite(block.reshape(len(block), -1)).all(axis=1))
                 if len(rows):
-                    first = a + int(rows[0])
+                    first = lo + int(rows[0])
                     problems.append(f"{where(path, f'data/{key}')} ({_episodes_of(ends, first, first + 1)}): "
                                     "holds non-finite values.")
     attrs = store.attrs
@@ -248,9 +250,9 @@ def validate_store(path: Path) -> list[str]:
         problems.append(f"{path}: attribute 'image_size' is missing.")
     # Open checked there are enough seeds; one more is an interrupted append's leftover.
     seeds = root.attrs.get("seeds")
-    e = store.n_episodes
-    if isinstance(seeds, list) and len(seeds) > e + 1:
-        problems.append(f"{path}: attribute 'seeds' lists {len(seeds)} seeds for {e} episodes.")
+    n_episodes = store.n_episodes
+    if isinstance(seeds, list) and len(seeds) > n_episodes + 1:
+        problems.append(f"{path}: attribute 'seeds' lists {len(seeds)} seeds for {n_episodes} episodes.")
     bad = [i for i, s in enumerate(store.seeds) if s is not None and (not isinstance(s, int) or isinstance(s, bool))]
     if bad:
         problems.append(f"{where(path, episode=bad[0])}: seed {store.seeds[bad[0]]!r} is not an integer or null.")

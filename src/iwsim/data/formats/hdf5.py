@@ -424,7 +424,8 @@ def read_robomimic(src: Path, *, camera: str | None) -> tuple[dict, int, Iterato
             raise FormatError(f"{src}: unreadable ({reason(e)}).") from None
     if len(shape) != 4:
         raise FormatError(f"{where(src, f'data/{demos[0]}/obs/{cam}', 0)}: expected (T, H, W, 3) frames, got {shape}.")
-    kwargs = env_args.get("env_kwargs") if isinstance(env_args.get("env_kwargs"), dict) else {}
+    env_kwargs = env_args.get("env_kwargs")
+    kwargs = env_kwargs if isinstance(env_kwargs, dict) else {}
     attrs: dict[str, Any] = {
         "task": str(env_args.get("env_name") or src.stem),
         "fps": positive_int(kwargs.get("control_freq")) or ROBOMIMIC_FPS,

@@ -166,7 +166,7 @@ def feature_stats(x: np.ndarray, image: bool = False) -> dict[str, np.ndarray]:
         if len(x) > STATS_FRAMES:
             x = x[np.round(np.linspace(0, len(x) - 1, STATS_FRAMES)).astype(int)]
         v = x.reshape(-1, 3).astype(np.float64) / 255.0
-        shape = (3, 1, 1)
+        shape: tuple[int, ...] = (3, 1, 1)
     else:
         v = x.reshape(len(x), -1).astype(np.float64)
         shape = (v.shape[1],)
@@ -295,6 +295,7 @@ def export_v3(store: EpisodeStore, out: Path, *, fps: int, task: str, progress: 
         if data_bytes > DATA_FILE_MB * 2**20:
             flush_data()
     flush_data()
+    assert video is not None  # the store holds episodes (frame_budget divides by their count)
     video.close()
 
     path = out / V3_EPISODES.format(chunk_index=0, file_index=0)
@@ -593,8 +594,9 @@ def validate_lerobot(path: Path) -> tuple[str, list[str]]:
     if not (isinstance(version, str) and version.startswith(("v3", "v2."))):
         return kind, [f"{where(path / 'meta/info.json', 'codebase_version')}: {version!r}, expected v3.0 or v2.x."]
     info_path = path / "meta/info.json"
-    required = {"fps": (int, float), "features": dict, "total_episodes": int, "total_frames": int,
-                "total_tasks": int, "chunks_size": int, "splits": dict, "data_path": str}
+    required: dict[str, type | tuple[type, ...]] = {
+        "fps": (int, float), "features": dict, "total_episodes": int, "total_frames": int, "total_tasks": int,
+        "chunks_size": int, "splits": dict, "data_path": str}
     if v3:
         required |= {"data_files_size_in_mb": (int, float), "video_files_size_in_mb": (int, float)}
     else:

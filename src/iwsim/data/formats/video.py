@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from fractions import Fraction
 from pathlib import Path
+from typing import Final
 
 import numpy as np
 
 from iwsim.data.formats.common import FormatError
 
-CODEC = "libx264"  # written as H.264; info.json names it "h264" as LeRobot's readers report it
+CODEC: Final = "libx264"  # written as H.264; info.json names it "h264" as LeRobot's readers report it
 CODEC_NAME = "h264"
 PIX_FMT = "yuv420p"
 OPTIONS = {"crf": "18", "g": "2"}  # near-lossless; a key frame every 2 frames for fast seeking, as LeRobot

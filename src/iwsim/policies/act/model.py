@@ -125,6 +125,7 @@ class TemporalEnsemble:
         elif self.sums.shape[0] != b or self.sums.shape[2] != a:
             raise InputError(f"the ensemble holds {self.sums.shape[0]} episodes of {self.sums.shape[2]}-D actions, "
                              f"got a chunk {tuple(chunk.shape)}; call reset() when episodes start.")
+        assert self.weights is not None and self.counts is not None  # set with sums
         w = torch.exp(-self.m * self.counts.to(chunk.dtype))  # (k,): w_i, i = predictions already made
         self.sums = self.sums + w[:, None] * chunk
         self.weights = self.weights + w

@@ -10,6 +10,9 @@ To = 2, Tp = 16, Ta = 8). The trainer keeps EMA weights, which are what gets exp
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import cast
+
 import numpy as np
 import torch
 from torch import nn
@@ -72,19 +75,21 @@ class ConditionalUnet1D(nn.Module):
     def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         g = torch.cat([self.step_mlp(sinusoidal(t, self.step_dim, sin_first=True, include_max=True)), cond], -1)
         skips = []
-        for res1, res2, down in self.down:
+        for res1, res2, down in cast(Iterable[nn.ModuleList], self.down):
             x = res2(res1(x, g), g)
             skips.append(x)
             x = down(x)
         for res in self.mid:
             x = res(x, g)
-        for res1, res2, up in self.up:
+        for res1, res2, up in cast(Iterable[nn.ModuleList], self.up):
             x = up(res2(res1(torch.cat([x, skips.pop()], 1), g), g))
         return self.out(x)
 
 
 class DiffusionPolicy(Policy):
     """See the module docstring; the execution contract is in :mod:`iwsim.policies.common`."""
+
+    alphas_cumprod: torch.Tensor  # buffer (train_steps,)
 
     def __init__(self, cfg: DiffusionConfig, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__(cfg, action_norm, state_norm)
