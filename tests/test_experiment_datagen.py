@@ -333,3 +333,21 @@ def test_goal_turned_recording_starts_from_the_turned_block_and_keeps_to_its_sto
         DemoRecipe(start="turned")
     with pytest.raises(ValueError, match="the world model starts from random ones"):
         record("world-model", tmp_path / "wm.zarr", wm_path, start="goal-turned")
+
+
+
+def test_the_command_line_offers_each_studys_presets():
+    """The parser spells the studies' preset names (importing a study would cost every
+    ``iwsim`` command torch's import); they stay the studies' own."""
+    import argparse
+
+    from iwsim.cli import build_parser
+    from iwsim.experiments import policy_eval
+
+    def subcommand(parser: argparse.ArgumentParser, name: str) -> argparse.ArgumentParser:
+        return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+
+    experiment = subcommand(build_parser(), "experiment")
+    for study, presets in (("datagen", PRESETS), ("policy-eval", policy_eval.PRESETS)):
+        preset = next(a for a in subcommand(experiment, study)._actions if a.dest == "preset")
+        assert tuple(preset.choices) == tuple(presets), study

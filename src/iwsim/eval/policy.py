@@ -148,7 +148,7 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
 RECORD_BATCH = 16  # episodes a learned policy records in lockstep (one batched forward pass per query)
 
 
-def recorder(policy: nn.Module, task: str, steps: int, *, image_size: int = 64,
+def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int = 64,
              batch: int = RECORD_BATCH) -> Recorder:
     """``policy``'s episodes in MuJoCo, as :func:`iwsim.data.collect.collect` records them
     (``iwsim collect --policy RUN``): the seeds ``batch`` at a time in lockstep, each batch's
