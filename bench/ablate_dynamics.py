@@ -21,7 +21,6 @@ import argparse
 import dataclasses
 import json
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -38,7 +37,8 @@ from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
 from iwsim.envs import pixels
 from iwsim.envs.pusht import VIEW_HALF
-from iwsim.errors import reporting_errors
+from iwsim.errors import InputError, reporting_errors
+from iwsim.eval.records import command_line, with_command
 from iwsim.metrics import psnr
 from iwsim.world_model.presets import DYNAMICS_PRESETS, variant
 from iwsim.world_model.train_dynamics import train_dynamics
@@ -233,9 +233,12 @@ def evaluate(args: argparse.Namespace) -> None:
     horizon = min(args.horizon, ep.length - 1)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    command = command_line(__file__)
     results, curves, strips = {}, {}, {}
     for item in args.models.split(","):
         name, path = item.split("=", 1)
+        if name == "command":
+            raise InputError("a model may not be named 'command' (results.json's first key is the command).")
         path, _, option = path.partition("+")
         wm = WorldModel.load(resolve_checkpoint(path))
         wm.reencode = option == "reencode"
@@ -246,7 +249,7 @@ def evaluate(args: argparse.Namespace) -> None:
                  reencode=wm.reencode, seconds=time.time() - t0)
         results[name], curves[name], strips[name] = r, curve, u8[0, strip_steps(horizon)]
         logging.info("%s: %s", name, {k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    (out / "results.json").write_text(json.dumps(with_command(command, results), indent=1))
     fig, ax = plt.subplots(figsize=(7, 4))
     steps = np.arange(1, horizon + 1)
     for name, (curve, _) in curves.items():
@@ -260,7 +263,7 @@ def evaluate(args: argparse.Namespace) -> None:
                                                                             for s in strips.values()]
     import imageio.v2 as imageio
     imageio.imwrite(out / "frames.png", np.kron(np.concatenate(rows, 0), np.ones((2, 2, 1), np.uint8)))
-    lines = [f"\n## {time.strftime('%Y-%m-%d %H:%M')} `{' '.join(['python', *sys.argv])}`\n",
+    lines = [f"\n## {time.strftime('%Y-%m-%d %H:%M')} `{command}`\n",
              f"{ep.n} held-out episodes of `{args.data}`, horizon {horizon}; baselines in brackets "
              f"(copy-previous latent, repeat the first frame). Frames: `{out / 'frames.png'}` (truth first row, "
              f"steps {', '.join(str(c + 1) for c in cols)}).\n",

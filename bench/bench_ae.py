@@ -25,6 +25,7 @@ from iwsim.data.frames import FrameSource, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
 from iwsim.errors import reporting_errors
 from iwsim.eval.profiling import latency_ms
+from iwsim.eval.records import command_line, with_command
 from iwsim.metrics import psnr, ssim
 from iwsim.world_model.codec import Codec, reconstruct
 from iwsim.world_model.codecs import load_codec
@@ -116,9 +117,12 @@ def main() -> None:
         "train_minutes": train_rows[-1]["elapsed_s"] / 60,
         "first_eval_meeting_target": reached and {"step": reached["step"], "minutes": reached["elapsed_s"] / 60},
     }
-    (args.out / "ae.json").write_text(json.dumps(result, indent=2) + "\n")
+    command = command_line(__file__)
+    (args.out / "ae.json").write_text(json.dumps(with_command(command, result), indent=2) + "\n")
     lines = [
         "# Stage 1 benchmark (`bench/bench_ae.py`)",
+        "",
+        f"`{command}`",
         "",
         f"Run `{args.run}` ({result['machine']}), checkpoint {ckpt.name}, trained "
         f"{result['train_minutes']:.1f} min at a median {result['train_images_per_s_median']:.0f} images/s.",

@@ -34,6 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
 from iwsim.errors import reporting_errors  # noqa: E402
+from iwsim.eval.records import command_line  # noqa: E402
 from iwsim.play.protocol import unpack_frame  # noqa: E402
 
 SERVER_LOG = REPO / "outputs" / "bench_play_server.log"  # the last server's log
@@ -211,10 +212,10 @@ def run_browser(checkpoint: str, hz: float, warmup: float, seconds: float, out: 
             "step_ms_mean": None}
 
 
-def markdown(rows: list[dict], meta: dict) -> str:
+def markdown(rows: list[dict], meta: dict, command: str) -> str:
     lines = [
         "# iwsim play: serving speed", "",
-        f"`{meta['command']}`", "",
+        f"`{command}`", "",
         f"Machine: {meta['cpus']} CPU cores, no GPU; model {meta['checkpoint']} (64x64). Server and clients on "
         "the same machine. Latency: from sending a key press's first action to the first frame that "
         "acknowledges it (chromium rows: from the key event, as the page shows it).", "",
@@ -277,10 +278,10 @@ def main() -> None:
         print(f"chromium at {hz} Hz ...", flush=True)
         rows.append(run_browser(args.checkpoint, float(hz), args.warmup, args.seconds, out))
         print(f"  {rows[-1]['fps_min']:.1f} frames/s, latency {rows[-1]['latency_ms']}", flush=True)
-    meta = {"command": "MUJOCO_GL=egl .venv/bin/python bench/bench_play.py " + " ".join(sys.argv[1:]),
-            "cpus": os.cpu_count(), "checkpoint": args.checkpoint}
-    (out / "results.json").write_text(json.dumps({"meta": meta, "runs": rows}, indent=1))
-    (out / "results.md").write_text(markdown(rows, meta))
+    command = command_line(__file__)
+    meta = {"cpus": os.cpu_count(), "checkpoint": args.checkpoint}
+    (out / "results.json").write_text(json.dumps({"command": command, "meta": meta, "runs": rows}, indent=1))
+    (out / "results.md").write_text(markdown(rows, meta, command))
     plot(rows, out / "latency.png")
     print((out / "results.md").read_text())
 

@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_play import REPO, Server, client, summary  # noqa: E402
 
 from iwsim.errors import reporting_errors  # noqa: E402
+from iwsim.eval.records import command_line  # noqa: E402
 
 SERVER_LOG = REPO / "outputs" / "bench_play_soak_server.log"
 FLOOD_MESSAGES = [  # sent after each valid action
@@ -196,8 +197,8 @@ def main() -> None:
     start = t0 + args.warmup
     mem = np.array([m for _, m in memory])
     result = {
-        "meta": {"command": "MUJOCO_GL=egl .venv/bin/python bench/bench_play_soak.py " + " ".join(sys.argv[1:]),
-                 "cpus": os.cpu_count(), "checkpoint": args.checkpoint, "clients": args.clients, "hz": args.hz,
+        "command": command_line(__file__),
+        "meta": {"cpus": os.cpu_count(), "checkpoint": args.checkpoint, "clients": args.clients, "hz": args.hz,
                  "seconds": args.seconds},
         "fps_per_client": fps, "fps_min": min(fps),
         "fps_per_minute": [per_minute(o["frame_times"], start) for o in outs],
@@ -211,7 +212,7 @@ def main() -> None:
     (out / "results.json").write_text(json.dumps(result, indent=1))
     lat_s = result["latency_ms"]
     md = "\n".join([
-        "# iwsim play: soak", "", f"`{result['meta']['command']}`", "",
+        "# iwsim play: soak", "", f"`{result['command']}`", "",
         f"Machine: {os.cpu_count()} CPU cores; model {args.checkpoint}; {args.clients} well-behaved clients and two "
         f"flood clients (own processes, lowest priority); the server steps at {args.hz:g} Hz; measured for "
         f"{args.seconds:g} s (after {args.warmup:g} s warm-up).", "",

@@ -36,6 +36,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 from iwsim.errors import reporting_errors  # noqa: E402
 from iwsim.eval.policy import evaluate, summarize  # noqa: E402
+from iwsim.eval.records import command_line  # noqa: E402
 from iwsim.policies.factory import load_policy  # noqa: E402
 from iwsim.tasks import get_task  # noqa: E402
 
@@ -115,8 +116,8 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     seeds = [args.seed + i for i in range(args.episodes)]
-    results: dict = {"command": "MUJOCO_GL=egl .venv/bin/python bench/bench_policies.py " + " ".join(sys.argv[1:]),
-                     "episodes": args.episodes, "steps": args.steps, "budget_min": args.budget_min}
+    command = command_line(__file__)
+    results: dict = {"command": command, "episodes": args.episodes, "steps": args.steps, "budget_min": args.budget_min}
     print("expert ...", flush=True)
     results["expert"] = expert(seeds, args.steps)
     print(f"  mean max IoU {results['expert']['mean_max_iou']:.3f}", flush=True)
@@ -132,7 +133,7 @@ def main() -> None:
         print(f"{name} ({ckpt}) in MuJoCo ...", flush=True)
         r = evaluate(policy, "pusht", episodes=args.episodes, seed=args.seed, steps=args.steps,
                      image_size=policy.image_size, out=out / name, videos=4, progress=False,
-                     meta={"checkpoint": str(ckpt)})
+                     meta={"checkpoint": str(ckpt)}, command=command)
         strip(out / name)
         step = selection["step"]
         r.update(steps=step, train_minutes=selection["candidates"][step]["train_minutes"], selection=selection)
@@ -146,7 +147,7 @@ def main() -> None:
     print(f"{name} inside the world model ({args.episodes} in parallel, {args.wm_steps} steps) ...", flush=True)
     r = evaluate(load_policy(chosen[name]), "world-model", episodes=args.episodes, seed=args.seed,
                  steps=args.wm_steps, world_model=WorldModel.load(args.world_model), out=out / f"{name}_world_model",
-                 videos=4, progress=False)
+                 videos=4, progress=False, command=command)
     strip(out / f"{name}_world_model")
     results["world_model"] = {"policy": name, "episodes": args.episodes, "steps": args.wm_steps,
                               "mean_max_iou": r["mean_max_iou"], "success_rate": r["success_rate"],

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from iwsim.errors import reporting_errors
+from iwsim.eval.records import command_line, with_command
 
 RESULTS = Path(__file__).parent / "results"
 EVAL_SEEDS = range(100000, 100050)  # Diffusion Policy's evaluation-seed convention
@@ -149,11 +150,14 @@ def main() -> None:
     plot(expert, args.out / "task_expert.png")
     results["expert"] = {k: {kk: vv for kk, vv in v.items() if not kk.startswith("_")} for k, v in expert.items()}
     results["expert_setup"] = {"seeds": [seeds.start, seeds.stop - 1], "steps": steps}
-    (args.out / "task.json").write_text(json.dumps(results, indent=2) + "\n")
+    command = command_line(__file__)
+    (args.out / "task.json").write_text(json.dumps(with_command(command, results), indent=2) + "\n")
 
     s, e, c = results["scorer"], results["expert"], results["collect"]
     lines = [
         "# Task benchmark (`bench/bench_task.py`)",
+        "",
+        f"`{command}`",
         "",
         f"Machine: {results['machine']}. {'QUICK RUN, not the recorded numbers.' if args.quick else ''}",
         "",

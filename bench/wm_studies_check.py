@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -34,6 +33,7 @@ from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout
 from iwsim.eval.ranking import agreement
+from iwsim.eval.records import command_line
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.datagen import DatagenConfig
 from iwsim.experiments.demos import record_demos
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     real = evaluate_policies(policies, "pusht", seeds=seeds, steps=args.steps, world_model=None,
                              out=work / "eval", progress=False)
     names = sorted(policies, key=lambda n: -real[n]["mean_max_iou"])
-    report: dict = {"seeds": [seeds[0], seeds[-1]], "steps": args.steps,
+    report: dict = {"command": command_line(__file__, argv), "seeds": [seeds[0], seeds[-1]], "steps": args.steps,
                     "mujoco": {n: real[n]["mean_max_iou"] for n in names}, "models": {}}
     if not args.skip_teleop:
         report["mujoco_teleop"] = teleop("mujoco", None, work, args.candidates, TELEOP_SEED, args.steps)
@@ -120,14 +120,14 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     strip(out / "expert_strip.png", [*models.values(), None], args.strip_seed)
     (out / "results.json").write_text(json.dumps(report, indent=2))
-    (out / "results.md").write_text(markdown(report, " ".join(["python", *sys.argv])))
+    (out / "results.md").write_text(markdown(report))
     print((out / "results.md").read_text())
     return 0
 
 
-def markdown(r: dict, command: str) -> str:
+def markdown(r: dict) -> str:
     ms = list(r["models"])
-    lines = ["# Can the world model carry the studies? (`bench/wm_studies_check.py`)", "", f"`{command}`", "",
+    lines = ["# Can the world model carry the studies? (`bench/wm_studies_check.py`)", "", f"`{r['command']}`", "",
              f"Scripted policies from MuJoCo seeds {r['seeds'][0]}-{r['seeds'][1]}, {r['steps']} steps; "
              "mean max IoU (pixel IoU in the model).", "",
              "| policy | MuJoCo | " + " | ".join(ms) + " |", "|---|---|" + "---|" * len(ms)]

@@ -42,7 +42,6 @@ in the order of the table, then MuJoCo.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -58,6 +57,7 @@ from iwsim.envs import pixels
 from iwsim.errors import reporting_errors
 from iwsim.eval.profiling import speed, stability
 from iwsim.eval.ranking import agreement
+from iwsim.eval.records import command_line, with_command
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.demos import PUSHT
 from iwsim.experiments.policy_eval import PolicyEvalConfig
@@ -380,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report_path = out / "results.json"
     report = load_json(report_path) if report_path.is_file() else {"models": {}}
-    command = " ".join(["python", *sys.argv])
+    command = command_line(__file__, argv)
     report["commands"] = [c for c in report.get("commands", []) if c != command] + [command]
     for other in map(load_json, args.merge):  # rows measured side by side into other reports
         report["commands"] = [c for c in report["commands"] if c not in other["commands"]] + other["commands"]
@@ -391,6 +391,12 @@ def main(argv: list[str] | None = None) -> int:
         report.update({k: other[k] for k in ("family_seeds", "idle_episodes", "steps") if k in other})
     mujoco = report.setdefault("mujoco", {})
     goals = None
+
+    def save() -> None:
+        """The report so far, its first key the commands that made it, in the order they were run."""
+        write_json_atomic(report_path, with_command(" && ".join(report["commands"]), report, sort_keys=True),
+                          sort_keys=False)
+
     if "core" in parts:
         mujoco.update(ranking=ranking("mujoco", None, work, args.episodes, args.steps),
                       teleop=teleop("mujoco", None, work, args.candidates, TELEOP_SEED, args.steps))
@@ -420,7 +426,7 @@ def main(argv: list[str] | None = None) -> int:
             r["idle"] = fam.idle(ckpt, work, args.idle_episodes)
             print(f"{name}: idle block kept {r['idle']['kept']:.0%}", flush=True)
         report["models"][name] = r
-        write_json_atomic(report_path, report)
+        save()
     for pair in args.trust_pairs:
         a, sep, b = pair.partition("=")
         rows = [report["models"].get(n, {}).get("generalisation") for n in (a, b)]
@@ -428,7 +434,7 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--trust-pairs takes MODEL=PARTNER of models with the families part, got {pair!r}")
         report.setdefault("trust_pairs", {})[pair] = fam.ensemble_trust(mujoco["families"], rows[0]["scores"],
                                                                          rows[1]["scores"])
-        write_json_atomic(report_path, report)
+        save()
     if args.curve:
         curve = [n.strip() for n in args.curve.split(",")]
         missing = [n for n in curve if "t_found" not in report["models"].get(n, {})]

@@ -3,6 +3,7 @@ weights and without weights, the report, and a tiny end-to-end ``iwsim bench``."
 
 import json
 import math
+import shlex
 
 import numpy as np
 import pytest
@@ -140,6 +141,8 @@ def test_bench_cli_end_to_end(play_store, tmp_path, capsys):
     assert str(out / "results.md") in capsys.readouterr().out
     r = json.loads((out / "results.json").read_text())
     assert list(r["models"]) == ["ours", "deterministic", "diffusion"] and r["steps"] == 8
+    assert next(iter(r)) == "command" and r["command"] == shlex.join(["iwsim", *args])
+    assert (out / "results.md").read_text().split("\n")[2] == f"`{r['command']}`"
     for name, entry in r["models"].items():
         acc = entry["accuracy"]
         assert set(acc) == {"mse", "psnr", "ssim", "uiqi", "iou_err"}, name

@@ -85,6 +85,7 @@ def test_tiny_study_end_to_end_and_resumed(inputs, tmp_path, capsys, caplog):
     assert report["agreement"]["success_rate"]["pearson"] is None
     md = (out / "results.md").read_text()
     assert report["command"] in md and "iwsim experiment policy-eval --preset tiny" in report["command"]
+    assert next(iter(report)) == "command"
     assert all(f"| {n} |" in md for n in names) and "undefined" in md and "Within each group" in md
     assert (out / "scatter.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

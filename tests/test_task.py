@@ -243,6 +243,7 @@ def test_play_records_and_exports_and_eval_reports_no_scorer(point_model, tmp_pa
     assert result["scorer"] is None and result["mean_max_iou"] is None and result["success_rate"] is None
     assert result["task"] == "point" and [e["seed"] for e in result["episodes"]] == [100000, 100001]
     assert (out / "episode_100000.mp4").stat().st_size > 0 and not (out / "iou.json").exists()
+    assert next(iter(result)) == "command" and result["command"].startswith("iwsim eval policy --checkpoint")
 
 
 def test_play_cli_refuses_bad_bindings_in_one_line(point_model, tmp_path, capsys):

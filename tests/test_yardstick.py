@@ -32,6 +32,8 @@ def test_yardstick_runs_on_a_tiny_model(tmp_path):
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     r = json.loads((out / "results.json").read_text())
+    assert next(iter(r)) == "command" and r["command"] == r["commands"][0] and r["command"].startswith(
+        "python bench/yardstick.py --models tiny=")  # relative to the project, not this machine's path
     m = r["models"]["tiny"]
     for key in ("t_found", "pusher_visible", "teleop_rate", "spread", "stable_t"):
         assert 0 <= m[key] <= 1, key

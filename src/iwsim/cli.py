@@ -288,6 +288,7 @@ def _leaf_parsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentPars
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``iwsim`` console script; returns the exit status."""
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # what a report records of its command
     rank = int(os.environ.get("RANK", "0"))  # under torchrun only rank 0 logs
     logging.basicConfig(level=logging.INFO if rank == 0 else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -541,6 +542,7 @@ def _train_policy(args: argparse.Namespace) -> int:
 
 def _eval_policy(args: argparse.Namespace) -> int:
     from iwsim.eval.policy import check_args, evaluate
+    from iwsim.eval.records import command_line
     from iwsim.policies.factory import load_policy
     from iwsim.training.trainer import resolve_device
 
@@ -559,7 +561,8 @@ def _eval_policy(args: argparse.Namespace) -> int:
                       image_size=policy.image_size, out=args.out, videos=args.videos, progress=not args.no_progress,
                       meta={"checkpoint": str(args.checkpoint), "n_action_steps": policy.cfg.n_action_steps,
                             "world_model": args.world_model if args.env == "world-model" else None,
-                            "trust_model": args.trust_model}, partner=partner)
+                            "trust_model": args.trust_model}, partner=partner,
+                      command=command_line("iwsim", args.argv))
     if result["scorer"] is None:
         print(f"{args.env}: no scorer (task {result['task']!r} has no pixel scorer): {args.episodes} episodes of "
               f"{args.steps} steps without a score; {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
@@ -647,6 +650,7 @@ def _bench(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from iwsim.eval.benchmark import run_benchmark
+    from iwsim.eval.records import command_line
     from iwsim.training.trainer import resolve_device
 
     models = {args.name: args.checkpoint}
@@ -667,7 +671,7 @@ def _bench(args: argparse.Namespace) -> int:
                   stability_steps=args.stability_steps, stability_every=args.stability_every,
                   speed_batch=args.speed_batch, speed_calls=args.speed_calls, seed=args.seed,
                   weights=Path(args.weights) if args.weights else None, device=resolve_device(args.device),
-                  progress=not args.no_progress)
+                  progress=not args.no_progress, command=command_line("iwsim", args.argv))
     print(Path(args.out) / "results.md")
     return 0
 

@@ -60,9 +60,11 @@ def _data_of(path: Path) -> str | None:
 def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Path | None = None, *,
                   episodes: int = 20, steps: int = 192, stability_steps: int = 9000, stability_every: int = 1,
                   speed_batch: int = 64, speed_calls: int = 100, seed: int = 0, weights: Path | None = None,
-                  device: torch.device | str = "cpu", progress: bool = True) -> dict:
+                  device: torch.device | str = "cpu", progress: bool = True, command: str | None = None) -> dict:
     """Benchmark ``models`` (name -> world-model checkpoint; the first is "ours") into
-    ``out``: results.json, results.md, curves.png, frames.png, stability.png."""
+    ``out``: results.json, results.md, curves.png, frames.png, stability.png; both reports
+    begin with ``command`` when given (the command line that ran this, from
+    :func:`iwsim.eval.records.command_line`)."""
     if not models:
         raise InputError("no model to benchmark.")
     paths = {name: resolve_checkpoint(p) for name, p in models.items()}
@@ -92,7 +94,8 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
     for k, why in nets.missing.items():
         log.warning("%s: %s (set %s to a directory holding it)", k.upper(), why, feats.WEIGHTS_ENV)
 
-    result: dict = {"machine": f"{platform.machine()}, {torch.get_num_threads()} threads", "data": str(data),
+    result: dict = {} if command is None else {"command": command}
+    result |= {"machine": f"{platform.machine()}, {torch.get_num_threads()} threads", "data": str(data),
                     "episodes": chosen, "steps": steps, "seed": seed, "ours": next(iter(models)),
                     "unavailable": nets.missing, "models": {}}
     per_step: dict[str, dict[str, np.ndarray]] = {}

@@ -245,9 +245,11 @@ def disagreement(scores: np.ndarray, partner_scores: np.ndarray) -> dict[str, An
 
 def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
              image_size: int = 64, out: str | Path | None = None, videos: int = 4, progress: bool = True,
-             meta: dict[str, Any] | None = None, partner: Any = None) -> dict[str, Any]:
+             meta: dict[str, Any] | None = None, partner: Any = None, command: str | None = None) -> dict[str, Any]:
     """Evaluate ``policy`` on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``,
-    write ``results.json`` and videos of the first ``videos`` episodes. With ``partner``
+    write ``results.json`` (and ``iou.json``, each step's IoU) and videos of the first
+    ``videos`` episodes; with ``command`` too (the command line that ran this, from
+    :func:`iwsim.eval.records.command_line`), both JSON files begin with it. With ``partner``
     (a second world model, for ``env="world-model"``), the policy also runs in it from the
     same seeds and the result gains ``disagreement`` (:func:`disagreement`)."""
     check_args(episodes, seed, steps, videos, env)
@@ -265,9 +267,11 @@ def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: i
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out / "results.json", result, sort_keys=False)
+        head = {} if command is None else {"command": command}
+        write_json_atomic(out / "results.json", {**head, **result}, sort_keys=False)
         for i in range(0 if run["frames"] is None else len(run["frames"])):
             write_video(out / f"episode_{seeds[i]}.mp4", upscale(run["frames"][i], 4), fps=10)
         if run["iou"] is not None:
-            (out / "iou.json").write_text(json.dumps({"seeds": seeds, "iou_per_step": run["iou"].round(4).tolist()}))
+            (out / "iou.json").write_text(json.dumps({**head, "seeds": seeds,
+                                                      "iou_per_step": run["iou"].round(4).tolist()}))
     return result

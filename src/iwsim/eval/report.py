@@ -54,6 +54,7 @@ def markdown(r: dict) -> str:
     lines = [
         "# World-model benchmark (`iwsim bench`)",
         "",
+        *([f"`{r['command']}`", ""] if "command" in r else []),
         f"{len(r['episodes'])} held-out episodes of `{r['data']}` x {r['steps']} steps, open loop: context = the first "
         f"frame, then the recorded actions; per-frame metrics on [0, 1] images; mean +- std over episodes of each "
         f"episode's mean. Machine: {r['machine']}.",

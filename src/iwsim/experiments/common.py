@@ -28,6 +28,7 @@ from iwsim.config import from_dict, to_dict
 from iwsim.data.lock import DirLock, LockedError
 from iwsim.errors import InputError
 from iwsim.eval.policy import rollout, summarize, trust
+from iwsim.eval.records import command_line
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class
 from iwsim.policies.data import Source
 from iwsim.policies.factory import load_policy
@@ -73,6 +74,20 @@ class PolicyRun:
         if not self.data:
             raise InputError(f"policy run {self.name!r} has no data.")
         return [Source(Path(path), n) for path, n in self.data]
+
+
+def study_command(study: str, preset: str, changed: Sequence[tuple[Any, Any, Mapping[str, str]]],
+                  *tail: str) -> str:
+    """The command that reproduces a study run from ``preset``: ``iwsim experiment STUDY
+    --preset PRESET``, then the flag of each field that differs from the preset's (``changed``:
+    (config, the preset's config, field -> flag) triples), then ``tail``."""
+    words = ["experiment", study, "--preset", preset]
+    for cfg, base, flags in changed:
+        for field, flag in flags.items():
+            value = getattr(cfg, field)
+            if value != getattr(base, field):
+                words += [flag, ",".join(map(str, value)) if isinstance(value, tuple) else str(value)]
+    return command_line("iwsim", [*words, *tail])
 
 
 def check_dirs(**dirs: Path) -> None:

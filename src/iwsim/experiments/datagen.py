@@ -43,6 +43,7 @@ from iwsim.experiments.common import (
     evaluate_policies,
     fingerprint,
     lock_work,
+    study_command,
     train_runs,
     training_time,
 )
@@ -168,13 +169,8 @@ def demo_paths(cfg: DatagenConfig, work: Path, wm_tag: str) -> dict[str, Path]:
 def command(cfg: DatagenConfig, preset: str, out: Path, work: Path) -> str:
     """The command that reproduces this study (the flags that differ from the preset)."""
     base = PRESETS[preset]
-    parts = ["iwsim experiment datagen", f"--preset {preset}"]
-    for obj, ref, flags in ((cfg, base, FLAGS), (cfg.recipe, base.recipe, RECIPE_FLAGS)):
-        for field, flag in flags.items():
-            value = getattr(obj, field)
-            if value != getattr(ref, field):
-                parts.append(f"{flag} {','.join(map(str, value)) if isinstance(value, tuple) else value}")
-    return " ".join([*parts, f"--out {out}", f"--work {work}"])
+    return study_command("datagen", preset, [(cfg, base, FLAGS), (cfg.recipe, base.recipe, RECIPE_FLAGS)],
+                         "--out", str(out), "--work", str(work))
 
 
 def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset: str = "default", jobs: int = 1,
@@ -219,9 +215,9 @@ def _run_datagen(cfg: DatagenConfig, out: Path, work: Path, preset: str, jobs: i
     scores = evaluate_policies(sources, "pusht", seeds=seeds, steps=cfg.steps, world_model=None,
                                out=work / "datagen" / "eval", jobs=jobs, progress=progress)
     results: dict[str, Any] = {
+        "command": command(cfg, preset, out, work),
         "config": dataclasses.asdict(cfg),
         "preset": preset,
-        "command": command(cfg, preset, out, work),
         "scale": {"demonstrations": need, "runs": len(runs), "trained": len(trainable),
                   "train_steps": policy_runs[0].stage_config().train.steps if policy_runs else None,
                   "eval_episodes": cfg.episodes, "eval_steps": cfg.steps, "eval_seeds": [seeds[0], seeds[-1]]},
@@ -331,6 +327,10 @@ def markdown(r: dict[str, Any]) -> str:
     lines = [
         "# Demonstrations generated in the world model",
         "",
+        "```",
+        r["command"],
+        "```",
+        "",
         f"**{headline(r)}**",
         "",
         f"Policy: {c['policy']} (preset `{c['policy_preset']}{c['policy']}`, {s['train_steps']} training steps); "
@@ -341,10 +341,6 @@ def markdown(r: dict[str, Any]) -> str:
         f"Compute (one thread per job, summed over jobs and over the invocations that did the work): "
         f"demonstrations {t['demos'] / 60:.1f} min, training {t['training'] / 60:.1f} min, evaluation "
         f"{t['evaluation'] / 60:.1f} min; this invocation {t['this_invocation'] / 60:.1f} min.",
-        "",
-        "```",
-        r["command"],
-        "```",
         "",
         "## Demonstrations",
         "",

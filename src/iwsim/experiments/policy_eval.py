@@ -50,6 +50,7 @@ from iwsim.experiments.common import (
     checkpoints,
     evaluate_policies,
     lock_work,
+    study_command,
     train_runs,
     training_time,
 )
@@ -147,10 +148,8 @@ PRESETS: dict[str, PolicyEvalConfig] = {
 
 def command(cfg: PolicyEvalConfig, preset: str, out: Path, work: Path, jobs: int) -> str:
     """The command that reproduces this study (the flags that differ from the preset)."""
-    base = PRESETS[preset]
-    parts = ["iwsim experiment policy-eval", f"--preset {preset}"]
-    parts += [f"{flag} {getattr(cfg, f)}" for f, flag in FLAGS.items() if getattr(cfg, f) != getattr(base, f)]
-    return " ".join([*parts, f"--jobs {jobs}", f"--out {out}", f"--work {work}"])
+    return study_command("policy-eval", preset, [(cfg, PRESETS[preset], FLAGS)],
+                         "--jobs", str(jobs), "--out", str(out), "--work", str(work))
 
 
 def _store_tag(path: Path) -> str:
@@ -258,8 +257,8 @@ def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, 
     policies = [{"name": name, **info, **{env: _scores(results[env][name]) for env in ENVS}}
                 for name, info in zoo.items()]
     report: dict[str, Any] = {
-        "study": "policy-eval",
         "command": command(cfg, preset, out, work, jobs),
+        "study": "policy-eval",
         "preset": preset,
         "config": to_dict(cfg),
         "scale": {"policies": len(policies), "episodes": cfg.episodes, "steps": cfg.steps,
