@@ -21,8 +21,6 @@ from iwsim.eval.records import command_line, with_command
 ROOT = Path(__file__).resolve().parents[1]
 HEAD_LINES = 8  # a Markdown report's command is within its first lines
 
-_POLICIES_ROUND_1 = ("the first training round's policy bench (runs/pol2), written by an evaluation that has "
-                     "changed since (its results lack task and scorer); superseded by policies/scaling.md")
 # Files without their command at their top, each with the reason. Keep this short: a file
 # regenerated with its command (or removed) leaves the list (test_exempt_files_are_still_exempt).
 EXEMPT = {
@@ -33,12 +31,6 @@ EXEMPT = {
     # copies of a run's output under another name, of models or code since replaced
     "bench/results/ablations/results_300.json": "ablate_dynamics.py eval --out outputs/eval_ablate (ablations.md, "
                                                 "2026-11-23 16:05), renamed; variants of the 2026-11-23 code",
-    "bench/results/wm_studies_check/results.json": "run with --out runs/check_ft1 and copied, a column added by "
-                                                   "hand; 'shipped' is the checkpoint of 2026-11-24, since replaced",
-    "bench/results/wm_studies_check/fidelity/results.json": "ablate_dynamics.py eval into runs/fidelity_ft1 and "
-                                                            "copied; 'shipped' is the checkpoint of 2026-11-24",
-    **{f"bench/results/policies/{run}/{name}.json": _POLICIES_ROUND_1
-       for run in ("act", "dp", "dp_world_model") for name in ("iou", "results")},
 }
 
 
