@@ -107,6 +107,9 @@ def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0
           ) -> tuple[dict, tuple[np.ndarray, np.ndarray], np.ndarray]:
     """Everything the table reports for one model; its PSNR per step (horizon,) and that of
     repeating the first frame; its frames (E, S, H, W, 3)."""
+    if horizon < max(STEPS):
+        raise InputError(f"the horizon must be at least {max(STEPS)} steps (the table reports steps up to "
+                         f"{max(STEPS)}), got {horizon}.")
     k = wm.cfg.dynamics.context
     z = wm.standardize(wm.encode(ep.img.reshape(-1, *ep.img.shape[2:])).unflatten(0, (ep.n, ep.length)))
     a = wm.normalize_actions(ep.actions)

@@ -266,14 +266,16 @@ SHRINK: tuple[tuple[str, dict[str, str | None] | str], ...] = (
     # data/contact.zarr's 8 episodes hold one held-out episode (the split holds out every 20th)
     ("iwsim bench", {"--episodes": "1", "--steps": "8", "--stability-steps": "20", "--speed-batch": "2",
                      "--speed-calls": "2"}),
-    ("iwsim experiment datagen", {"--preset": "tiny", "--jobs": "1"}),
+    # its own work directory: the tiny studies' demonstration recipes differ, and they may not
+    # share one store (the full presets do)
+    ("iwsim experiment datagen", {"--preset": "tiny", "--jobs": "1", "--work": "runs/experiments_datagen"}),
     ("iwsim experiment datagen --preset act", {"--policy": "act"}),
     # 100 demonstrations keep the run names (dp-100demos) the yardstick's --zoo reads
     ("iwsim experiment policy-eval", {"--preset": "tiny", "--demo-episodes": "100", "--jobs": "1"}),
     ("python bench/ablate_dynamics.py train", {"--steps": "2"}),
-    ("python bench/ablate_dynamics.py eval", {"--episodes": "2", "--horizon": "8"}),
+    ("python bench/ablate_dynamics.py eval", {"--episodes": "2", "--horizon": "32"}),
     ("python bench/wm_studies_check.py", {"--episodes": "2", "--steps": "20", "--candidates": "2"}),
-    ("python bench/yardstick.py", {"--episodes": "2", "--steps": "20", "--candidates": "2", "--horizon": "8",
+    ("python bench/yardstick.py", {"--episodes": "2", "--steps": "20", "--candidates": "2", "--horizon": "32",
                                    "--stability-steps": "20", "--speed-calls": "2", "--family-seeds": "2",
                                    "--idle-episodes": "2"}),
     ("python bench/bench_task.py", {"--quick": ""}),
