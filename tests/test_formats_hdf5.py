@@ -351,7 +351,7 @@ def test_bad_aloha_files(tmp_path: Path, case: str) -> None:
 def test_bad_aloha_camera_and_dims(tmp_path: Path) -> None:
     src = _aloha_file(tmp_path)
     with pytest.raises(FormatError, match="no camera 'front'; it has left_wrist, top"):
-        import_("hdf5-aloha", src, tmp_path / "o.zarr", camera="front", progress=False)
+        import_("hdf5-aloha", src, tmp_path / "o.zarr", camera="front", image_size=64, progress=False)
     _h5_edit(src / "episode_1.hdf5", "action", np.zeros((5, 7), np.float32))
     with pytest.raises(FormatError, match=r"episode_1.hdf5 \(episode 1\): qpos/action have 14/7 dims") as e:
         import_("hdf5-aloha", src, tmp_path / "o.zarr", image_size=None, progress=False)
@@ -409,7 +409,7 @@ def test_truncated_robomimic_file(tmp_path: Path) -> None:
     write_h5(tmp_path / "r.hdf5", arrays, attrs)
     _truncate(tmp_path / "r.hdf5")
     with pytest.raises(FormatError, match="r.hdf5: not a readable HDF5 file") as e:
-        import_("robomimic", tmp_path / "r.hdf5", tmp_path / "out.zarr", progress=False)
+        import_("robomimic", tmp_path / "r.hdf5", tmp_path / "out.zarr", image_size=64, progress=False)
     assert_clean_failure(e.value, tmp_path / "out.zarr")
     assert validate(tmp_path / "r.hdf5")[1][0].startswith(f"{tmp_path / 'r.hdf5'}: not a readable HDF5 file")
 
@@ -444,7 +444,7 @@ def test_truncated_zarr_chunk(store_path: Path, tmp_path: Path) -> None:
     chunk = store_path / "data" / "state" / "0.0"
     chunk.write_bytes(chunk.read_bytes()[:10])
     with pytest.raises(FormatError, match=r"data/state' \(episode 0\): unreadable") as e:
-        import_("zarr", store_path, tmp_path / "out.zarr", progress=False)
+        import_("zarr", store_path, tmp_path / "out.zarr", image_size=64, progress=False)
     assert_clean_failure(e.value, tmp_path / "out.zarr")
     kind, problems = validate(store_path)
     assert kind == "episode store" and len(problems) == 1 and "data/state' (episodes 0..2): frames 0..17" in problems[0]

@@ -32,7 +32,7 @@ def exports(play_store, tmp_path_factory) -> dict[str, Path]:
 
 @pytest.mark.parametrize("fmt", ["lerobot-v3", "lerobot-v2.1"])
 def test_round_trip(play_store, exports, tmp_path, fmt):
-    back = import_(fmt, exports[fmt], tmp_path / "back.zarr", progress=False)
+    back = import_(fmt, exports[fmt], tmp_path / "back.zarr", image_size=64, progress=False)
     src = EpisodeStore.open(play_store)
     assert back.n_episodes == src.n_episodes
     np.testing.assert_array_equal(back.episode_ends, src.episode_ends)
@@ -203,7 +203,7 @@ def test_import_a_handwritten_v3_dataset(tmp_path, image_dtype):
     src = tmp_path / "ds"
     want = handwritten_v3(src, image_dtype=image_dtype)
     with pytest.raises(FormatError, match="2 cameras"):
-        import_("lerobot-v3", src, tmp_path / "x.zarr", progress=False)
+        import_("lerobot-v3", src, tmp_path / "x.zarr", image_size=64, progress=False)
     assert not (tmp_path / "x.zarr").exists()
     back = import_("lerobot-v3", src, tmp_path / "s.zarr", camera="wrist", image_size=None, progress=False)
     assert back.n_episodes == 2 and list(back.episode_ends) == [5, 8]
@@ -265,7 +265,7 @@ def test_bad_input_names_the_file_and_leaves_nothing(exports, tmp_path, fmt):
     data = sorted((root / "data").rglob("*.parquet"))[0]
     data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])  # truncated
     with pytest.raises(FormatError, match=data.name):
-        import_(fmt, root, tmp_path / "out.zarr", progress=False)
+        import_(fmt, root, tmp_path / "out.zarr", image_size=64, progress=False)
     assert not (tmp_path / "out.zarr").exists()
     assert not list(tmp_path.glob(".out.zarr*"))
 
@@ -296,7 +296,7 @@ def test_corrupted_files_fail_cleanly(exports, tmp_path_factory, file, cut, flip
     path.write_bytes(bytes(raw))
     out = tmp / "out.zarr"
     try:
-        store = import_(fmt, root, out, progress=False)
+        store = import_(fmt, root, out, image_size=64, progress=False)
     except (ValueError, OSError) as e:
         assert "\n" not in str(e).strip() and str(e)
         assert not out.exists()
@@ -321,7 +321,7 @@ def test_v3_rolls_over_to_new_files_and_chunks(play_store, tmp_path, monkeypatch
     rows = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
     assert [(r["data/chunk_index"], r["data/file_index"]) for r in rows] == [(i // 2, i % 2) for i in range(e)]
     assert all(r["videos/observation.image/from_timestamp"] == 0 for r in rows)
-    back = import_("lerobot-v3", root, tmp_path / "back.zarr", progress=False)
+    back = import_("lerobot-v3", root, tmp_path / "back.zarr", image_size=64, progress=False)
     np.testing.assert_array_equal(back.array("action")[:], src.array("action")[:src.n_frames])
     assert validate(root) == ("LeRobot dataset v3.0", [])
 

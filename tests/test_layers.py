@@ -149,6 +149,64 @@ def test_the_t_push_defaults_have_one_home():
     assert sorted(m for m in T_PUSH_DEFAULTS_SPELLED if m not in spelled) == []
 
 
+FRAME_SIZES = ("image_size", "frame_size", "size", "resolution")  # names of a frame's size in pixels
+
+
+def t_push_literals(source: str) -> list[int]:
+    """The lines of ``source`` that default a frame size to T-push's 64 pixels or a task to
+    "pusht": a parameter's or a class field's default, a fallback (``getattr(p, "image_size",
+    64)``, ``c.get("image_size", 64)``, ``c.get("image_size") or 64``) or an argparse ``default=``."""
+
+    def constant(node: ast.AST | None, value: object) -> bool:
+        return isinstance(node, ast.Constant) and type(node.value) is type(value) and node.value == value
+
+    def t_push(name: object, default: ast.AST | None) -> bool:  # ``name`` (a str, or None) defaults to ``default``
+        frame_size = str(name).lstrip("-").replace("-", "_") in FRAME_SIZES
+        return constant(default, "pusht") or (frame_size and constant(default, 64))
+
+    def value(node: ast.AST) -> object:
+        return getattr(node, "value", None)
+
+    lines = set()
+    for node in ast.walk(ast.parse(source)):
+        pairs: list[tuple[object, ast.AST | None]] = []  # (name, its default)
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            a = node.args
+            positional = [*a.posonlyargs, *a.args]
+            pairs += zip([p.arg for p in positional[len(positional) - len(a.defaults):]], a.defaults)
+            pairs += zip([p.arg for p in a.kwonlyargs], a.kw_defaults)
+        elif isinstance(node, ast.ClassDef):  # a dataclass's fields
+            pairs += [(getattr(t, "id", None), s.value) for s in node.body if isinstance(s, (ast.Assign, ast.AnnAssign))
+                      for t in (s.targets if isinstance(s, ast.Assign) else [s.target])]
+        elif isinstance(node, ast.Call):
+            if getattr(node.func, "id", getattr(node.func, "attr", None)) in ("getattr", "get") and len(node.args) > 1:
+                pairs.append((value(node.args[-2]), node.args[-1]))
+            pairs += [(value(x), kw.value) for kw in node.keywords if kw.arg == "default" for x in node.args]
+        elif isinstance(node, ast.BoolOp) and isinstance(node.values[0], ast.Call):  # c.get(key) or default
+            pairs += [(value(x), node.values[-1]) for x in node.values[0].args]
+        lines.update(default.lineno for name, default in pairs if default is not None and t_push(name, default))
+    return sorted(lines)
+
+
+def test_t_push_literals_finds_each_form():
+    forms = ["def f(image_size: int = 64): ...", "def f(*, task='pusht'): ...", "class C:\n    image_size: int = 64",
+             "getattr(p, 'image_size', 64)", "c.get('image_size', 64)", "c.get('image_size') or 64",
+             "p.add_argument('--image-size', type=int, default=64)", "p.add_argument('--task', default='pusht')"]
+    assert [s for s in forms if not t_push_literals(s)] == []
+    assert t_push_literals("def f(image_size: int | None = None, batch: int = 64, name='pusht-64'): ...\n"
+                           "p.add_argument('--batch', default=64)\nc.get('steps', 64)") == []
+
+
+def test_no_frame_size_or_task_defaults_to_t_push_outside_its_homes():
+    """Issue 43: generic modules take a frame size from the task (``image_size=None``: the
+    task's own) or ``iwsim.tasks.DEFAULT_TASK``, never T-push's 64 pixels or "pusht"; only
+    T-push's modules, the task registry and the presets (``config.py``, ``presets.py``) spell them."""
+    home = ("iwsim.tasks", *TASK_MODULES)
+    found = {name: lines for name in MODULES if not within(name, home) and name.rpartition(".")[2] not in
+             ("config", "presets") and (lines := t_push_literals(MODULES[name].read_text()))}
+    assert found == {}
+
+
 @pytest.mark.parametrize("module, layer", [("iwsim.checkpoint", 0), ("iwsim.envs.scripted", 1),
                                            ("iwsim.data.store", 2), ("iwsim.tasks", 2), ("iwsim.data.collect", 3),
                                            ("iwsim.world_model", 4), ("iwsim.world_model_env", 5),

@@ -468,6 +468,7 @@ def _check_batch_memory(stage: str, batch_size: int, data: str) -> None:
     """Refuse a global batch that cannot fit in memory at the largest frame size of the
     training stores (:func:`iwsim.training.trainer.check_batch_memory`)."""
     from iwsim.data.store import EpisodeStore, StoreError
+    from iwsim.tasks import DEFAULT_TASK
     from iwsim.training.trainer import check_batch_memory
 
     if stage == "policy":
@@ -479,10 +480,10 @@ def _check_batch_memory(stage: str, batch_size: int, data: str) -> None:
     sizes = []
     for path in stores:
         try:
-            sizes.append(int(EpisodeStore.open(path).attrs.get("image_size") or 64))
+            sizes.append(int(EpisodeStore.open(path).attrs.get("image_size") or DEFAULT_TASK.image_size))
         except (StoreError, TypeError, ValueError):
             pass  # training reports a bad store itself
-    check_batch_memory(stage, batch_size, max(sizes, default=64))
+    check_batch_memory(stage, batch_size, max(sizes, default=DEFAULT_TASK.image_size))
 
 
 def _print_metrics(metrics: dict[str, float]) -> None:

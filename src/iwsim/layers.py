@@ -54,7 +54,8 @@ GROUND_TRUTH_TOOLING = {
 # (iwsim.envs.pusht_task.PushTTask, the commands' iwsim.tasks.DEFAULT_TASK, the studies'
 # iwsim.experiments.common.STUDY). Modules that still spell one out (the shipped checkpoint's
 # path, or a module-level get_task("pusht")), each with why; tests/test_layers.py checks
-# that no other module does and that the list only shrinks.
+# that no other module does and that the list only shrinks, and that outside T-push's modules,
+# the registry and the presets no frame size defaults to 64 pixels nor a task to "pusht".
 T_PUSH_DEFAULTS_SPELLED: dict[str, str] = {}
 
 

@@ -37,6 +37,9 @@ def check_task(task: str) -> str:
     return TASKS[task]
 
 
-def make_env(task: str, image_size: int = 64, **kwargs) -> gym.Env:
-    """The task's environment without a time limit (episode length is the caller's)."""
-    return gym.make(check_task(task), image_size=image_size, max_episode_steps=None, **kwargs)
+def make_env(task: str, image_size: int | None = None, **kwargs) -> gym.Env:
+    """The task's environment without a time limit (episode length is the caller's), its
+    frames ``image_size`` pixels square (None: the task's own size, its environment's default)."""
+    if image_size is not None:
+        kwargs["image_size"] = image_size
+    return gym.make(check_task(task), max_episode_steps=None, **kwargs)

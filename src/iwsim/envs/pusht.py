@@ -23,6 +23,7 @@ from iwsim.envs import IMAGE_SIZES  # noqa: E402, F401 - the sizes this task ren
 from iwsim.envs import geometry as geo  # noqa: E402
 from iwsim.errors import InputError
 
+IMAGE_SIZE = 64  # the frames rendered unless told otherwise (the shipped model's); one of IMAGE_SIZES
 CONTROL_HZ = 10
 TIMESTEP = 0.002  # physics step (s); 50 substeps per control step
 SUBSTEPS = round(1 / (CONTROL_HZ * TIMESTEP))
@@ -215,7 +216,7 @@ class BimanualPushTEnv(gym.Env):
 
     def __init__(
         self,
-        image_size: int = 64,
+        image_size: int = IMAGE_SIZE,
         render_mode: str | None = "rgb_array",
         terminate_on_success: bool = False,
         max_step: float = MAX_STEP,

@@ -17,6 +17,7 @@ from iwsim.envs import make_env
 from iwsim.envs.pixels import pixel_iou, pusher_positions, read_frames
 from iwsim.envs.pusht import (
     CONTROL_HZ,
+    IMAGE_SIZE,
     MAX_STEP,
     SUCCESS_IOU,
     VIEW_HALF,
@@ -70,7 +71,7 @@ class PushTTask(Task):
     clip_commands = True  # MuJoCo clips targets to the workspace
     has_ground_truth = True
     # T-push's defaults, read by the commands and the studies through iwsim.tasks.DEFAULT_TASK:
-    image_size = 64  # the frames collected, trained on and evaluated at (the shipped model's)
+    image_size = IMAGE_SIZE  # the frames collected, trained on and evaluated at (the shipped model's)
     horizon = 600  # steps of an evaluation episode (the paper's T-push horizon)
     checkpoint = "checkpoints/pusht-64"  # the shipped world model
 

@@ -28,7 +28,7 @@ from iwsim.envs import POLICIES, make_env
 from iwsim.envs import geometry as geo
 from iwsim.envs.geometry import to_block, to_world
 from iwsim.envs.pixels import estimate_block_pose
-from iwsim.envs.pusht import GOAL_POSE, MAX_STEP, PUSHER_RADIUS, WORKSPACE
+from iwsim.envs.pusht import GOAL_POSE, IMAGE_SIZE, MAX_STEP, PUSHER_RADIUS, WORKSPACE
 from iwsim.errors import InputError
 
 # The pinch, in the block frame: grip level just under the bar, on both sides of the stem.
@@ -622,7 +622,7 @@ class Transition:
 
 
 def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, task: str = "pusht",
-                 image_size: int = 64, env: gym.Env | None = None) -> Generator[Transition, None, None]:
+                 image_size: int = IMAGE_SIZE, env: gym.Env | None = None) -> Generator[Transition, None, None]:
     """Drive ``task`` (or ``env``) with a scripted policy (a name of :data:`POLICIES`,
     seeded by ``seed``, or a policy object) for ``steps`` steps from the reset with
     ``seed``, yielding each :class:`Transition`. An environment made here is closed when
@@ -643,7 +643,8 @@ def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, task: str 
             env.close()
 
 
-def record_episode(task: str, policy: str, seed: int, steps: int, image_size: int = 64) -> dict[str, np.ndarray]:
+def record_episode(task: str, policy: str, seed: int, steps: int,
+                   image_size: int = IMAGE_SIZE) -> dict[str, np.ndarray]:
     """Run one seeded episode and return its arrays, in the episode store's layout.
 
     Step t holds the observation before action t and the action itself:

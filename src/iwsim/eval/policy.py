@@ -48,12 +48,14 @@ NOVELTY_WARN = 2.0
 DISAGREE_WARN = 0.2
 
 
-def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int = 64,
+def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int | None = None,
                     start: str = "random") -> SyncVectorEnv | WorldModelVectorEnv:
     """``n`` environments in lockstep as a Gymnasium vector env: MuJoCo's in a
     :class:`~gymnasium.vector.SyncVectorEnv` (its initial states from the distribution
     ``start``, :data:`iwsim.envs.pusht.STARTS`), or the world model's batched
-    :class:`~iwsim.world_model_env.WorldModelVectorEnv` (one forward pass per step)."""
+    :class:`~iwsim.world_model_env.WorldModelVectorEnv` (one forward pass per step).
+    ``image_size``: the policy's frame size, which the environment must render (None: the
+    environment's own, the task's frame size in MuJoCo, the world model's)."""
     if env not in ENVS:
         raise InputError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
     if env == "pusht":
@@ -62,7 +64,7 @@ def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, im
         raise InputError(f"the world model starts from MuJoCo's random initial states only, not start={start!r}.")
     if world_model is None:
         raise InputError("evaluating inside the world model needs --world-model CHECKPOINT.")
-    if world_model.image_size != image_size:
+    if image_size is not None and world_model.image_size != image_size:
         raise InputError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
                          f"renders {world_model.image_size}x{world_model.image_size}.")
     # the task's own starts: for T-push MuJoCo's rendering of each seed, for another robot's
@@ -76,7 +78,7 @@ def env_task(venv: VectorEnv, env: str) -> Task:
 
 
 def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
-            image_size: int = 64, record: int = 0, progress: bool = True,
+            image_size: int | None = None, record: int = 0, progress: bool = True,
             stop: Callable[[dict[str, np.ndarray]], bool] | None = None, start: str = "random",
             keep: tuple[str, ...] = ()) -> dict[str, Any]:
     """Run ``policy`` for ``steps`` steps from each seed, all episodes together. Returns
@@ -86,9 +88,10 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
     for T-push the speed-limited setpoints) of every step (E, T, A) and the frames
     ``frames`` (E', T + 1, H, W, 3) of the first ``record`` episodes; step t's action
     follows frame t. T = ``steps``, or fewer when ``stop(obs)``, called with each step's
-    new observations, returns True. ``start``: MuJoCo's initial-state distribution
-    (:func:`make_vector_env`). ``novelty`` (E, T): in a world model with a trust signal, how
-    unlike its training data each step's inputs are (:mod:`iwsim.world_model.novelty`), else None.
+    new observations, returns True. ``image_size`` (the policy's frames) and ``start``
+    (MuJoCo's initial-state distribution): as in :func:`make_vector_env`. ``novelty`` (E, T):
+    in a world model with a trust signal, how unlike its training data each step's inputs
+    are (:mod:`iwsim.world_model.novelty`), else None.
     ``info``: the environment's per-step info arrays named in ``keep`` (E, T + 1, ...), from the reset on."""
     venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size, start=start)
     task = env_task(venv, env)
@@ -148,14 +151,14 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
 RECORD_BATCH = 16  # episodes a learned policy records in lockstep (one batched forward pass per query)
 
 
-def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int = 64,
+def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int | None = None,
              batch: int = RECORD_BATCH) -> Recorder:
     """``policy``'s episodes in MuJoCo, as :func:`iwsim.data.collect.collect` records them
     (``iwsim collect --policy RUN``): the seeds ``batch`` at a time in lockstep, each batch's
     sampling noise seeded by its first seed: the same command records the same store, and a
     store extended in whole batches holds the episodes one recorded at once holds.
     Step t holds the observation before action t, as a scripted episode does
-    (:func:`iwsim.envs.scripted.record_episode`)."""
+    (:func:`iwsim.envs.scripted.record_episode`). Frames of ``image_size`` (None: the task's size)."""
 
     def record(seeds: list[int]) -> Iterator[dict[str, np.ndarray]]:
         for i in range(0, len(seeds), batch):
@@ -244,14 +247,15 @@ def disagreement(scores: np.ndarray, partner_scores: np.ndarray) -> dict[str, An
 
 
 def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
-             image_size: int = 64, out: str | Path | None = None, videos: int = 4, progress: bool = True,
+             image_size: int | None = None, out: str | Path | None = None, videos: int = 4, progress: bool = True,
              meta: dict[str, Any] | None = None, partner: Any = None, command: str | None = None) -> dict[str, Any]:
     """Evaluate ``policy`` on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``,
     write ``results.json`` (and ``iou.json``, each step's IoU) and videos of the first
     ``videos`` episodes; with ``command`` too (the command line that ran this, from
     :func:`iwsim.eval.records.command_line`), both JSON files begin with it. With ``partner``
     (a second world model, for ``env="world-model"``), the policy also runs in it from the
-    same seeds and the result gains ``disagreement`` (:func:`disagreement`)."""
+    same seeds and the result gains ``disagreement`` (:func:`disagreement`). ``image_size``:
+    the policy's frame size (None: the environment's, as in :func:`make_vector_env`)."""
     check_args(episodes, seed, steps, videos, env)
     if partner is not None and env != "world-model":
         raise InputError("a partner world model (--trust-model) applies to evaluations inside a world model.")

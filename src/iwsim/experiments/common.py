@@ -249,7 +249,7 @@ def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps
     if env == "world-model":
         assert world_model is not None  # evaluate_policies checks it
         wm = WorldModel.load(world_model)
-    image_size = wm.image_size if wm is not None else getattr(policy, "image_size", 64)
+    image_size = wm.image_size if wm is not None else getattr(policy, "image_size", None)
     run = rollout(policy, env, seeds, steps, world_model=wm, image_size=image_size, progress=progress)
     result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds, run["success_score"]),
               **trust(run["novelty"]), "seconds": run["seconds"], "iou_per_step": np.round(run["iou"], 4).tolist()}

@@ -12,6 +12,7 @@ from iwsim.config import from_dict, to_dict
 from iwsim.errors import InputError
 from iwsim.policies.common import Normalizer, Policy
 from iwsim.policies.registry import POLICIES, config_class, policy_type
+from iwsim.tasks import DEFAULT_TASK
 
 KIND = "policy"
 
@@ -60,7 +61,8 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_s
         policy = build_within_memory(lambda: make_policy(config["policy"], config["model"], Normalizer(
             torch.zeros(a), torch.ones(a)), Normalizer(torch.zeros(s), torch.ones(s))), f"the policy of {path}")
         policy.load_state_dict(tensors)
-        policy.image_size = int(config.get("image_size", 64))  # the frames it was trained on
+        # the frames it was trained on; a policy saved before they were recorded was trained on T-push's
+        policy.image_size = int(config.get("image_size", DEFAULT_TASK.image_size))
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path} does not hold a loadable policy ({' '.join(str(e).split())[:200]}).") from None
     return policy.to(device).eval()

@@ -25,7 +25,7 @@ from iwsim.world_model.codec import EncoderCodec
 
 @dataclass(frozen=True)
 class ConvCodecConfig:
-    image_size: int = 64
+    image_size: int  # the frames' (a preset's, or the checkpoint's: every conv-ae checkpoint records it)
     image_channels: int = 3
     latent_channels: int = 4
     channels: tuple[int, ...] = (32, 64)  # at H, H/2, ...: the latent is H / 2^(levels - 1) wide

@@ -63,9 +63,9 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
                      eval_every=5000, checkpoint_every=5000, ema_decay=0.9999),
     # The deterministic conv-ae codec (iwsim.world_model.conv_codec), x2 downsampling: 4 x 32 x 32
     # latents at 64 px. "tiny-conv" is for tests.
-    "tiny-conv": ConvCodecConfig(channels=(8, 8), eval_images=8, train=TrainConfig(
+    "tiny-conv": ConvCodecConfig(64, channels=(8, 8), eval_images=8, train=TrainConfig(
         steps=6, batch_size=4, warmup_steps=2, log_every=1, eval_every=3, checkpoint_every=3, ema_decay=0.9)),
-    "conv-x2-64": ConvCodecConfig(channels=(32, 64), blocks_per_level=2, train=TrainConfig(
+    "conv-x2-64": ConvCodecConfig(64, channels=(32, 64), blocks_per_level=2, train=TrainConfig(
         steps=1500, batch_size=32, lr=1e-3, warmup_steps=100, eval_every=250, checkpoint_every=250,
         ema_decay=0.995)),
     # Issue 23's coarse codecs: a decoder that holds the objects' shapes in its weights, fed
@@ -74,11 +74,11 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
     # (bench/results/ablations.md): dynamics steps ~5x cheaper, but at 700 steps the T melts
     # as on 16 x 16 latents, and at x16 the pushers are lost.
     "conv-x8-64": ConvCodecConfig(
-        latent_channels=8, channels=(16, 32, 64, 128), blocks_per_level=2, foreground_weight=10.0,
+        64, latent_channels=8, channels=(16, 32, 64, 128), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
                                                     eval_every=250, checkpoint_every=250, ema_decay=0.995)),
     "conv-x16-64": ConvCodecConfig(
-        latent_channels=16, channels=(16, 32, 64, 128, 128), blocks_per_level=2, foreground_weight=10.0,
+        64, latent_channels=16, channels=(16, 32, 64, 128, 128), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
                                                     eval_every=250, checkpoint_every=250, ema_decay=0.995)),
 }

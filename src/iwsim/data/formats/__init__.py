@@ -63,9 +63,9 @@ def export(fmt: str, store: str | os.PathLike, out: str | os.PathLike, *, fps: i
 
 
 def import_(fmt: str, src: str | os.PathLike, out: str | os.PathLike, *, camera: str | None = None,
-            image_size: int | None = 64, progress: bool = True) -> EpisodeStore:
+            image_size: int | None, progress: bool = True) -> EpisodeStore:
     """Read ``src`` (in ``fmt``) into a new episode store at ``out``, frames resized to
-    ``image_size`` (None keeps them)."""
+    ``image_size`` (None keeps them; ``iwsim data import`` resizes to the default task's)."""
     if fmt not in IMPORT_FORMATS:
         raise InputError(f"unknown import format {fmt!r}; expected one of {', '.join(IMPORT_FORMATS)}.")
     if image_size is not None and image_size < 1:
