@@ -807,3 +807,18 @@ def test_probe_a_study_directory_that_is_a_file_is_refused_before_any_work(tmp_p
     assert main(["experiment", "policy-eval", "--world-model", str(wm), *[x for kv in dirs.items() for x in kv]]) == 1
     assert f"{flag} {tmp_path / 'f'} is a file; expected a directory" in error_line(capsys)
     assert (tmp_path / "f").read_text() == "mine"
+
+
+def test_the_batch_memory_check_reads_the_frames_a_store_holds(tmp_path, capsys):
+    """A store imported at its source's size records no image_size: the check sizes a
+    sample by the frames themselves (128 px here: 4x the bytes of 64 px)."""
+    import numpy as np
+
+    from iwsim.data.store import EpisodeStore
+
+    path = tmp_path / "big.zarr"
+    with EpisodeStore.create(path, {"task": "robot", "fps": 10}) as s:
+        s.append({"img": np.zeros((3, 128, 128, 3), np.uint8), "action": np.zeros((3, 2), np.float32)})
+    assert main(["train", "ae", "--preset", "tiny", "--batch-size", "100000", "--data", str(path),
+                 "--out", str(tmp_path / "out")]) == 1
+    assert "--batch-size 100000 (about 80.0 MiB per sample)" in error_line(capsys)

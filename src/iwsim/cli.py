@@ -479,9 +479,9 @@ def _check_batch_memory(stage: str, batch_size: int, data: str) -> None:
         stores = [data]
     sizes = []
     for path in stores:
-        try:
-            sizes.append(int(EpisodeStore.open(path).attrs.get("image_size") or DEFAULT_TASK.image_size))
-        except (StoreError, TypeError, ValueError):
+        try:  # the frames themselves: a store imported at its source's size records no image_size
+            sizes.append(max(EpisodeStore.open(path).array("img").shape[1:3]))
+        except (StoreError, KeyError, TypeError, ValueError):
             pass  # training reports a bad store itself
     check_batch_memory(stage, batch_size, max(sizes, default=DEFAULT_TASK.image_size))
 
