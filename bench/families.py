@@ -68,6 +68,9 @@ TRAINING_FAMILIES: dict[str, tuple[str, ...]] = {
     # the expert's motions with a learned policy's imprecision: grips off the grip points,
     # blind carries (counted as covering the misses, conservatively)
     "expert-imprecise": ("expert", "miss"),
+    # MuJoCo rollouts of a training zoo of learned policies (iwsim collect --policy RUN),
+    # disjoint from the learned family's: other demonstrations, other training seeds
+    "learned-zoo": (),
 }
 IDLE_STEPS = 50
 CRISP = 0.9  # a T fits crisply (the codec's reconstructions of first frames fit ~0.92)

@@ -224,8 +224,9 @@ def generalisation_markdown(report: dict) -> list[str]:
              f"Families from {report.get('family_seeds')} MuJoCo first states (seeds from {fam.SEED}, never used "
              f"for training), {report['steps']} steps; the score of an episode is its max pixel IoU. A family is "
              "*seen* when the model's training data held its kind of motion; the targets count the unseen ones. "
-             "The learned family's policies are trained on MuJoCo demonstrations of the expert, none of whose "
-             "rollouts any world model here trains on." + ("" if "idle_episodes" not in report else
+             "The learned family's policies are trained on MuJoCo demonstrations of the expert; no world model "
+             "here trains on their rollouts (one trained on `learned-zoo` saw those of other policies: other "
+             "demonstrations, other training seeds)." + ("" if "idle_episodes" not in report else
              f" Idle: the pushers held still for {fam.IDLE_STEPS} steps from {report['idle_episodes']} fresh "
              f"starts; a frame keeps the block when the T fits >= {fam.CRISP} and lies within "
              f"{fam.IN_PLACE_PX:g} px and {fam.IN_PLACE_DEG:g} degrees of MuJoCo's."), "",
