@@ -176,6 +176,10 @@ def test_train_resume_save_load_and_checkpoints_kept(play_store, tmp_path, capsy
     assert len(result["episodes"]) == 2 and result["env"] == "pusht" and (tmp_path / "eval/episode_100000.mp4").exists()
     assert result["n_action_steps"] == 1
     assert "mean max IoU" in capsys.readouterr().out
+    # the sampling noise is seeded: the same command, the same episodes (its video, frame for frame)
+    assert main(["eval", "policy", "--checkpoint", str(out), "--episodes", "2", "--steps", "4", "--videos", "1",
+                 "--action-steps", "1", "--out", str(tmp_path / "again"), "--no-progress"]) == 0
+    assert (tmp_path / "again/episode_100000.mp4").read_bytes() == (tmp_path / "eval/episode_100000.mp4").read_bytes()
 
     assert main([*act, "--out", str(tmp_path / "act"), "--steps", "10"]) == 0
     policy = load_policy(tmp_path / "act")

@@ -542,6 +542,8 @@ def _train_policy(args: argparse.Namespace) -> int:
 
 
 def _eval_policy(args: argparse.Namespace) -> int:
+    import torch
+
     from iwsim.eval.policy import check_args, evaluate
     from iwsim.eval.records import command_line
     from iwsim.policies.factory import load_policy
@@ -549,6 +551,7 @@ def _eval_policy(args: argparse.Namespace) -> int:
 
     check_args(args.episodes, args.seed, args.steps, args.videos, args.env)
     device = resolve_device(args.device)
+    torch.manual_seed(0)  # the policy's sampling noise, as the studies seed it: the same command, the same scores
     policy = load_policy(args.checkpoint, device, n_action_steps=args.action_steps)
     wm = None
     if args.env == "world-model":
