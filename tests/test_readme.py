@@ -166,7 +166,7 @@ def semantic_problems(words: tuple[str, ...], ns: argparse.Namespace) -> list[st
         from iwsim.envs import IMAGE_SIZES, POLICIES, TASKS
 
         learned = "/" in ns.policy  # a policy run or checkpoint: a read (reads_and_writes)
-        for flag, value, allowed in (("--task", ns.task, TASKS), ("--policy", ns.policy, POLICIES),
+        for flag, value, allowed in (("--task", ns.task, TASKS), ("--policy", ns.policy, POLICIES.get(ns.task, ())),
                                      ("--image-size", ns.image_size, IMAGE_SIZES)):
             if flag == "--policy" and learned:
                 continue

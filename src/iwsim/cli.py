@@ -32,7 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("collect", help="record episodes of a MuJoCo task (scripted or learned policy) into a store")
     p.add_argument("--task", default=TASK.kind, help=f"task: {', '.join(TASKS)} (default: %(default)s)")
-    p.add_argument("--policy", default="play", help=f"scripted policy: {', '.join(POLICIES)}; or a learned policy's "
+    scripted = "; ".join(f"{', '.join(names)} ({task})" for task, names in POLICIES.items())
+    p.add_argument("--policy", default="play", help=f"scripted policy: {scripted}; or a learned policy's "
                    "run or checkpoint directory (its episodes run batched in this process) (default: %(default)s)")
     p.add_argument("--episodes", type=int, required=True, help="total episodes the store should hold")
     p.add_argument("--steps", type=int, default=200, help="steps per episode (default: %(default)s)")
@@ -309,7 +310,7 @@ def _collect(args: argparse.Namespace) -> int:
     from iwsim.envs import POLICIES
 
     recorder, policy = None, args.policy
-    if policy not in POLICIES and Path(policy).is_dir():  # a learned policy
+    if policy not in POLICIES.get(args.task, ()) and Path(policy).is_dir():  # a learned policy
         from iwsim.eval.policy import recorder as learned
         from iwsim.policies.factory import load_policy
 

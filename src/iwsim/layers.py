@@ -34,16 +34,19 @@ LAYERS: list[tuple[str, ...]] = [
 
 
 # A task's own modules: its ground truth (simulator, geometry, pixel scorer, scripted
-# policies) and its Task class. Everything else reaches a task through the Task seam
-# (iwsim.envs.task, the registry iwsim.tasks), so a world model of any robot runs through
-# the same code (tests/test_layers.py checks it).
+# policies) and its Task class, and what the tabletop tasks share (the tabletop's scene and
+# control, its colour model, scripting, its Task base). Everything else reaches a task
+# through the Task seam (iwsim.envs.task, the registry iwsim.tasks), so a world model of any
+# robot runs through the same code (tests/test_layers.py checks it).
 TASK_MODULES = ("iwsim.envs.pusht", "iwsim.envs.pixels", "iwsim.envs.geometry", "iwsim.envs.scripted",
-                "iwsim.envs.pusht_task")
+                "iwsim.envs.pusht_task",
+                "iwsim.envs.pilesweep", "iwsim.envs.pilesweep_pixels", "iwsim.envs.pilesweep_scripted",
+                "iwsim.envs.pilesweep_task",
+                "iwsim.envs.tabletop", "iwsim.envs.palette", "iwsim.envs.scripting", "iwsim.envs.tabletop_task")
 TASK_IMPORTERS = ("iwsim.envs", "iwsim.tasks")  # envs/ itself and the Task registry
 # T-push's ground-truth tooling, by name: it runs the MuJoCo simulator or its scripted
 # experts, which no other robot's data comes with.
 GROUND_TRUTH_TOOLING = {
-    "iwsim.data.collect": "records MuJoCo episodes under the scripted policies (iwsim collect)",
     "iwsim.policies.scripted": "T-push's scripted experts behind the policy interface",
     "iwsim.eval.rollout": "against_mujoco: a scripted expert's take in MuJoCo beside the model's",
     "iwsim.eval.profiling": "the yardstick's measures of T-push's objects (block pose, pushers)",

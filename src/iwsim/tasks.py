@@ -1,7 +1,7 @@
 """The Task registry and the generic task of any robot's data.
 
-- :data:`REGISTRY`: the built-in tasks by name (T-push); a new built-in task is a module
-  under ``envs/`` with a :class:`~iwsim.envs.task.Task` subclass, listed here.
+- :data:`REGISTRY`: the built-in tasks by name (T-push, pile sweeping); a new built-in task
+  is a module under ``envs/`` with a :class:`~iwsim.envs.task.Task` subclass, listed here.
 - :class:`DatasetTask`: any other robot's task, built from an episode store's attributes
   (action size, names, bounds, fps; the positions-in-image declaration if the store has
   one), its teleop step per dimension from the spread of the store's actions, and its
@@ -26,16 +26,18 @@ from typing import Any
 import numpy as np
 
 from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.envs.pilesweep_task import PileSweepTask
 from iwsim.envs.pusht_task import PushTTask
 from iwsim.envs.task import Bindings, Start, Task
 from iwsim.errors import InputError
 
-REGISTRY: dict[str, Callable[[], Task]] = {PushTTask.kind: PushTTask}  # built without arguments
+REGISTRY: dict[str, Callable[[], Task]] = {PushTTask.kind: PushTTask,  # built without arguments
+                                           PileSweepTask.kind: PileSweepTask}
 # The task the commands and the studies default to: its name (``kind``), frame size
 # (``image_size``), evaluation horizon (``horizon``) and shipped world model (``checkpoint``).
 DEFAULT_TASK: type[PushTTask] = PushTTask
-# Per-frame arrays a start reads from a store (whichever the store has).
-RECORD_KEYS = ("state", "block_pose", "target", "action")
+# Per-frame arrays a start reads from a store (whichever the store has), besides the task's state_keys.
+RECORD_KEYS = ("state", "target", "action")
 STEP_OF_SPREAD = 0.1  # a teleop step is this share of the standard deviation of a dimension's actions
 
 
@@ -87,7 +89,8 @@ class StoreStarts:
             e = int(rng.integers(len(ends)))
             start = 0 if e == 0 else int(ends[e - 1])
             i = int(rng.integers(start, ends[e]))
-        record = {k: np.asarray(self.store.array(k)[i]) for k in RECORD_KEYS if k in self.store.keys}
+        record = {k: np.asarray(self.store.array(k)[i]) for k in (*RECORD_KEYS, *self.task.state_keys)
+                  if k in self.store.keys}
         return self.task.start_from_record(np.asarray(self.store.array("img")[i]), record)
 
     def close(self) -> None:

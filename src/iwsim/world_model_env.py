@@ -17,7 +17,7 @@ near the setpoint, and where the frame shows it when contact holds it back
 (:meth:`iwsim.envs.pusht_task.PushTTask.observe`); ``info["iou"]`` and the reward come
 from the pixel scorer, so nothing but the model's pixels and the commands is used.
 Actions are commanded targets, approached at the task's speed limit exactly as MuJoCo
-does (:func:`iwsim.envs.pusht.limit_targets`, starting from the pushers' positions at
+does (:func:`iwsim.envs.tabletop.limit_targets`, starting from the pushers' positions at
 reset). A task without a scorer reports ``info["score"] = None`` and reward 0, and its
 ``agent_pos`` is the executed command. Either way the model is
 conditioned on the executed motion (``info["target"]``).

@@ -1,6 +1,6 @@
-"""Collect episodes of a MuJoCo task into an episode store (``iwsim collect``): under a
-scripted policy, or under any other controller given as a ``recorder`` (a learned policy's:
-:func:`iwsim.eval.policy.recorder`).
+"""Collect episodes of a MuJoCo task into an episode store (``iwsim collect``): under one of
+the task's scripted policies (:meth:`~iwsim.envs.task.Task.record_episode`), or under any
+other controller given as a ``recorder`` (a learned policy's: :func:`iwsim.eval.policy.recorder`).
 
 A tool over the task registry (:mod:`iwsim.tasks`): it sits in the layer above it
 (:data:`iwsim.layers.LAYERS`), so nothing in ``data/`` or the registry imports it.
@@ -28,8 +28,7 @@ from tqdm import tqdm
 
 import iwsim
 from iwsim.data.store import EpisodeStore, attrs_mismatch
-from iwsim.envs import IMAGE_SIZES, POLICIES, check_task
-from iwsim.envs.scripted import record_episode
+from iwsim.envs import IMAGE_SIZES, check_task
 from iwsim.errors import InputError
 from iwsim.resources import require_memory
 from iwsim.tasks import DEFAULT_TASK, get_task
@@ -39,10 +38,10 @@ log = logging.getLogger(__name__)
 STEP_LOWDIM_BYTES = 256  # per step besides the frame: state, action, poses, IoU, contacts (generous)
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps")
-# Records the episodes of the given seeds, in order, each in the store's layout
-# (:func:`iwsim.envs.scripted.record_episode`'s): a controller that is not a scripted policy.
-# The per-step info arrays of an episode besides frames, state, action, target and score.
+# The per-step info arrays of a T-push episode besides frames, state, action, target and score.
 STORE_INFO = ("block_pose", "n_contacts")
+# Records the episodes of the given seeds, in order, each in the store's layout
+# (:meth:`iwsim.envs.task.Task.record_episode`'s): a controller that is not a scripted policy.
 Recorder = Callable[[list[int]], Iterator[dict[str, np.ndarray]]]
 
 
@@ -55,15 +54,16 @@ class CollectStats:
     frames_added: int
     seconds: float
     frames_per_second: float
-    contact_fraction: float  # fraction of steps with a pusher touching the block
-    mean_max_iou: float  # mean over episodes of the maximum IoU reached
-    success_rate: float  # fraction of episodes whose maximum IoU reached SUCCESS_IOU
+    contact_fraction: float  # fraction of steps with a pusher touching the task's objects
+    mean_max_score: float  # mean over episodes of the maximum score reached (T-push: IoU)
+    success_rate: float  # fraction of episodes whose maximum score reached the task's success score
+    score_name: str = "score"
 
     def summary(self) -> str:
         return (
             f"added {self.episodes_added} episodes ({self.frames_added} frames) in {self.seconds:.1f} s: "
-            f"{self.frames_per_second:.0f} frames/s; pusher-block contact in {100 * self.contact_fraction:.1f}% "
-            f"of steps; mean max IoU {self.mean_max_iou:.3f}; success {100 * self.success_rate:.1f}%"
+            f"{self.frames_per_second:.0f} frames/s; pusher contact in {100 * self.contact_fraction:.1f}% "
+            f"of steps; mean max {self.score_name} {self.mean_max_score:.3f}; success {100 * self.success_rate:.1f}%"
         )
 
 
@@ -122,14 +122,14 @@ def collect(
 def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episodes: int, steps: int,
                   image_size: int, seed: int, progress: bool, recorder: Recorder) -> CollectStats:
     """Record episodes ``start..episodes-1`` and append them to ``store``, in order."""
-    out, n_new = store.path, episodes - start
+    out, n_new, kind = store.path, episodes - start, get_task(task)
     log.info(
         f"collecting {n_new} episodes (seeds {seed + start}..{seed + episodes - 1}) of {task}/{policy}: "
         f"{steps} steps at {image_size}x{image_size} -> {out}"
     )
     seeds = [seed + i for i in range(start, episodes)]
     frames = contact_steps = 0
-    max_ious: list[float] = []
+    max_scores: list[float] = []
     t0 = time.perf_counter()
     with tqdm(total=n_new, unit="ep", desc=f"collect {out.name}", disable=not progress) as bar:
         for s, ep in zip(seeds, recorder(seeds), strict=True):
@@ -138,11 +138,11 @@ def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episo
             store.append(ep, seed=s)
             frames += len(ep["img"])
             contact_steps += int(np.count_nonzero(ep["n_contacts"] > 0))
-            max_ious.append(float(np.max(ep["iou"])))
+            max_scores.append(float(np.max(ep[kind.episode_score or "score"])))
             bar.update()
             bar.set_postfix_str(f"{frames / (time.perf_counter() - t0):.0f} frames/s")
     seconds = time.perf_counter() - t0
-    ious = np.asarray(max_ious)
+    best = np.asarray(max_scores)
     stats = CollectStats(
         episodes_added=n_new,
         episodes_total=store.n_episodes,
@@ -150,8 +150,9 @@ def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episo
         seconds=seconds,
         frames_per_second=frames / seconds,
         contact_fraction=contact_steps / frames,
-        mean_max_iou=float(ious.mean()),
-        success_rate=float(np.mean(ious >= get_task(task).success_score)),
+        mean_max_score=float(best.mean()),
+        success_rate=float(np.mean(best >= (kind.success_score if kind.success_score is not None else np.inf))),
+        score_name=kind.score_name or "score",
     )
     log.info("%s; store now holds %d episodes", stats.summary(), stats.episodes_total)
     return stats
@@ -160,9 +161,9 @@ def _collect_into(store: EpisodeStore, task: str, policy: str, start: int, episo
 def _check_args(task: str, policy: str, episodes: int, steps: int, image_size: int, workers: int, seed: int,
                 scripted: bool = True) -> None:
     check_task(task)
-    get_task(task)  # its Task: the attributes its stores carry
-    if scripted and policy not in POLICIES:
-        raise InputError(f"unknown policy {policy!r}; expected one of {list(POLICIES)}.")
+    policies = get_task(task).scripted_policies  # its Task: the attributes its stores carry, its policies
+    if scripted and policy not in policies:
+        raise InputError(f"unknown policy {policy!r} for task {task!r}; expected one of {list(policies)}.")
     if image_size not in IMAGE_SIZES:
         raise InputError(f"image size must be one of {list(IMAGE_SIZES)}, got {image_size!r}.")
     for name, value in (("episodes", episodes), ("steps", steps), ("workers", workers)):
@@ -213,7 +214,7 @@ def _check_existing(store: EpisodeStore, attrs: dict[str, Any], seed: int) -> No
 
 def _record(job: tuple[str, str, int, int, int]) -> dict[str, np.ndarray]:
     task, policy, seed, steps, image_size = job
-    return record_episode(task, policy, seed, steps, image_size)
+    return get_task(task).record_episode(policy, seed, steps, image_size)
 
 
 def _record_scripted(task: str, policy: str, steps: int, image_size: int, workers: int,

@@ -1,44 +1,23 @@
-"""Scoring from pixels alone: block segmentation, pixel IoU and a block pose estimator.
+"""Scoring T-push from pixels alone: block segmentation, pixel IoU and a block pose estimator.
 
 These read nothing but an RGB frame of the T-pushing scene, so they score MuJoCo frames
-and world-model frames alike. The camera is orthographic and top-down, so pixel (i, j)
-looks at the world point ``(x, y) = (-V + (j + 0.5) s, V - (i + 0.5) s)`` with
-``V = view_half`` and pixel size ``s = 2 V / W``.
+and world-model frames alike (the pixel grid and the colour model: :mod:`iwsim.envs.palette`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from itertools import combinations
-from typing import cast
 
 import numpy as np
 
 from iwsim.envs import geometry as geo
+from iwsim.envs.palette import Palette, pixel_centers, pusher_centroids, world_to_pixel  # noqa: F401 - its T-push name
+from iwsim.envs.palette import check_frames as _check_frame
 from iwsim.envs.pusht import GOAL_POSE, PALETTE, VIEW_HALF
 from iwsim.errors import InputError
 
-# Palette as rendered (8-bit), block first.
-_NAMES = ["block"] + [n for n in PALETTE if n != "block"]
-_COLOURS = np.array([np.round(np.array(PALETTE[n]) * 255) for n in _NAMES], dtype=np.float32)
-# Every pixel is modelled as a mix of two palette colours (a colour with itself = pure).
-_PAIRS = np.array([(i, i) for i in range(len(_NAMES))] + list(combinations(range(len(_NAMES)), 2)))
-
-
-def pixel_centers(image_size: int, view_half: float = VIEW_HALF) -> np.ndarray:
-    """(H, W, 2) world (x, y) of each pixel centre."""
-    s = 2 * view_half / image_size
-    c = -view_half + (np.arange(image_size) + 0.5) * s
-    xx, yy = np.meshgrid(c, -c)
-    return np.stack([xx, yy], axis=-1)
-
-
-def world_to_pixel(xy: np.ndarray, image_size: int, view_half: float = VIEW_HALF) -> np.ndarray:
-    """(..., 2) world (x, y) -> (..., 2) continuous pixel (col, row) coordinates."""
-    s = 2 * view_half / image_size
-    xy = np.asarray(xy, dtype=np.float64)
-    return np.stack([(xy[..., 0] + view_half) / s - 0.5, (view_half - xy[..., 1]) / s - 0.5], axis=-1)
+PALETTE_MODEL = Palette(PALETTE, first="block")  # the colour model of T-push's frames
 
 
 def soft_t_mask(pose: np.ndarray, image_size: int, centers: np.ndarray | None = None) -> np.ndarray:
@@ -67,13 +46,6 @@ def goal_mask(image_size: int, goal_pose: np.ndarray = GOAL_POSE) -> np.ndarray:
     return coverage_mask(tuple(float(v) for v in goal_pose), image_size)
 
 
-def _check_frame(frame: np.ndarray) -> np.ndarray:
-    frame = np.asarray(frame)
-    if frame.ndim < 3 or frame.shape[-1] != 3 or frame.shape[-2] != frame.shape[-3]:
-        raise InputError(f"expected RGB frames of shape (..., H, W, 3) with H == W, got {frame.shape}.")
-    return frame
-
-
 def colour_fractions(frame: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     """(..., H, W, 3) uint8 frames -> (..., K, H, W) float32 fraction of each pixel that
     shows each of the K palette surfaces ``names`` (block, left, right, goal, table, wall).
@@ -81,24 +53,7 @@ def colour_fractions(frame: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     Each pixel is explained as the best mix of two palette colours (anti-aliased edges
     blend two surfaces); a surface's share of that mix is the answer.
     """
-    for name in names:
-        if name not in _NAMES:
-            raise InputError(f"unknown surface {name!r}; expected one of {_NAMES}.")
-    p = _check_frame(frame).astype(np.float64)  # (..., H, W, 3)
-    a, b = _COLOURS[_PAIRS[:, 0]].astype(np.float64), _COLOURS[_PAIRS[:, 1]].astype(np.float64)  # (P, 3)
-    d = b - a
-    dd = (d * d).sum(-1)
-    # every pair at once, by inner products: with x = p - a, the second colour's share is
-    # gamma = clip(x.d / d.d, 0, 1) and the error |x - gamma d|^2 = x.x - 2 gamma x.d + gamma^2 d.d
-    xd = p @ d.T - (a * d).sum(-1)  # (..., H, W, P)
-    xx = (p * p).sum(-1, keepdims=True) - 2 * p @ a.T + (a * a).sum(-1)
-    gamma = np.clip(xd / np.maximum(dd, 1e-12), 0, 1)  # a pair of one colour twice has d = 0
-    err = xx - 2 * gamma * xd + gamma**2 * dd
-    best = err.argmin(-1)[..., None]  # the first pair of least error
-    gamma = np.take_along_axis(gamma, best, -1)[..., 0]
-    first, second = _PAIRS[best[..., 0], 0], _PAIRS[best[..., 0], 1]
-    out = [(1 - gamma) * (first == k) + gamma * (second == k) for k in map(_NAMES.index, names)]
-    return np.stack(out, axis=-3).astype(np.float32)
+    return PALETTE_MODEL.fractions(frame, names)
 
 
 def colour_fraction(frame: np.ndarray, name: str = "block") -> np.ndarray:
@@ -116,8 +71,7 @@ def pusher_positions(frame: np.ndarray, min_pixels: float = 1.0) -> tuple[np.nda
     """Pusher centres from (..., H, W, 3) frames: positions (..., 4) float32 ``[lx, ly, rx,
     ry]`` in metres and found (..., 2) bool (at least ``min_pixels`` of that colour near
     its peak; else the position is NaN). See :func:`pusher_peaks` for the estimator."""
-    xy, found, _ = _pusher_centroids(colour_fractions(frame, ("left", "right")), min_pixels)
-    return xy, found
+    return PALETTE_MODEL.pusher_positions(frame, min_pixels)
 
 
 def pusher_peaks(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -128,35 +82,8 @@ def pusher_peaks(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     leak elsewhere does not pull it: 0.2 px median error on autoencoder reconstructions,
     against 5.7 px for the centroid of all the colour. A pusher with no colour at all is
     placed at its peak pixel."""
-    xy, _, peak = _pusher_centroids(colour_fractions(frame, ("left", "right")), 0.0)
+    xy, _, peak = pusher_centroids(colour_fractions(frame, ("left", "right")), 0.0)
     return xy, peak
-
-
-def _pusher_centroids(fractions: np.ndarray, min_pixels: float, radius: float = 2.5
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Local centroids (..., 4), found (..., 2) and peak fractions (..., 2) of the two
-    pushers' fractions (..., 2, H, W) (see :func:`pusher_peaks`)."""
-    size = fractions.shape[-1]
-    pad = np.pad(fractions, [(0, 0)] * (fractions.ndim - 2) + [(1, 1), (1, 1)])
-    smooth = cast(np.ndarray, sum(pad[..., i:i + size, j:j + size] for i in range(3) for j in range(3))) / 9
-    rows, cols = np.divmod(smooth.reshape(*smooth.shape[:-2], -1).argmax(-1), size)
-    yy, xx = np.mgrid[0:size, 0:size]
-    near = (yy - rows[..., None, None]) ** 2 + (xx - cols[..., None, None]) ** 2 <= radius**2
-    xy, found = _centroids(fractions * near, max(min_pixels, 1e-6))
-    if min_pixels <= 0:
-        xy = np.where(np.isnan(xy), pixel_centers(size)[rows, cols].reshape(xy.shape), xy).astype(np.float32)
-        found = np.ones_like(found)
-    return xy, found, fractions.reshape(*fractions.shape[:-2], -1).max(-1)
-
-
-def _centroids(fractions: np.ndarray, min_pixels: float) -> tuple[np.ndarray, np.ndarray]:
-    """Centroids (..., 2K) and found (..., K) of K surfaces' fractions (..., K, H, W)."""
-    centers = pixel_centers(fractions.shape[-1])
-    total = fractions.sum(axis=(-2, -1))
-    xy = np.einsum("...khw,hwc->...kc", fractions, centers) / np.maximum(total, 1e-9)[..., None]
-    found = total >= min_pixels
-    xy = np.where(found[..., None], xy, np.nan)
-    return xy.reshape(*xy.shape[:-2], -1).astype(np.float32), found
 
 
 def pixel_iou(frame: np.ndarray, goal_pose: np.ndarray = GOAL_POSE) -> np.ndarray | float:
@@ -180,7 +107,7 @@ def read_frames(frames: np.ndarray, goal_pose: np.ndarray = GOAL_POSE,
     """:func:`pixel_iou` and :func:`pusher_positions` of (..., H, W, 3) frames in one pass
     of the colour segmentation: IoU (...), positions (..., 4) and found (..., 2)."""
     f = colour_fractions(frames, ("block", "left", "right"))
-    return (_iou(f[..., 0, :, :], goal_pose), *_pusher_centroids(f[..., 1:, :, :], min_pixels)[:2])
+    return (_iou(f[..., 0, :, :], goal_pose), *pusher_centroids(f[..., 1:, :, :], min_pixels)[:2])
 
 
 @dataclass(frozen=True)

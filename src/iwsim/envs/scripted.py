@@ -1,8 +1,9 @@
 """Scripted policies for the T-pushing task: ``play`` (world-model data) and ``expert``.
 
 A policy is called as ``policy(obs, info) -> action`` after ``policy.reset(obs, info)``;
-actions are absolute pusher targets ``[lx, ly, rx, ry]``. :func:`run_scripted` is the one
-loop in which a scripted policy drives MuJoCo; :func:`record_episode` records one.
+actions are absolute pusher targets ``[lx, ly, rx, ry]``. :func:`run_scripted` drives
+MuJoCo with one; :func:`record_episode` records one (what every tabletop task's scripted
+policies share: :mod:`iwsim.envs.scripting`).
 
 (Not to be confused with :mod:`iwsim.policies`, the learned policies, which are called as
 ``policy.predict_action(obs)``.)
@@ -18,18 +19,28 @@ from __future__ import annotations
 import heapq
 from collections import deque
 from collections.abc import Generator
-from dataclasses import dataclass
-from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
 
-from iwsim.envs import POLICIES, make_env
+from iwsim.envs import POLICIES as TASK_POLICIES
 from iwsim.envs import geometry as geo
 from iwsim.envs.geometry import to_block, to_world
 from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import GOAL_POSE, IMAGE_SIZE, MAX_STEP, PUSHER_RADIUS, WORKSPACE
+from iwsim.envs.scripting import (
+    PAUSE_STEPS,  # noqa: F401 - T-push's name for it
+    Hand,
+    ScriptedPolicy,
+    Transition,
+    advance,
+    check_policy,
+    record,
+    run_policy,
+)
 from iwsim.errors import InputError
+
+POLICIES = TASK_POLICIES["pusht"]  # T-push's scripted policies, by name
 
 # The pinch, in the block frame: grip level just under the bar, on both sides of the stem.
 _BAR_BOTTOM = geo.BAR_CENTER[1] - geo.BAR_WIDTH / 2
@@ -86,7 +97,7 @@ def plan_step(p: np.ndarray, target: np.ndarray, pose: np.ndarray, max_step: flo
             k = int(np.argmin(gaps))
             out = q.copy()
             out[k % 2] = lo[k] - 0.003 if k < 2 else hi[k - 2] + 0.003
-            return _advance(p, to_world(out, pose), max_step)
+            return advance(p, to_world(out, pose), max_step)
     in_ws = np.all(np.abs(to_world(_CORNERS, pose)) <= WORKSPACE, axis=1)
     nodes = [q, goal] + [c for c, ok in zip(_CORNERS, in_ws) if ok]
     # Dijkstra from the goal so that each node knows its next hop towards it.
@@ -109,18 +120,12 @@ def plan_step(p: np.ndarray, target: np.ndarray, pose: np.ndarray, max_step: flo
                 dist[j], nxt[j] = nd, i
                 heapq.heappush(heap, (nd, j))
     if 0 not in nxt:  # no path (e.g. walled in): head straight for the target
-        return _advance(p, target, max_step)
+        return advance(p, target, max_step)
     path, i = [], 0
     while i != 1:
         i = nxt[i]
         path.append(nodes[i])
     return _along(p, [to_world(n, pose) for n in path], max_step)
-
-
-def _advance(p: np.ndarray, target: np.ndarray, max_step: float) -> np.ndarray:
-    d = target - p
-    n = float(np.linalg.norm(d))
-    return target if n <= max_step else p + d * (max_step / n)
 
 
 def _along(p: np.ndarray, path: list[np.ndarray], max_step: float) -> np.ndarray:
@@ -209,49 +214,6 @@ class Pinch:
         if self.stalled_steps >= 5:  # the pushers block each other's way: swap sides
             self.sides, self.stalled_steps = -self.sides, 0
         return np.stack([plan_step(p, t, pose, self.speed) for p, t in zip(pushers, pre)])
-
-
-PAUSE_STEPS = (5, 20)  # a pause of the hand holds its command this many steps (inclusive)
-JITTER_CORRELATION = 0.8  # the tremor's AR(1) coefficient: correlated over ~5 steps
-
-
-class Hand:
-    """A human-like hand between a policy and the robot: ``hand(command) -> command``, one
-    call per step, its randomness from ``rng``, starting at ``start`` (the pushers).
-
-    ``lag``: a slow hand, a first-order low-pass of the commands with that time constant
-    (steps; <= 1: none). ``pause``: the chance per step of holding the command still for
-    :data:`PAUSE_STEPS` steps. ``jitter``: a tremor, stationary AR(1) noise of that std
-    (m), correlated over ~5 steps. ``overshoot``: the hand leads its motion by that many
-    steps (command + overshoot x its last change), so every stop overshoots and comes back.
-    A hand with every field 0 passes commands through unchanged.
-    """
-
-    def __init__(self, rng: np.random.Generator, start: np.ndarray, lag: float = 0.0, pause: float = 0.0,
-                 jitter: float = 0.0, overshoot: float = 0.0) -> None:
-        self.rng, self.lag, self.pause, self.jitter, self.overshoot = rng, lag, pause, jitter, overshoot
-        self.out = np.asarray(start, dtype=np.float64).copy()  # where the hand is (lag's state)
-        self.prev: np.ndarray | None = None  # the previous command (overshoot's velocity)
-        self.held = 0  # steps of the current pause still to hold
-        self.tremor = np.zeros_like(self.out)
-
-    def __call__(self, command: np.ndarray) -> np.ndarray:
-        a = np.asarray(command, dtype=np.float64)
-        if self.overshoot:
-            lead = 0.0 if self.prev is None else self.overshoot * (a - self.prev)
-            self.prev, a = a, a + lead
-        if self.held > 0:
-            self.held -= 1
-            return self.out.copy()
-        if self.pause and self.rng.random() < self.pause:
-            self.held = int(self.rng.integers(PAUSE_STEPS[0], PAUSE_STEPS[1] + 1)) - 1
-            return self.out.copy()
-        self.out = self.out + (a - self.out) / self.lag if self.lag > 1 else a
-        if self.jitter:
-            c = JITTER_CORRELATION
-            self.tremor = c * self.tremor + self.rng.normal(0.0, self.jitter * np.sqrt(1 - c * c), a.shape)
-            return self.out + self.tremor
-        return self.out.copy()
 
 
 class ExpertPolicy:
@@ -359,13 +321,13 @@ class PlayPolicy:
 
     def _solo(self, p: np.ndarray, pose: np.ndarray, task: dict) -> np.ndarray:
         if task["kind"] == "wander":
-            return _advance(p, task["target"], self.speed)
+            return advance(p, task["target"], self.speed)
         if task["stage"] == "approach":
             pre = to_world(task["pre"], pose)
             if np.linalg.norm(p - pre) > 0.005:  # free space: travel at up to the speed limit
                 return plan_step(p, pre, pose, max(self.speed, 0.8 * MAX_STEP))
             task["stage"] = "push"
-        return _advance(p, to_world(task["through"], pose), self.speed)
+        return advance(p, to_world(task["through"], pose), self.speed)
 
     def __call__(self, obs: dict, info: dict) -> np.ndarray:
         pose = np.asarray(info["block_pose"], dtype=np.float64)
@@ -448,7 +410,7 @@ class BroadPlayPolicy(PlayPolicy):
             if np.linalg.norm(p - task["start"]) > 0.005:
                 return plan_step(p, task["start"], pose, max(self.speed, 0.8 * MAX_STEP))
             task["stage"] = "stroke"
-        return _advance(p, task["end"], self.speed)
+        return advance(p, task["end"], self.speed)
 
     def _targets(self, pushers: np.ndarray, pose: np.ndarray) -> np.ndarray:
         if self.mode == "rest":
@@ -587,8 +549,7 @@ def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
     ``expert-lagged`` (that, executed 0-5 steps late) or ``expert-hands`` (that, through a
     person's slow or pausing hand) or ``expert-imprecise`` (the expert with a learned
     policy's imprecise grip and blind carry)."""
-    if name not in POLICIES:
-        raise InputError(f"unknown policy {name!r}; expected one of {list(POLICIES)}.")
+    check_policy(name, POLICIES)
     if name == "expert":
         return ExpertPolicy()
     if name == "expert-lagged":
@@ -602,66 +563,22 @@ def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
     return NoisyExpertPolicy(seed) if name == "expert-noisy" else PlayPolicy(seed)
 
 
-class ScriptedPolicy(Protocol):
-    def reset(self, obs: dict, info: dict) -> None: ...
-
-    def __call__(self, obs: dict, info: dict) -> np.ndarray: ...
-
-
-@dataclass(frozen=True)
-class Transition:
-    """One step of a scripted episode: the observation and info before the action, the
-    action (float32), and the observation and info after it (``next_info["target"]`` is
-    the motion MuJoCo executed, what a world model is conditioned on)."""
-
-    obs: dict[str, np.ndarray]
-    info: dict[str, Any]
-    action: np.ndarray
-    next_obs: dict[str, np.ndarray]
-    next_info: dict[str, Any]
-
-
 def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, task: str = "pusht",
                  image_size: int = IMAGE_SIZE, env: gym.Env | None = None) -> Generator[Transition, None, None]:
     """Drive ``task`` (or ``env``) with a scripted policy (a name of :data:`POLICIES`,
     seeded by ``seed``, or a policy object) for ``steps`` steps from the reset with
     ``seed``, yielding each :class:`Transition`. An environment made here is closed when
     the loop ends or is abandoned."""
-    own = env is None
-    env = make_env(task, image_size) if env is None else env
-    try:
-        pol = make_policy(policy, seed) if isinstance(policy, str) else policy
-        obs, info = env.reset(seed=seed)
-        pol.reset(obs, info)
-        for _ in range(steps):
-            action = np.asarray(pol(obs, info), dtype=np.float32)
-            next_obs, _, _, _, next_info = env.step(action)
-            yield Transition(obs, info, action, next_obs, next_info)
-            obs, info = next_obs, next_info
-    finally:
-        if own:
-            env.close()
+    pol = make_policy(policy, seed) if isinstance(policy, str) else policy
+    return run_policy(pol, task if env is None else env, seed, steps, image_size)
 
 
 def record_episode(task: str, policy: str, seed: int, steps: int,
                    image_size: int = IMAGE_SIZE) -> dict[str, np.ndarray]:
-    """Run one seeded episode and return its arrays, in the episode store's layout.
-
-    Step t holds the observation before action t and the action itself:
-    ``img`` (T, H, W, 3) uint8, ``state`` (T, 4) float32 (agent_pos), ``action`` (T, 4)
-    float32 (as commanded), ``target`` (T, 4) float32 (the rate-limited setpoints action t
-    executed, what the world model is conditioned on), ``block_pose`` (T, 3) float32,
-    ``iou`` (T,) float32 and ``n_contacts`` (T,) int32, with T = ``steps``. The same
-    arguments give the same arrays.
+    """Run one seeded episode and return its arrays, in the episode store's layout
+    (:func:`~iwsim.envs.scripting.record`): ``img``, ``state``, ``action``, ``target``, then
+    ``block_pose`` (T, 3) float32, ``iou`` (T,) float32 and ``n_contacts`` (T,) int32, with
+    T = ``steps``. The same arguments give the same arrays.
     """
-    rows: dict[str, list] = {k: [] for k in ("img", "state", "action", "target", "block_pose", "iou", "n_contacts")}
-    for tr in run_scripted(policy, seed, steps, task, image_size):
-        rows["img"].append(tr.obs["pixels"])
-        rows["state"].append(tr.obs["agent_pos"])
-        rows["action"].append(tr.action)
-        rows["block_pose"].append(tr.info["block_pose"])
-        rows["iou"].append(tr.info["iou"])
-        rows["n_contacts"].append(tr.info["n_contacts"])
-        rows["target"].append(tr.next_info["target"])
-    dtypes = {"img": np.uint8, "n_contacts": np.int32}
-    return {k: np.asarray(v, dtype=dtypes.get(k, np.float32)) for k, v in rows.items()}
+    return record(run_scripted(policy, seed, steps, task, image_size),
+                  {"block_pose": np.float32, "iou": np.float32, "n_contacts": np.int32})

@@ -184,6 +184,10 @@ class Task:
     start_source: ClassVar[str] = "dataset"  # the name of the task's own initial frames
     clip_commands: ClassVar[bool] = False  # True: a command beyond the bounds is clipped, not refused
     has_ground_truth: ClassVar[bool] = False  # ground_truth_env gives a simulator
+    # Per-step arrays of a store that, after agent_pos (``state``), make the simulator's state
+    # (start_from_record reads them; T-push: the block's pose).
+    state_keys: ClassVar[tuple[str, ...]] = ()
+    episode_score: ClassVar[str | None] = None  # the array of record_episode's episodes holding the score
 
     def __post_init__(self) -> None:
         low, high = tuple(float(v) for v in self.action_low), tuple(float(v) for v in self.action_high)
@@ -296,6 +300,18 @@ class Task:
         """The simulator the world model stands in for, if the task has one (side by side in play)."""
         del image_size
         return None
+
+    @property
+    def scripted_policies(self) -> tuple[str, ...]:
+        """The names of the scripted policies :meth:`record_episode` runs (none without a simulator)."""
+        return ()
+
+    def record_episode(self, policy: str, seed: int, steps: int, image_size: int) -> dict[str, np.ndarray]:
+        """One seeded episode of the simulator under a scripted policy, in the episode
+        store's layout (``img``, ``state``, ``action``, ``target``, ``n_contacts`` and the
+        :attr:`episode_score` array, per step; ``iwsim collect`` records them)."""
+        del seed, steps, image_size
+        raise InputError(f"task {self.name!r} has no simulator to record {policy!r} episodes in.")
 
     # -- descriptions ------------------------------------------------------------------------------
     def describe(self) -> dict[str, Any]:

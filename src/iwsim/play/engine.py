@@ -12,7 +12,7 @@ states of all sessions into one batch, takes one functional step
 The task (:class:`iwsim.envs.task.Task`, the world model's unless the config names one)
 decides the rest. Motion: a session's action is a command; the task maps it to the
 executed motion (:meth:`~iwsim.envs.task.Task.executed`; for T-push the pushers approach
-it at the speed limit, :func:`iwsim.envs.pusht.limit_targets`, the function MuJoCo runs
+it at the speed limit, :func:`iwsim.envs.tabletop.limit_targets`, the function MuJoCo runs
 too), and the world model is conditioned on that executed motion, as it was trained.
 A command outside the task's bounds is refused with one line (T-push clips it, as MuJoCo
 does); the session goes on.

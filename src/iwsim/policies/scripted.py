@@ -12,7 +12,7 @@ estimated from the pixels (``pose_source="pixels"``), so a scripted policy behav
 same in MuJoCo and inside a world model. Degradations, for policies of graded skill:
 ``noise`` adds Gaussian noise (metres, per coordinate) to every command, ``latency``
 executes each command that many steps late (holding the pushers' first positions until
-then). A human-like hand (:class:`iwsim.envs.scripted.Hand`) between the policy and the robot: ``lag`` (a
+then). A human-like hand (:class:`iwsim.envs.scripting.Hand`) between the policy and the robot: ``lag`` (a
 slow hand that follows the policy's commands with that time constant, in steps),
 ``pause`` (the chance per step of holding the command still for 5-20 steps),
 ``jitter`` (a tremor: smooth noise of that std, correlated over ~5 steps) and
@@ -25,14 +25,13 @@ index, so results do not depend on the batch size.
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from iwsim.envs.pixels import estimate_block_pose
-from iwsim.envs.pusht import WORKSPACE
-from iwsim.envs.scripted import ExpertPolicy, Hand, PlayPolicy, ScriptedPolicy
+from iwsim.envs.scripted import ExpertPolicy, PlayPolicy
+from iwsim.envs.scripting import Degraded, ScriptedPolicy
 from iwsim.errors import InputError
 
 KINDS = ("expert", "play", "still")
@@ -138,7 +137,7 @@ class ScriptedBatch:
         return _PixelPose(PlayPolicy(self.cfg.seed + i))
 
     def reset(self) -> None:
-        self._episodes: list[tuple[ScriptedPolicy, np.random.Generator, deque, Hand]] | None = None
+        self._episodes: list[Degraded] | None = None
 
     def predict_action(self, obs: dict) -> np.ndarray:
         """obs: image (B, 1, H, W, 3) uint8 and agent_pos (B, 1, 4) -> actions (B, 1, 4) float32."""
@@ -151,20 +150,12 @@ class ScriptedBatch:
         now = [{"pixels": image[i, -1], "agent_pos": pos[i, -1]} for i in range(len(image))]
         if self._episodes is None:
             self._episodes = []
+            c = self.cfg
             for i, o in enumerate(now):
-                rng = np.random.default_rng([self.cfg.seed, i])
-                hand_rng = np.random.default_rng([self.cfg.seed, i, 1])  # the noise's draws stay as they were
-                policy = self._make(i, hand_rng)
+                rng = np.random.default_rng([c.seed, i])
+                hand_rng = np.random.default_rng([c.seed, i, 1])  # the noise's draws stay as they were
+                policy = Degraded(self._make(i, hand_rng), rng, hand_rng, noise=c.noise, latency=c.latency,
+                                  lag=c.lag, pause=c.pause, jitter=c.jitter, overshoot=c.overshoot)
                 policy.reset(o, {})
-                held = deque([o["agent_pos"].copy()] * self.cfg.latency, maxlen=self.cfg.latency + 1)
-                hand = Hand(hand_rng, o["agent_pos"], lag=self.cfg.lag, pause=self.cfg.pause, jitter=self.cfg.jitter,
-                            overshoot=self.cfg.overshoot)
-                self._episodes.append((policy, rng, held, hand))
-        actions = []
-        for o, (policy, rng, queue, hand) in zip(now, self._episodes):
-            a = hand(np.asarray(policy(o, {}), dtype=np.float64))
-            if self.cfg.noise:
-                a = a + rng.normal(0.0, self.cfg.noise, a.shape)
-            queue.append(np.clip(a, -WORKSPACE, WORKSPACE).astype(np.float32))
-            actions.append(queue.popleft())
-        return np.stack(actions)[:, None]
+                self._episodes.append(policy)
+        return np.stack([policy(o, {}) for o, policy in zip(now, self._episodes)])[:, None]

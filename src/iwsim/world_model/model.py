@@ -22,7 +22,7 @@ latent instead of the predicted one, in either mode.
 A step predicts the next latent from a sliding window of the last K latents (older ones
 are dropped), so a step costs the same at step 10 and at step 10,000, and memory stays
 flat. The actions are the motion the robot executes: for a task with a speed limit,
-the rate-limited targets (``iwsim.envs.pusht.limit_targets``), which the task-aware
+the rate-limited targets (``iwsim.envs.tabletop.limit_targets``), which the task-aware
 callers (``iwsim/WorldModel-v0``, ``iwsim play``) compute from commands.
 
 The codec is any :class:`~iwsim.world_model.codec.Codec` (frames <-> latents of its

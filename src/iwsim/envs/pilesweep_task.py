@@ -1,0 +1,46 @@
+"""Pile sweeping as a :class:`~iwsim.envs.task.Task`: the tabletop's pushers
+(:mod:`iwsim.envs.tabletop_task`), the share of the pieces seen that lie in the tray as
+the scorer (:mod:`iwsim.envs.pilesweep_pixels`) and the task's scripted policies
+(:mod:`iwsim.envs.pilesweep_scripted`). The task's own defaults live here and in
+:mod:`iwsim.envs.pilesweep`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from iwsim.envs import pilesweep_scripted
+from iwsim.envs.pilesweep import HORIZON, IMAGE_SIZE, SUCCESS, TaskSpec
+from iwsim.envs.pilesweep_pixels import PALETTE_MODEL, read_frames, tray_share
+from iwsim.envs.tabletop_task import TabletopTask
+
+SPEC = TaskSpec()
+
+
+@dataclass(frozen=True)
+class PileSweepTask(TabletopTask):
+    """``iwsim/PileSweep-v0`` behind the Task seam (actions ``[lx, ly, rx, ry]`` in metres).
+    Its score from pixels is the pieces seen in the tray over the pieces seen (the
+    simulator's: over the pieces there are; the two agree while a frame shows every piece)."""
+
+    name: str = SPEC.name
+
+    kind = "pilesweep"
+    score_name = "share in tray"
+    success_score = SUCCESS
+    spec = SPEC
+    palette = PALETTE_MODEL
+    state_keys = ("pieces",)
+    episode_score = "score"
+    image_size = IMAGE_SIZE  # the frames collected, trained on and evaluated at
+    horizon = HORIZON  # steps of an evaluation episode (the paper's pile-sweeping horizon)
+
+    def score(self, frames: np.ndarray) -> np.ndarray:
+        return np.asarray(tray_share(frames), np.float64)
+
+    def read(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return read_frames(frames)
+
+    def record_episode(self, policy: str, seed: int, steps: int, image_size: int) -> dict[str, np.ndarray]:
+        return pilesweep_scripted.record_episode(policy, seed, steps, image_size)
