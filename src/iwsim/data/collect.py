@@ -38,8 +38,6 @@ log = logging.getLogger(__name__)
 STEP_LOWDIM_BYTES = 256  # per step besides the frame: state, action, poses, IoU, contacts (generous)
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps")
-# The per-step info arrays of a T-push episode besides frames, state, action, target and score.
-STORE_INFO = ("block_pose", "n_contacts")
 # Records the episodes of the given seeds, in order, each in the store's layout
 # (:meth:`iwsim.envs.task.Task.record_episode`'s): a controller that is not a scripted policy.
 Recorder = Callable[[list[int]], Iterator[dict[str, np.ndarray]]]

@@ -27,7 +27,7 @@ from gymnasium.vector import SyncVectorEnv, VectorEnv
 from tqdm import tqdm
 
 from iwsim.checkpoint import write_json_atomic
-from iwsim.data.collect import STORE_INFO, Recorder
+from iwsim.data.collect import Recorder
 from iwsim.envs import SMALLEST_FRAME_BYTES, make_env
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
@@ -160,16 +160,19 @@ def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int | Non
     Step t holds the observation before action t, as a scripted episode does
     (:func:`iwsim.envs.scripted.record_episode`). Frames of ``image_size`` (None: the task's size)."""
 
+    kind = get_task(task)  # its episodes' own arrays: the objects' state, contacts, the score
+    keep, score = (*kind.state_keys, "n_contacts"), kind.episode_score or "score"
+
     def record(seeds: list[int]) -> Iterator[dict[str, np.ndarray]]:
         for i in range(0, len(seeds), batch):
             chunk = seeds[i:i + batch]
             torch.manual_seed(chunk[0])
             run = rollout(policy, task, chunk, steps, image_size=image_size, record=len(chunk), progress=False,
-                          keep=STORE_INFO)
+                          keep=keep)
             for e in range(len(chunk)):
                 yield {"img": run["frames"][e, :steps], "state": run["agent_pos"][e, :steps].astype(np.float32),
                        "action": run["action"][e], "target": run["target"][e].astype(np.float32),
-                       "iou": run["iou"][e, :steps].astype(np.float32),
+                       score: run["iou"][e, :steps].astype(np.float32),
                        **{k: v[e, :steps] for k, v in run["info"].items()}}
 
     return record
