@@ -6,10 +6,16 @@ agent_pos, for the To = 2 observed steps.
 Poses of the training frames are estimated once; at evaluation, from every observed frame.
 If this policy learns the task, the image policy's gap is perception; if it stalls the
 same way, it is the imitation itself (the actions, the data, the policy class).
-Scores on 20 validation seeds x 600 steps go to runs/pol/NAME/probe_scores.jsonl.
+Scores on 20 validation seeds x 600 steps go to runs/pol/NAME/probe_scores.jsonl;
+with ``--on-train``, also from the first states of the training takes themselves (the
+memorisation test: a policy that cannot replay its own takes is not fitted) to
+train_scores.jsonl.
 
     MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/probes/policy_state_probe.py --name probe-pose \
         --steps 6000 --eval-at 2000,4000,6000
+    # issue 44's budget test: the curve to convergence, constant learning rate
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/probes/policy_state_probe.py --name probe-pose-40k \
+        --steps 40000 --lr-decay constant --eval-at 5000,10000,20000,40000
 """
 import argparse
 import dataclasses
@@ -20,6 +26,7 @@ import numpy as np
 import torch
 from probe_scores import score_checkpoints
 
+from iwsim.data.store import EpisodeStore
 from iwsim.envs import geometry as geo
 from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import VIEW_HALF
@@ -54,13 +61,13 @@ class PoseDP(DiffusionPolicy):
 
     def __init__(self, cfg, action_norm, state_norm, kind="pose"):
         super().__init__(dataclasses.replace(cfg, image_features=FEATURES[kind]), action_norm, state_norm)
-        self.encoder, self.kind = None, kind
+        self.encoder, self.features = None, kind
 
     def condition(self, image, agent_pos):
         if image.ndim == 5:  # frames at evaluation: (B, To, 3, H, W) in [-1, 1]
             frames = ((image.permute(0, 1, 3, 4, 2) + 1) * 127.5).round().clamp(0, 255).to(torch.uint8)
             b, to = frames.shape[:2]
-            image = torch.from_numpy(pose_features(frames.flatten(0, 1).numpy(), self.kind)).view(b, to, -1)
+            image = torch.from_numpy(pose_features(frames.flatten(0, 1).numpy(), self.features)).view(b, to, -1)
         return torch.cat([image, agent_pos], -1).flatten(1)
 
 
@@ -96,17 +103,26 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--features", choices=tuple(FEATURES), default="pose")
     p.add_argument("--relative", action="store_true", help="actions as offsets from the current agent_pos")
+    p.add_argument("--lr-decay", choices=("cosine", "constant"), default="cosine")
+    p.add_argument("--on-train", action="store_true",
+                   help="also score from the training takes' own first states (at most 20)")
     args = p.parse_args()
     torch.set_num_threads(1)
     base = PRESETS["dp"]
-    train = dataclasses.replace(base.train, steps=args.steps, eval_every=10**9, checkpoint_every=1000, seed=0)
+    train = dataclasses.replace(base.train, steps=args.steps, eval_every=10**9, checkpoint_every=1000, seed=0,
+                                lr_decay=args.lr_decay)
     cfg = dataclasses.replace(base, model={**base.model, "relative_actions": args.relative}, train=train)
     task = PoseTask(cfg, parse_mixture(args.data), args.features)
     run = Path("runs/pol") / args.name
     t0 = time.time()
     trainer.train(task, cfg.train, run, task.config(), device=torch.device("cpu"), progress=False)
     print(f"trained in {(time.time() - t0) / 60:.1f} min", flush=True)
-    score_checkpoints(task.module, run, args.name, [int(x) for x in args.eval_at.split(",") if x], args.episodes)
+    steps = [int(x) for x in args.eval_at.split(",") if x]
+    score_checkpoints(task.module, run, args.name, steps, args.episodes)
+    if args.on_train:
+        src = parse_mixture(args.data)[0]
+        seeds = EpisodeStore.open(src.path).attrs["seeds"][:min(src.episodes or 20, 20)]
+        score_checkpoints(task.module, run, f"{args.name} (own takes)", steps, out="train_scores.jsonl", seeds=seeds)
 
 
 if __name__ == "__main__":

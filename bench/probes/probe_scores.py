@@ -11,10 +11,11 @@ from iwsim.eval.policy import rollout, summarize
 
 
 def score_checkpoints(policy: torch.nn.Module, run: Path, name: str, steps: list[int], episodes: int = 20,
-                      out: str = "probe_scores.jsonl") -> None:
-    """Load each checkpoint's weights into ``policy`` and score it on validation seeds
-    (200000 + i) x 600 steps; one line each is printed and appended to ``run / out``."""
-    seeds = list(range(200000, 200000 + episodes))
+                      out: str = "probe_scores.jsonl", seeds: list[int] | None = None) -> None:
+    """Load each checkpoint's weights into ``policy`` and score it x 600 steps on ``seeds``
+    (default: the validation seeds 200000 + i, ``episodes`` of them); one line each is
+    printed and appended to ``run / out``."""
+    seeds = list(range(200000, 200000 + episodes)) if seeds is None else seeds
     for step in steps:
         policy.load_state_dict(load_tensors(run / "checkpoints" / f"{step:08d}" / "model.safetensors"))
         policy.eval()
