@@ -1,6 +1,7 @@
 """Imitation policies: Diffusion Policy, the data mixture, training through the generic loop, closed-loop
 evaluation (MuJoCo and a tiny world model) and its statistics."""
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -67,6 +68,17 @@ def test_windows_pad_like_diffusion_policy(play_store):
     assert obs[1].tolist() == [n0 - 2, n0 - 1] and act[1, :2].tolist() == [n0 - 2, n0 - 1]
     assert act[1, 2:].tolist() == [n0 - 1] * 6 and pad[1].tolist() == [False, False] + [True] * 6
     assert obs[2].tolist() == [n0, n0] and not pad[2].any()  # episode 1 starts fresh
+
+
+def test_a_policy_learns_the_commands_or_the_executed_setpoints(play_store):
+    store = EpisodeStore.open(play_store)
+    end = int(store.episode_ends[1])
+    for key in ("action", "target"):
+        data = PolicyData([Source(play_store, 2)], 2, 8, actions=key)
+        np.testing.assert_array_equal(data.action.numpy(), np.asarray(store.array(key)[:end], np.float32))
+    assert PRESETS["dp"].actions == "action"
+    with pytest.raises(ValueError, match="actions must be one of action, target"):
+        dataclasses.replace(PRESETS["dp"], actions="state")
 
 
 def test_random_shift_moves_whole_windows_with_the_border_repeated():

@@ -55,33 +55,34 @@ def parse_mixture(spec: str) -> list[Source]:
 class PolicyData:
     """The chosen episodes of every source, in memory, and random windows of them."""
 
-    def __init__(self, sources: list[Source], obs_horizon: int, horizon: int) -> None:
+    def __init__(self, sources: list[Source], obs_horizon: int, horizon: int, actions: str = "action") -> None:
+        """``actions``: the array the policy learns to output (``action`` or ``target``)."""
         if not sources:
             raise InputError("the data mixture is empty; give at least one STORE[:N].")
         self.obs_horizon, self.horizon = obs_horizon, horizon
-        imgs, states, actions, lengths, self.counts = [], [], [], [], {}
+        imgs, states, labels, lengths, self.counts = [], [], [], [], {}
         for src in sources:
             store = EpisodeStore.open(src.path, "r")
-            for key in ("img", "state", "action"):
+            for key in ("img", "state", actions):
                 if key not in store.keys:
-                    raise InputError(f"{src.path} has no data/{key}; policies need img, state and action.")
+                    raise InputError(f"{src.path} has no data/{key}; policies need img, state and {actions}.")
             n = store.n_episodes if src.episodes is None else src.episodes
             if n > store.n_episodes or n < 1:
                 raise InputError(f"{src.path} holds {store.n_episodes} episodes; {n} were asked for.")
             end = int(store.episode_ends[n - 1])
             imgs.append(np.asarray(store.array("img")[:end]))
             states.append(np.asarray(store.array("state")[:end], np.float32))
-            actions.append(np.asarray(store.array("action")[:end], np.float32))
+            labels.append(np.asarray(store.array(actions)[:end], np.float32))
             ends = store.episode_ends[:n]
             lengths += np.diff(ends, prepend=0).tolist()
             self.counts[os.fspath(src.path)] = n
-            for name, arrays in (("frames", imgs), ("state", states), ("action", actions)):
+            for name, arrays in (("frames", imgs), ("state", states), (actions, labels)):
                 if arrays[-1].shape[1:] != arrays[0].shape[1:]:
                     raise InputError(f"{src.path} has {name} of shape {arrays[-1].shape[1:]} per step, "
                                      f"{sources[0].path} {arrays[0].shape[1:]}; a mixture must agree.")
         self.img = torch.from_numpy(np.concatenate(imgs))
         self.state = torch.from_numpy(np.concatenate(states))
-        self.action = torch.from_numpy(np.concatenate(actions))
+        self.action = torch.from_numpy(np.concatenate(labels))
         ends = np.cumsum(lengths)
         self.starts = torch.from_numpy(ends - np.asarray(lengths))
         self.ends = torch.from_numpy(ends)

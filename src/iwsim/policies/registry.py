@@ -23,6 +23,7 @@ from iwsim.config import TrainConfig
 from iwsim.errors import InputError
 
 C = TypeVar("C", bound=type)
+ACTION_KEYS = ("action", "target")  # what a policy may learn to output (PolicyStageConfig.actions)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,6 +34,13 @@ class PolicyStageConfig:
     model: dict[str, Any] = dataclasses.field(default_factory=dict)  # the policy's config (to_dict)
     train: TrainConfig = TrainConfig()
     shift: int = 4  # training images move by up to this many pixels (random-shift augmentation)
+    # The episode array the policy learns to output: "action", the commands as given, or
+    # "target", the setpoints the speed-limited controller executed (smooth where a command jumps).
+    actions: str = "action"
+
+    def __post_init__(self) -> None:
+        if self.actions not in ACTION_KEYS:
+            raise InputError(f"actions must be one of {', '.join(ACTION_KEYS)}, got {self.actions!r}.")
 
 
 # The training knobs of every policy's tiny preset (for tests): a few steps, checkpoints at 10 and 20.

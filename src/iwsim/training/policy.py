@@ -24,7 +24,7 @@ class PolicyTask:
 
     def __init__(self, cfg: PolicyStageConfig, sources: list[Source]) -> None:
         model: Any = from_dict(config_class(cfg.policy), cfg.model)  # the registered policy's config dataclass
-        self.data = PolicyData(sources, model.obs_horizon, model.horizon)
+        self.data = PolicyData(sources, model.obs_horizon, model.horizon, cfg.actions)
         self.relative = model.relative_actions
         self.action_norm, self.state_norm = self.data.normalizers(self.relative)
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
