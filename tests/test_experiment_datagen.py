@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zarr
 
 from iwsim.cli import main
 from iwsim.data.collect import store_attrs
@@ -18,7 +19,7 @@ from iwsim.envs.pusht import GOAL_POSE
 from iwsim.eval.policy import rollout
 from iwsim.experiments.common import fingerprint
 from iwsim.experiments.datagen import PRESETS, DatagenConfig, command, plan
-from iwsim.experiments.demos import SIM_SEED, DemoRecipe, record_demos, simulator_store
+from iwsim.experiments.demos import SIM_SEED, DemoRecipe, record_demos, record_with, simulator_store
 from iwsim.experiments.policy_eval import PolicyEvalConfig
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.scripted import ScriptedBatch
@@ -144,7 +145,8 @@ def test_one_recipe_for_both_studies():
     """The studies share the simulator store, so they share its recipe, whose defaults are
     those the recorded ``sim_expert.zarr`` holds (a store refuses another recipe)."""
     r = DemoRecipe()
-    assert (r.steps, r.tail, r.accept_iou, r.attempts_per_demo, r.batch) == (300, 10, 0.9, 2.0, 16)
+    assert (r.steps, r.tail, r.accept_iou, r.attempts_per_demo, r.batch, r.demonstrator) == (
+        300, 10, 0.9, 2.0, 16, "expert")
     assert DatagenConfig().recipe == PolicyEvalConfig().recipe == r and SIM_SEED == 0
     assert simulator_store(Path("w")) == Path("w/demos/sim_expert.zarr")
     DemoRecipe(tail=None)
@@ -334,6 +336,36 @@ def test_goal_turned_recording_starts_from_the_turned_block_and_keeps_to_its_sto
     with pytest.raises(ValueError, match="the world model starts from random ones"):
         record("world-model", tmp_path / "wm.zarr", wm_path, start="goal-turned")
 
+
+
+def test_a_store_holds_one_demonstrators_takes(wm_path, tmp_path):
+    """Issue 44: takes of the forgiving expert-wide go to a store of their own, which the
+    expert's takes may not extend; a store written before demonstrators were named resumes
+    as the expert's."""
+    path = tmp_path / "wide.zarr"
+    recipe = DemoRecipe(steps=6, tail=None, accept_iou=0.0, batch=1, demonstrator="expert-wide")
+    assert record_with("pusht", path, 1, 300000, recipe, progress=False).episodes == 1
+    store = EpisodeStore.open(path)
+    assert store.attrs["demonstrator"] == "expert-wide"
+    ep = store.episode(0)
+    wide = ScriptedBatch("expert-wide")  # the stored actions are expert-wide's
+    replayed = [wide.predict_action({"image": ep["img"][t][None, None], "agent_pos": ep["state"][t][None, None]})
+                for t in range(len(ep["action"]))]
+    np.testing.assert_array_equal(np.concatenate(replayed)[:, 0], ep["action"])
+    assert record("pusht", path, wm_path, episodes=2, batch=1, demonstrator="expert-wide").added == 1
+    with pytest.raises(ValueError, match="demonstrator='expert-wide', not demonstrator='expert'"):
+        record("pusht", path, wm_path, episodes=3, batch=1)
+    old = tmp_path / "old.zarr"
+    record("pusht", old, wm_path, episodes=1, batch=1)
+    del zarr.open_group(old, mode="r+").attrs["demonstrator"]
+    assert "demonstrator" not in EpisodeStore.open(old).attrs
+    assert record("pusht", old, wm_path, episodes=2, batch=1).added == 1
+    with pytest.raises(ValueError, match="demonstrator='expert', not demonstrator='expert-wide'"):
+        record("pusht", old, wm_path, episodes=3, batch=1, demonstrator="expert-wide")
+    with pytest.raises(ValueError, match="demonstrator must be one of expert, expert-wide, got 'human'"):
+        DemoRecipe(demonstrator="human")
+    with pytest.raises(ValueError, match="demonstrator must be one of"):
+        record("pusht", tmp_path / "bad.zarr", wm_path, demonstrator="play")
 
 
 def test_the_command_line_offers_each_studys_presets():

@@ -1,8 +1,21 @@
 import numpy as np
 import pytest
 
-from iwsim.envs.pusht import BimanualPushTEnv
-from iwsim.envs.scripted import PAUSE_STEPS, ExpertPolicy, Hand, make_policy, record_episode, run_scripted
+from iwsim.envs import POLICIES
+from iwsim.envs.pusht import MAX_STEP, BimanualPushTEnv
+from iwsim.envs.scripted import (
+    CLEARANCE,
+    PAUSE_STEPS,
+    PRE_GRIP_X,
+    SQUEEZE,
+    ExpertPolicy,
+    Grasp,
+    Hand,
+    make_policy,
+    record_episode,
+    run_scripted,
+    wide_pinch,
+)
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
 
 
@@ -19,6 +32,33 @@ def test_expert_solves_an_episode(source):
         best = max(best, info["iou"])
     env.close()
     assert best >= 0.9
+
+
+@pytest.mark.parametrize("seed", [100000, 100001])
+def test_the_wide_expert_solves_episodes_from_pixels_with_smooth_commands(seed):
+    """expert-wide (issue 44) reaches the goal from the frames alone, and its commands never
+    move a pusher's target more than the speed limit from one step to the next."""
+    steps = []
+    for tr in run_scripted(ExpertPolicy(pose_source="pixels", pinch=wide_pinch()), seed, 150):
+        steps.append(tr)
+        if tr.next_info["is_success"]:
+            break
+    assert steps[-1].next_info["is_success"]
+    jumps = np.linalg.norm(np.diff(np.stack([tr.action for tr in steps]), axis=0).reshape(-1, 2, 2), axis=-1)
+    assert jumps.max() <= MAX_STEP + 1e-6
+
+
+def test_the_wide_expert_is_a_seeded_t_push_policy_and_the_expert_stays_precise():
+    assert "expert-wide" in POLICIES["pusht"]
+    a = record_episode("pusht", "expert-wide", seed=4, steps=40)
+    assert all(np.array_equal(a[k], record_episode("pusht", "expert-wide", seed=4, steps=40)[k]) for k in a)
+    assert not np.array_equal(a["action"], record_episode("pusht", "expert", seed=4, steps=40)["action"])
+    # the expert keeps its precise pinch: 5 mm paths, a 4 mm trigger, an instant close
+    expert = make_policy("expert", 0)
+    assert isinstance(expert, ExpertPolicy) and expert.pinch.grasp == Grasp() and expert.pinch.max_jump == np.inf
+    assert (Grasp().clearance, Grasp().pre_grip_x, Grasp().squeeze, Grasp().close_within) == (
+        CLEARANCE, PRE_GRIP_X, SQUEEZE, 0.004)
+    assert not Grasp().relative and ScriptedConfig().kind == "expert"
 
 
 def test_play_touches_the_block_and_is_deterministic():
@@ -48,6 +88,17 @@ def test_scripted_batch_acts_as_the_pixel_expert_in_mujoco():
         action = batch.predict_action(_batch_obs([tr.obs]))
         assert action.shape == (1, 1, 4) and action.dtype == np.float32
         np.testing.assert_array_equal(action[0, 0], tr.action)
+
+
+def test_scripted_batch_acts_as_the_pixel_wide_expert_in_mujoco():
+    steps = list(run_scripted(ExpertPolicy(pose_source="pixels", pinch=wide_pinch()), 100002, 12))
+    batch = ScriptedBatch("expert-wide")
+    for tr in steps:
+        np.testing.assert_array_equal(batch.predict_action(_batch_obs([tr.obs]))[0, 0], tr.action)
+    assert ScriptedConfig("expert-wide", noise=0.01).name == "expert-wide-noise0.01"
+    obs = _batch_obs([steps[0].obs])
+    missing = ScriptedBatch(ScriptedConfig("expert-wide", miss=0.05)).predict_action(obs)
+    assert not np.allclose(missing, ScriptedBatch("expert-wide").predict_action(obs))
 
 
 def test_scripted_batch_degradations():

@@ -1,4 +1,4 @@
-"""Scripted policies for the T-pushing task: ``play`` (world-model data) and ``expert``.
+"""Scripted policies for the T-pushing task: ``play`` (world-model data), ``expert`` and ``expert-wide``.
 
 A policy is called as ``policy(obs, info) -> action`` after ``policy.reset(obs, info)``;
 actions are absolute pusher targets ``[lx, ly, rx, ry]``. :func:`run_scripted` drives
@@ -8,17 +8,24 @@ policies share: :mod:`iwsim.envs.scripting`).
 (Not to be confused with :mod:`iwsim.policies`, the learned policies, which are called as
 ``policy.predict_action(obs)``.)
 
-Both are built on one manoeuvre, the *pinch*: the pushers slide into the notches under
+All are built on one manoeuvre, the *pinch*: the pushers slide into the notches under
 the T's bar, one on each side of the stem, squeeze the stem and then carry the block as a
 rigid grasp. Paths around the block come from a visibility graph over the corners of the
-T grown by the pusher radius, computed in the block's frame.
+T grown by the pusher radius, computed in the block's frame. The expert's pinch is precise
+(paths 5 mm from the block, a close once both pushers are within 4 mm of their pre-grip
+points); ``expert-wide``'s (:func:`wide_pinch`) tolerates centimetre errors, for
+demonstrations that imitation can follow (issue 44): paths 2 cm from the block, a close and
+a carry relative to where the pushers are, commands that change smoothly.
 """
 
 from __future__ import annotations
 
+import functools
 import heapq
+import math
 from collections import deque
-from collections.abc import Generator
+from collections.abc import Callable, Generator
+from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
@@ -49,7 +56,7 @@ CONTACT_X = geo.STEM_WIDTH / 2 + PUSHER_RADIUS  # pusher centre touching the ste
 PRE_GRIP_X = CONTACT_X + 0.02  # where the pushers wait before closing
 SQUEEZE = 0.02  # targets this far inside the stem: ~8 N of grip at kp = 400
 CLEARANCE = 0.005  # paths keep this much free space around the block
-WAYPOINT_CLEARANCE = 0.012  # graph nodes sit a little further out than paths need
+WAYPOINT_MARGIN = 0.007  # graph nodes sit a little further out than paths need
 
 
 def _boxes(grow: float) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -57,14 +64,19 @@ def _boxes(grow: float) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(c - h - grow, c + h + grow) for c, h in geo.T_BOXES]
 
 
-_COLLIDE = _boxes(PUSHER_RADIUS + CLEARANCE)
-_bar, _stem = _boxes(PUSHER_RADIUS + WAYPOINT_CLEARANCE)
-# Convex corners of the grown T (the two notch corners are concave, never on a shortest path).
-_CORNERS = np.array([
-    [_bar[0][0], _bar[1][1]], [_bar[1][0], _bar[1][1]],  # bar top
-    [_bar[0][0], _bar[0][1]], [_bar[1][0], _bar[0][1]],  # bar bottom ends
-    [_stem[0][0], _stem[0][1]], [_stem[1][0], _stem[0][1]],  # stem bottom
-])
+@functools.cache
+def _obstacles(clearance: float) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+    """What paths keeping ``clearance`` around the block avoid, in the block frame: the
+    T's rectangles grown by the pusher radius and the clearance (boxes no path may cross),
+    and the convex corners of the T grown a little further (the graph's nodes; the two
+    notch corners are concave, never on a shortest path)."""
+    bar, stem = _boxes(PUSHER_RADIUS + clearance + WAYPOINT_MARGIN)
+    corners = np.array([
+        [bar[0][0], bar[1][1]], [bar[1][0], bar[1][1]],  # bar top
+        [bar[0][0], bar[0][1]], [bar[1][0], bar[0][1]],  # bar bottom ends
+        [stem[0][0], stem[0][1]], [stem[1][0], stem[0][1]],  # stem bottom
+    ])
+    return _boxes(PUSHER_RADIUS + clearance), corners
 
 
 def _segment_hits_box(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
@@ -83,23 +95,43 @@ def _segment_hits_box(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarr
     return True
 
 
-def _visible(a: np.ndarray, b: np.ndarray) -> bool:
-    return not any(_segment_hits_box(a, b, lo, hi) for lo, hi in _COLLIDE)
-
-
-def plan_step(p: np.ndarray, target: np.ndarray, pose: np.ndarray, max_step: float) -> np.ndarray:
-    """Next pusher target (world) on a shortest collision-free path from ``p`` to ``target``
-    around the block at ``pose``, at most ``max_step`` along the path."""
+def plan_step(p: np.ndarray, target: np.ndarray, pose: np.ndarray, max_step: float,
+              clearance: float = CLEARANCE) -> np.ndarray:
+    """Next pusher target (world) on a shortest path from ``p`` to ``target`` around the
+    block at ``pose`` that keeps ``clearance`` of free space from it, at most ``max_step``
+    along the path. Closer than that to the block, it backs straight out first. Where no
+    path that wide fits in the workspace (the block near a wall), it keeps :data:`CLEARANCE`."""
     q, goal = to_block(p, pose), to_block(target, pose)
-    for lo, hi in _COLLIDE:
+    collide, _ = _obstacles(clearance)
+    out = q
+    for lo, hi in collide:
         if np.all(q > lo) and np.all(q < hi):  # too close to the block: back straight out
             gaps = np.concatenate([q - lo, hi - q])
             k = int(np.argmin(gaps))
             out = q.copy()
             out[k % 2] = lo[k] - 0.003 if k < 2 else hi[k - 2] + 0.003
-            return advance(p, to_world(out, pose), max_step)
-    in_ws = np.all(np.abs(to_world(_CORNERS, pose)) <= WORKSPACE, axis=1)
-    nodes = [q, goal] + [c for c, ok in zip(_CORNERS, in_ws) if ok]
+            break
+    if clearance > CLEARANCE and _shortest_path(out, goal, pose, clearance) is None:
+        return plan_step(p, target, pose, max_step)
+    if out is not q:
+        return advance(p, to_world(out, pose), max_step)
+    path = _shortest_path(q, goal, pose, clearance)
+    if path is None:  # no path (e.g. walled in): head straight for the target
+        return advance(p, target, max_step)
+    return _along(p, [to_world(n, pose) for n in path], max_step)
+
+
+def _shortest_path(q: np.ndarray, goal: np.ndarray, pose: np.ndarray, clearance: float) -> list[np.ndarray] | None:
+    """The nodes after ``q`` of a shortest path from ``q`` to ``goal`` (block frame) that
+    keeps ``clearance`` around the block at ``pose`` through corners within the workspace,
+    or None if there is none."""
+    collide, corners = _obstacles(clearance)
+    in_ws = np.all(np.abs(to_world(corners, pose)) <= WORKSPACE, axis=1)
+    nodes = [q, goal] + [c for c, ok in zip(corners, in_ws) if ok]
+
+    def visible(a: np.ndarray, b: np.ndarray) -> bool:
+        return not any(_segment_hits_box(a, b, lo, hi) for lo, hi in collide)
+
     # Dijkstra from the goal so that each node knows its next hop towards it.
     dist = {1: 0.0}
     nxt: dict[int, int] = {}
@@ -113,19 +145,19 @@ def plan_step(p: np.ndarray, target: np.ndarray, pose: np.ndarray, max_step: flo
         if i == 0:
             break
         for j in range(len(nodes)):
-            if j in done or j == i or not _visible(nodes[i], nodes[j]):
+            if j in done or j == i or not visible(nodes[i], nodes[j]):
                 continue
             nd = d + float(np.linalg.norm(nodes[i] - nodes[j]))
             if nd < dist.get(j, np.inf):
                 dist[j], nxt[j] = nd, i
                 heapq.heappush(heap, (nd, j))
-    if 0 not in nxt:  # no path (e.g. walled in): head straight for the target
-        return advance(p, target, max_step)
+    if 0 not in nxt:
+        return None
     path, i = [], 0
     while i != 1:
         i = nxt[i]
         path.append(nodes[i])
-    return _along(p, [to_world(n, pose) for n in path], max_step)
+    return path
 
 
 def _along(p: np.ndarray, path: list[np.ndarray], max_step: float) -> np.ndarray:
@@ -140,40 +172,108 @@ def _along(p: np.ndarray, path: list[np.ndarray], max_step: float) -> np.ndarray
     return p
 
 
+@dataclass(frozen=True)
+class Grasp:
+    """Where and how a :class:`Pinch` takes the stem (block frame, metres): the expert's
+    precise defaults, or :data:`WIDE_GRASP`."""
+
+    grip_y: float = GRIP_Y  # the grip's height on the stem
+    pre_grip_x: float = PRE_GRIP_X  # |x| of the points where the pushers wait before closing
+    squeeze: float = SQUEEZE  # the grip's targets lie this far inside the stem
+    clearance: float = CLEARANCE  # approach paths keep this much free space around the block
+    close_within: float = 0.004  # the close starts once both pushers are this near their pre-grip points
+    close_speed: float = math.inf  # the close moves its targets inwards at most this far a step
+    close_steps: int = 5  # the pinch restarts when it has not closed after this many steps
+    touch: float = 0.003  # closed: both pushers within the pusher radius and this of the (believed) T
+    hold: float = 0.012  # the carry restarts once a pusher is this far from its contact point (see relative)
+    # Close and carry relative to the pushers rather than to grip points on the believed
+    # block: they close towards each other (for as many steps as the ramp from ``pre_grip_x``
+    # would take), the carry moves them with the grasp and squeezes along the line between
+    # them, and the grip holds (and has closed, whatever ``touch``) while they are the
+    # stem's width apart, give or take ``hold`` (let go, they would close on each other).
+    # Where along and across the stem they hold it, and how wrong the believed pose is,
+    # then does not matter.
+    relative: bool = False
+
+
 class Pinch:
     """The pinch-and-carry manoeuvre towards a target block pose.
 
     ``__call__(pushers, block_pose, target_pose)`` returns the two pusher targets (2, 2).
-    Phases: approach (each pusher to its pre-grip point), close (squeeze the stem), carry
-    (move the grasp; translation and rotation rate-limited). Losing the grip restarts it.
+    Phases: approach (each pusher to its pre-grip point, on paths around the block, its
+    target ``speed`` ahead along the path), close (squeeze the stem), carry (move the
+    grasp; translation and rotation rate-limited). Losing the grip restarts it. Where it
+    grips and how it closes: ``grasp``. Each pusher's target moves at most ``max_jump``
+    from its previous one a step (from the pusher at the first).
     """
 
     def __init__(self, speed: float = MAX_STEP, carry_speed: float = 0.012, turn_speed: float = 0.3,
-                 gain: float = 2.0, squeeze: float = SQUEEZE) -> None:
+                 gain: float = 2.0, grasp: Grasp = Grasp(), max_jump: float = math.inf) -> None:
         self.speed, self.carry_speed, self.turn_speed, self.gain = speed, carry_speed, turn_speed, gain
-        self.squeeze = squeeze
+        self.grasp, self.max_jump = grasp, max_jump
         self.reset()
 
     def reset(self) -> None:
-        self.phase = "approach"
+        """Start afresh (a new episode)."""
         self.sides: np.ndarray | None = None  # +-1 per pusher: which side of the stem
+        self._sent: np.ndarray | None = None  # the last targets returned
+        self._begin()
+
+    def _begin(self) -> None:
+        """(Re)start from the approach; a restart keeps ``_sent``, so the targets stay smooth."""
+        self.phase = "approach"
         self.closing_steps = 0
         self.stalled_steps = 0
         self._prev: np.ndarray | None = None
 
     def _assign(self, pushers: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        grips = to_world(np.array([[-PRE_GRIP_X, GRIP_Y], [PRE_GRIP_X, GRIP_Y]]), pose)
+        g = self.grasp
+        grips = to_world(np.array([[-g.pre_grip_x, g.grip_y], [g.pre_grip_x, g.grip_y]]), pose)
         straight = np.linalg.norm(pushers - grips, axis=1).sum()
         crossed = np.linalg.norm(pushers - grips[::-1], axis=1).sum()
         return np.array([-1.0, 1.0]) if straight <= crossed else np.array([1.0, -1.0])
 
     def _restart(self, pushers: np.ndarray, pose: np.ndarray) -> None:
-        self.reset()
+        self._begin()
         self.sides = self._assign(pushers, pose)
 
     def _points(self, x: float) -> np.ndarray:
         assert self.sides is not None  # __call__ assigns the sides first
-        return np.stack([self.sides * x, np.full(2, GRIP_Y)], axis=1)
+        return np.stack([self.sides * x, np.full(2, self.grasp.grip_y)], axis=1)
+
+    def _closing(self, pushers: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """The close's targets (world, (2, 2)) at its step ``closing_steps + 1``: from the
+        pre-grip points inwards at ``close_speed`` a step until ``squeeze`` inside the stem
+        (relative: each pusher ``close_speed`` towards the other)."""
+        g = self.grasp
+        if g.relative:
+            return pushers + g.close_speed * _towards_each_other(pushers)
+        return to_world(self._points(max(g.pre_grip_x - (self.closing_steps + 1) * g.close_speed,
+                                         CONTACT_X - g.squeeze)), pose)
+
+    def _touching(self, pushers: np.ndarray, pose: np.ndarray) -> bool:
+        """Whether the close has brought both pushers onto the block at ``pose``."""
+        if self.grasp.relative:
+            return self._holding(pushers, pose)
+        dist = np.array([geo.distance_to_t(p, pose) for p in pushers])
+        return bool(np.all(dist <= PUSHER_RADIUS + self.grasp.touch))
+
+    def _holding(self, pushers: np.ndarray, pose: np.ndarray) -> bool:
+        """Whether the pushers still hold the block at ``pose`` (see :class:`Grasp`)."""
+        g = self.grasp
+        if g.relative:
+            return bool(abs(np.linalg.norm(pushers[1] - pushers[0]) - 2 * CONTACT_X) <= g.hold)
+        contacts = to_world(self._points(CONTACT_X), pose)
+        return bool(np.max(np.linalg.norm(pushers - contacts, axis=1)) <= g.hold)
+
+    def _carrying(self, pushers: np.ndarray, pose: np.ndarray, commanded: np.ndarray) -> np.ndarray:
+        """The carry's targets (world, (2, 2)) moving the grasp of the block at ``pose`` to ``commanded``."""
+        g = self.grasp
+        if not g.relative:
+            return to_world(self._points(CONTACT_X - g.squeeze), commanded)
+        c, s = np.cos(commanded[2] - pose[2]), np.sin(commanded[2] - pose[2])
+        squeezed = pushers - pose[:2] + g.squeeze * _towards_each_other(pushers)
+        return squeezed @ np.array([[c, s], [-s, c]]) + commanded[:2]
 
     def carry_step(self, pose: np.ndarray, target: np.ndarray) -> np.ndarray:
         """How far the carry commands the grasp past ``pose`` (x, y, angle) towards ``target``."""
@@ -188,32 +288,65 @@ class Pinch:
         return step
 
     def __call__(self, pushers: np.ndarray, pose: np.ndarray, target: np.ndarray) -> np.ndarray:
+        targets = self._targets(pushers, pose, target)
+        if self.max_jump < math.inf:
+            start = pushers if self._sent is None else self._sent
+            targets = np.stack([advance(a, b, self.max_jump) for a, b in zip(start, targets)])
+            self._sent = targets
+        return targets
+
+    def _targets(self, pushers: np.ndarray, pose: np.ndarray, target: np.ndarray) -> np.ndarray:
+        g = self.grasp
         if self.sides is None:
             self.sides = self._assign(pushers, pose)
         if self.phase == "carry":
-            contacts = to_world(self._points(CONTACT_X), pose)
-            if np.max(np.linalg.norm(pushers - contacts, axis=1)) > 0.012:
-                self._restart(pushers, pose)
-            else:
-                return to_world(self._points(CONTACT_X - self.squeeze), pose + self.carry_step(pose, target))
+            if self._holding(pushers, pose):
+                return self._carrying(pushers, pose, pose + self.carry_step(pose, target))
+            self._restart(pushers, pose)
         if self.phase == "close":
             self.closing_steps += 1
-            dist = np.array([geo.distance_to_t(p, pose) for p in pushers])
-            if np.all(dist <= PUSHER_RADIUS + 0.003):
+            closed = g.pre_grip_x - self.closing_steps * g.close_speed <= CONTACT_X - g.squeeze
+            if closed and self._touching(pushers, pose):
                 self.phase = "carry"
-            elif self.closing_steps > 5:
+            elif self.closing_steps > g.close_steps:
                 self._restart(pushers, pose)
-            return to_world(self._points(CONTACT_X - self.squeeze), pose)
-        pre = to_world(self._points(PRE_GRIP_X), pose)
-        if np.max(np.linalg.norm(pushers - pre, axis=1)) < 0.004:
+            return self._closing(pushers, pose)
+        pre = to_world(self._points(g.pre_grip_x), pose)
+        if np.max(np.linalg.norm(pushers - pre, axis=1)) < g.close_within:
             self.phase, self.closing_steps = "close", 0
-            return to_world(self._points(CONTACT_X - self.squeeze), pose)
+            return self._closing(pushers, pose)
         moved = np.inf if self._prev is None else np.max(np.linalg.norm(pushers - self._prev, axis=1))
         self._prev = pushers.copy()
         self.stalled_steps = self.stalled_steps + 1 if moved < 0.001 else 0
         if self.stalled_steps >= 5:  # the pushers block each other's way: swap sides
             self.sides, self.stalled_steps = -self.sides, 0
-        return np.stack([plan_step(p, t, pose, self.speed) for p, t in zip(pushers, pre)])
+        return np.stack([plan_step(p, t, pose, self.speed, g.clearance) for p, t in zip(pushers, pre)])
+
+
+def _towards_each_other(pushers: np.ndarray) -> np.ndarray:
+    """(2, 2) unit vectors from each pusher towards the other."""
+    d = pushers[::-1] - pushers
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+
+
+# The forgiving grasp of ``expert-wide``: approach paths 2 cm from the block to points
+# 3.5 cm from the stem, 3 cm under the bar (a centimetre along the stem either way stays
+# on it); the close starts once both pushers are within 2 cm of them, moves them towards
+# each other at 12 mm a step, and the carry squeezes them 1 cm into the stem from where
+# they are (a light squeeze: a firm one stops the grasp from turning the block).
+WIDE_GRASP = Grasp(grip_y=_BAR_BOTTOM - PUSHER_RADIUS - 0.03, pre_grip_x=CONTACT_X + 0.035, squeeze=0.01,
+                   clearance=0.02, close_within=0.02, close_speed=0.012, close_steps=12, hold=0.025, relative=True)
+
+
+def wide_pinch() -> Pinch:
+    """The pinch of ``expert-wide``: :data:`WIDE_GRASP`, its approach targets 4 cm ahead
+    along the path (the environment moves the setpoint at its speed limit towards them),
+    turns of at most 0.2 rad a step, and targets that move at most the speed limit a step."""
+    return Pinch(speed=0.04, turn_speed=0.2, grasp=WIDE_GRASP, max_jump=MAX_STEP)
+
+
+# The T-push experts by name: the pinch each one carries the block with.
+EXPERTS: dict[str, Callable[[], Pinch]] = {"expert": Pinch, "expert-wide": wide_pinch}
 
 
 class ExpertPolicy:
@@ -221,14 +354,17 @@ class ExpertPolicy:
 
     ``pose_source="state"`` reads the block pose from ``info["block_pose"]``;
     ``"pixels"`` estimates it from ``obs["pixels"]`` alone (the teleoperator stand-in).
+    ``pinch``: the manoeuvre (default the expert's precise :class:`Pinch`; ``expert-wide``'s
+    is :func:`wide_pinch`).
     """
 
-    def __init__(self, pose_source: str = "state", goal_pose: np.ndarray = GOAL_POSE) -> None:
+    def __init__(self, pose_source: str = "state", goal_pose: np.ndarray = GOAL_POSE,
+                 pinch: Pinch | None = None) -> None:
         if pose_source not in ("state", "pixels"):
             raise InputError(f"pose_source must be 'state' or 'pixels', got {pose_source!r}.")
         self.pose_source = pose_source
         self.goal_pose = np.asarray(goal_pose, dtype=np.float64)
-        self.pinch = Pinch()
+        self.pinch = Pinch() if pinch is None else pinch
         self._last = np.zeros(4, np.float32)
 
     def reset(self, obs: dict, info: dict) -> None:
@@ -481,7 +617,8 @@ class ImpreciseExpertPolicy(SeededExpertPolicy):
         rng = self.rng
         self.bias = rng.normal(0.0, self.POSE_BIAS)
         self.wobble = rng.normal(0.0, self.WOBBLE)
-        self.pinch = Pinch(carry_speed=float(rng.uniform(0.006, 0.02)), squeeze=float(rng.uniform(*self.SQUEEZE)))
+        self.pinch = Pinch(carry_speed=float(rng.uniform(0.006, 0.02)),
+                           grasp=Grasp(squeeze=float(rng.uniform(*self.SQUEEZE))))
         self.blind = bool(rng.random() < 0.5)
         self.belief: np.ndarray | None = None  # the blind carry's dead-reckoned pose
 
@@ -545,13 +682,14 @@ class LaggedExpertPolicy(NoisyExpertPolicy):
 def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
     """A scripted policy by name: ``play`` (randomised by ``seed``), ``play-broad`` (play
     of a person's and a policy's breadth), ``expert`` (deterministic, block pose from
-    state), ``expert-noisy`` (the expert with command noise drawn from ``seed``),
+    state), ``expert-wide`` (the same, with the forgiving :func:`wide_pinch`),
+    ``expert-noisy`` (the expert with command noise drawn from ``seed``),
     ``expert-lagged`` (that, executed 0-5 steps late) or ``expert-hands`` (that, through a
     person's slow or pausing hand) or ``expert-imprecise`` (the expert with a learned
     policy's imprecise grip and blind carry)."""
     check_policy(name, POLICIES)
-    if name == "expert":
-        return ExpertPolicy()
+    if name in EXPERTS:
+        return ExpertPolicy(pinch=EXPERTS[name]())
     if name == "expert-lagged":
         return LaggedExpertPolicy(seed)
     if name == "expert-hands":

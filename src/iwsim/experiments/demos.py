@@ -4,8 +4,9 @@ kept only when they succeed (what ``iwsim experiment datagen`` trains policies o
     stats = record_demos("world-model", "runs/demos/wm.zarr", episodes=50, steps=300, seed=300000,
                          world_model="checkpoints/pusht-64")
 
-The teleoperator is the pixel-reading expert (:class:`~iwsim.policies.scripted.ScriptedBatch`
-``"expert"``: the block pose estimated from the frame, exactly what a person sees). With
+The teleoperator is a pixel-reading expert (:class:`~iwsim.policies.scripted.ScriptedBatch`
+``"expert"``, or the ``demonstrator`` chosen, e.g. ``"expert-wide"``: the block pose estimated
+from the frame, exactly what a person sees). With
 ``env="world-model"`` it drives the world model's batched vector env from MuJoCo's initial
 frames (the same first frame as MuJoCo for the same seed), the motion a person makes in
 ``iwsim play``; with ``env="pusht"`` the same code drives MuJoCo and gives the simulator
@@ -32,8 +33,8 @@ W, 3) uint8, the frame before action t; ``state`` (T, 4) float32, agent_pos (rea
 pixels in the world model); ``action`` (T, 4) float32, the command; ``target`` (T, 4)
 float32, the speed-limited setpoints action t executed (``info["target"]``); ``iou`` (T,)
 float32, the frame's pixel score. Attributes: the task spec (as ``iwsim collect``), the
-policy (``world-model-teleop`` or ``expert-pixels``), the world-model checkpoint, the
-acceptance rule and the candidates tried with their scores.
+policy (``world-model-teleop`` or ``expert-pixels``), the demonstrator, the world-model
+checkpoint, the acceptance rule and the candidates tried with their scores.
 
 Resuming: the store is appended to under its lock; a rerun with the same arguments (or
 more ``episodes`` / ``max_attempts``) continues from the first candidate not yet tried.
@@ -61,6 +62,7 @@ from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs import IMAGE_SIZES
 from iwsim.envs.pusht import check_start
+from iwsim.envs.scripted import EXPERTS
 from iwsim.errors import InputError
 from iwsim.eval.policy import ENVS, MAX_SEED, rollout
 from iwsim.experiments.common import STUDY, fingerprint
@@ -75,9 +77,9 @@ POLICY_NAMES = {"world-model": "world-model-teleop", "pusht": "expert-pixels"}
 SOURCES = {"world-model": "world_model", "pusht": "mujoco"}
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world_model_sha256", "first_seed",
-                  "accept_iou", "tail_steps", "dart_noise", "start")
+                  "accept_iou", "tail_steps", "dart_noise", "start", "demonstrator")
 # What stores written before an attribute existed hold.
-OLDER_ATTRS = {"dart_noise": 0.0, "start": "random"}
+OLDER_ATTRS = {"dart_noise": 0.0, "start": "random", "demonstrator": "expert"}
 EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
 SIM_STORE = "sim_expert.zarr"  # the simulator expert's demonstrations, under work/demos: shared by the studies
 SIM_SEED = 0  # the first candidate's seed in SIM_STORE (disjoint from evaluation seeds, 100000+)
@@ -97,6 +99,7 @@ class DemoRecipe:
     give_up_after: int | None = 32  # stop when this many candidates were tried and none was kept (None: never)
     dart_noise: float = 0.0  # std (m) of the noise added to the executed commands; the clean ones are recorded
     start: str = "random"  # MuJoCo's initial states (iwsim.envs.pusht.STARTS): "goal-turned" records recoveries
+    demonstrator: str = "expert"  # the pixel expert that records (iwsim.envs.scripted.EXPERTS): or "expert-wide"
 
     def __post_init__(self) -> None:
         positive = {"demo_steps": self.steps, "demo_batch": self.batch}
@@ -112,6 +115,7 @@ class DemoRecipe:
             raise InputError(f"attempts_per_demo must be >= 1, got {self.attempts_per_demo!r}.")
         _check_noise(self.dart_noise)
         check_start(self.start)
+        _check_demonstrator(self.demonstrator)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,12 +151,13 @@ class DemoStats:
 
 
 def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, seed: int, accept_iou: float,
-               tail: int | None, dart_noise: float = 0.0, start: str = "random") -> dict[str, Any]:
+               tail: int | None, dart_noise: float = 0.0, start: str = "random",
+               demonstrator: str = "expert") -> dict[str, Any]:
     """Root attributes of a demonstration store: ``iwsim collect``'s (the task spec,
     policy, steps, ...) plus the teleoperator, the source and the acceptance rule."""
     return {**store_attrs("pusht", POLICY_NAMES[env], steps, image_size), "source": SOURCES[env],
             "world_model": world_model, "world_model_sha256": None if world_model is None else fingerprint(world_model),
-            "teleoperator": "expert (block pose from pixels)",
+            "teleoperator": f"{demonstrator} (block pose from pixels)", "demonstrator": demonstrator,
             "keys": list(EPISODE_KEYS), "first_seed": seed, "accept_iou": accept_iou, "tail_steps": tail,
             "dart_noise": dart_noise, "start": start,
             "candidates_tried": 0, "candidate_max_iou": [], "acceptance_rate": None, "record_seconds": 0.0}
@@ -162,8 +167,8 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                  world_model: str | os.PathLike | None = None, accept_iou: float = PUSHT.success_score,
                  tail: int | None = 10,
                  batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
-                 dart_noise: float = 0.0, start: str = "random", image_size: int = PUSHT.image_size,
-                 progress: bool = True,
+                 dart_noise: float = 0.0, start: str = "random", demonstrator: str = "expert",
+                 image_size: int = PUSHT.image_size, progress: bool = True,
                  wait_for_lock: bool = False) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
     accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried
@@ -178,11 +183,13 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     recovers from the small errors a learned policy makes. ``start`` chooses MuJoCo's
     initial states (:data:`iwsim.envs.pusht.STARTS`; "goal-turned": the block on the goal's
     position but turned, so the takes show the turn a policy that only carries is missing;
-    MuJoCo only). Returns the store's :class:`DemoStats`."""
+    MuJoCo only). ``demonstrator``: the pixel expert that records (:data:`iwsim.envs.scripted.EXPERTS`;
+    a store holds one demonstrator's takes). Returns the store's :class:`DemoStats`."""
     max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
     _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, image_size)
     _check_noise(dart_noise)
     check_start(start)
+    _check_demonstrator(demonstrator)
     if env != "pusht" and start != "random":
         raise InputError(f"start={start!r} chooses MuJoCo's initial states; the world model starts from random ones.")
     model = None
@@ -191,21 +198,22 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
         model = WorldModel.load(world_model)
         image_size = model.image_size
     wm_name = None if world_model is None or env == "pusht" else os.fspath(world_model)
-    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise), start)
+    attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise), start,
+                       demonstrator)
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs),
                                      wait=wait_for_lock) as store:
         return _record_into(store, env, model, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
-                            give_up_after, float(dart_noise), start, progress)
+                            give_up_after, float(dart_noise), start, demonstrator, progress)
 
 
 class _NoisyExecution:
-    """The pixel expert whose commands are executed with Gaussian noise (std ``noise`` m,
-    candidate ``seeds[i]`` drawing its own), keeping the clean commands in ``clean``."""
+    """The pixel ``demonstrator`` whose commands are executed with Gaussian noise (std
+    ``noise`` m, candidate ``seeds[i]`` drawing its own), keeping the clean commands in ``clean``."""
 
     obs_horizon = n_action_steps = 1
 
-    def __init__(self, noise: float, seeds: list[int]) -> None:
-        self.expert, self.noise, self.seeds = ScriptedBatch("expert"), noise, seeds
+    def __init__(self, noise: float, seeds: list[int], demonstrator: str) -> None:
+        self.expert, self.noise, self.seeds = ScriptedBatch(demonstrator), noise, seeds
 
     def reset(self) -> None:
         self.expert.reset()
@@ -227,7 +235,7 @@ def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, reci
                         tail=recipe.tail, batch=recipe.batch,
                         max_attempts=math.ceil(recipe.attempts_per_demo * episodes),
                         give_up_after=recipe.give_up_after, dart_noise=recipe.dart_noise, start=recipe.start,
-                        progress=progress)
+                        demonstrator=recipe.demonstrator, progress=progress)
 
 
 def simulator_store(work: str | os.PathLike) -> Path:
@@ -246,7 +254,7 @@ def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
 
 def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episodes: int, steps: int, seed: int,
                  accept_iou: float, tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
-                 dart_noise: float, start: str, progress: bool) -> DemoStats:
+                 dart_noise: float, start: str, demonstrator: str, progress: bool) -> DemoStats:
     a = store.attrs
     # the candidates tried; a run killed between an append and the attribute update below
     # re-tries the rejected candidates after the last kept one (deterministic, so harmless)
@@ -270,7 +278,7 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
         seeds = [seed + tried + i for i in range(n)]
         t0 = time.perf_counter()
         scores = _Scores(n, accept_iou, tail)
-        expert = _NoisyExecution(dart_noise, seeds) if dart_noise else ScriptedBatch("expert")
+        expert = _NoisyExecution(dart_noise, seeds, demonstrator) if dart_noise else ScriptedBatch(demonstrator)
         run = rollout(expert, env, seeds, steps, world_model=model,
                       image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores, start=start)
         if isinstance(expert, _NoisyExecution):  # dart_noise
@@ -358,6 +366,11 @@ def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any
 def _check_noise(noise: float) -> None:
     if not (isinstance(noise, (int, float)) and math.isfinite(noise) and noise >= 0):
         raise InputError(f"dart_noise must be a finite number of metres >= 0, got {noise!r}.")
+
+
+def _check_demonstrator(demonstrator: str) -> None:
+    if demonstrator not in EXPERTS:
+        raise InputError(f"demonstrator must be one of {', '.join(EXPERTS)}, got {demonstrator!r}.")
 
 
 def _check_existing(store: EpisodeStore, attrs: dict[str, Any]) -> None:

@@ -1,7 +1,7 @@
 """Scripted policies behind the learned policies' interface, so that the same loops
 (:func:`iwsim.eval.policy.rollout`, MuJoCo's vector env or the world model's) drive both.
 
-    policy = ScriptedBatch("expert", noise=0.01, latency=2)
+    policy = ScriptedBatch("expert", noise=0.01, latency=2)  # or "expert-wide", "play", "still"
     policy.reset()
     actions = policy.predict_action({"image": (B, 1, H, W, 3) uint8, "agent_pos": (B, 1, 4)})
     # -> (B, 1, 4)
@@ -19,8 +19,9 @@ slow hand that follows the policy's commands with that time constant, in steps),
 ``overshoot`` (a hand that leads its motion by that many steps, so every stop overshoots
 and comes back); ``miss`` aims the expert at a block displaced by that many metres in a
 direction (and turned by an angle) drawn per episode: expert-like motions that miss.
-The ``still`` policy holds the pushers where they start. All draws are seeded per episode
-index, so results do not depend on the batch size.
+The experts are those of :data:`iwsim.envs.scripted.EXPERTS` (``expert``, the precise pinch;
+``expert-wide``, the forgiving one); the ``still`` policy holds the pushers where they start.
+All draws are seeded per episode index, so results do not depend on the batch size.
 """
 
 from __future__ import annotations
@@ -30,11 +31,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from iwsim.envs.pixels import estimate_block_pose
-from iwsim.envs.scripted import ExpertPolicy, PlayPolicy
+from iwsim.envs.scripted import EXPERTS, ExpertPolicy, Pinch, PlayPolicy
 from iwsim.envs.scripting import Degraded, ScriptedPolicy
 from iwsim.errors import InputError
 
-KINDS = ("expert", "play", "still")
+KINDS = (*EXPERTS, "play", "still")
 
 
 @dataclass(frozen=True)
@@ -47,7 +48,7 @@ class ScriptedConfig:
     pause: float = 0.0  # chance per step that the hand holds its command for 5-20 steps
     jitter: float = 0.0  # tremor: std (m) of smooth AR(1) noise on every command
     overshoot: float = 0.0  # the hand leads its motion by this many steps (each stop overshoots)
-    miss: float = 0.0  # the expert aims at a block displaced by this much (m) and turned (per episode)
+    miss: float = 0.0  # an expert aims at a block displaced by this much (m) and turned (per episode)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -60,8 +61,8 @@ class ScriptedConfig:
             raise InputError(f"pause must be a chance per step in [0, 1), got {self.pause}.")
         if self.latency < 0:
             raise InputError(f"latency must be 0 or more steps, got {self.latency}.")
-        if self.miss and self.kind != "expert":
-            raise InputError(f"miss displaces the expert's aim; the {self.kind!r} policy has none.")
+        if self.miss and self.kind not in EXPERTS:
+            raise InputError(f"miss displaces an expert's aim; the {self.kind!r} policy has none.")
 
     @property
     def name(self) -> str:
@@ -71,11 +72,11 @@ class ScriptedConfig:
 
 
 class _MissingExpert(ExpertPolicy):
-    """The pixel expert aiming at a block displaced by ``offset`` (x, y, yaw) from where it
-    sees it: the expert's kind of motion, not aimed at where the block is."""
+    """A pixel expert (its ``pinch``) aiming at a block displaced by ``offset`` (x, y, yaw)
+    from where it sees it: the expert's kind of motion, not aimed at where the block is."""
 
-    def __init__(self, offset: np.ndarray) -> None:
-        super().__init__(pose_source="pixels")
+    def __init__(self, pinch: Pinch, offset: np.ndarray) -> None:
+        super().__init__(pose_source="pixels", pinch=pinch)
         self.offset = offset
 
     def block_pose(self, obs: dict, info: dict) -> np.ndarray | None:
@@ -128,13 +129,14 @@ class ScriptedBatch:
     def _make(self, i: int, rng: np.random.Generator) -> ScriptedPolicy:
         if self.cfg.kind == "still":
             return _Still()
-        if self.cfg.kind == "expert" and self.cfg.miss:
+        if self.cfg.kind not in EXPERTS:
+            return _PixelPose(PlayPolicy(self.cfg.seed + i))
+        pinch = EXPERTS[self.cfg.kind]()
+        if self.cfg.miss:
             angle = rng.uniform(-np.pi, np.pi)
-            return _MissingExpert(np.array([self.cfg.miss * np.cos(angle), self.cfg.miss * np.sin(angle),
-                                            rng.uniform(-np.pi / 2, np.pi / 2)]))
-        if self.cfg.kind == "expert":
-            return ExpertPolicy(pose_source="pixels")
-        return _PixelPose(PlayPolicy(self.cfg.seed + i))
+            return _MissingExpert(pinch, np.array([self.cfg.miss * np.cos(angle), self.cfg.miss * np.sin(angle),
+                                                   rng.uniform(-np.pi / 2, np.pi / 2)]))
+        return ExpertPolicy(pose_source="pixels", pinch=pinch)
 
     def reset(self) -> None:
         self._episodes: list[Degraded] | None = None
