@@ -111,11 +111,14 @@ def plan_step(p: np.ndarray, target: np.ndarray, pose: np.ndarray, max_step: flo
             out = q.copy()
             out[k % 2] = lo[k] - 0.003 if k < 2 else hi[k - 2] + 0.003
             break
-    if clearance > CLEARANCE and _shortest_path(out, goal, pose, clearance) is None:
-        return plan_step(p, target, pose, max_step)
-    if out is not q:
+    wide = clearance > CLEARANCE
+    if out is not q:  # backing out, unless no path this wide leads on from there
+        if wide and _shortest_path(out, goal, pose, clearance) is None:
+            return plan_step(p, target, pose, max_step)
         return advance(p, to_world(out, pose), max_step)
     path = _shortest_path(q, goal, pose, clearance)
+    if path is None and wide:
+        return plan_step(p, target, pose, max_step)
     if path is None:  # no path (e.g. walled in): head straight for the target
         return advance(p, target, max_step)
     return _along(p, [to_world(n, pose) for n in path], max_step)
