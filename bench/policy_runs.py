@@ -104,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
                 r = load_json(path)
             else:
                 torch.manual_seed(0)  # the policy's sampling noise: the same evaluation gives the same scores
-                result = rollout(load_policy(ckpts[step], **execution), "pusht", seeds, args.eval_steps,
+                policy = load_policy(ckpts[step], **execution)
+                result = rollout(policy, "pusht", seeds, args.eval_steps, image_size=policy.image_size,
                                  progress=sys.stderr.isatty())
                 r = {**summarize(result["iou"].max(1), seeds, result["success_score"]), "seconds": result["seconds"]}
                 path.parent.mkdir(parents=True, exist_ok=True)

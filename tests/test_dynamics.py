@@ -9,9 +9,10 @@ import pytest
 import torch
 
 from iwsim.diffusion.edm import training_sigmas
+from iwsim.errors import InputError
 from iwsim.world_model import WorldModel
 from iwsim.world_model.autoencoder import Autoencoder
-from iwsim.world_model.dynamics import Dynamics, DynamicsConfig, blobs
+from iwsim.world_model.dynamics import Dynamics, DynamicsConfig, blobs, widen_window
 from iwsim.world_model.dynamics_data import DynBatch
 from iwsim.world_model.presets import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant
 from iwsim.world_model.train_dynamics import DynamicsTrainModule
@@ -92,6 +93,26 @@ def test_every_action_pathway_reaches_the_output(spatial, film):
         a2 = a.clone()
         a2[:, k] = -a2[:, k]
         assert (net(x, ctx, t, s, lab, a2) - out).abs().max() > 1e-3
+
+
+@torch.no_grad()
+def test_a_widened_window_computes_the_same_function_whatever_the_older_latents():
+    """widen_window: a 2-latent network made into a 5-latent one gives the same output
+    for any 3 older latents, and they reach it once their weights move."""
+    cfg = DynamicsConfig(context=2, channels=8, blocks=2, heads=2, emb_dim=16, action_channels=2)
+    net = randomise(Dynamics(cfg))
+    wide = Dynamics(dataclasses.replace(cfg, context=5))
+    wide.load_state_dict(widen_window(net.state_dict(), cfg, 5))
+    g = torch.Generator().manual_seed(0)
+    x, ctx, older = (torch.randn(2, *shape, generator=g) for shape in ((4, 16, 16), (2, 4, 16, 16), (3, 4, 16, 16)))
+    t, s, lab, a = torch.full((2,), 999.0), torch.zeros(2), torch.full((2,), 100.0), torch.rand(2, 2, 4) * 2 - 1
+    out = net(x, ctx, t, s, lab, a)
+    torch.testing.assert_close(wide(x, torch.cat([older, ctx], 1), t, s, lab, a), out, atol=1e-5, rtol=0)
+    wide.conv_in.weight.add_(0.1)
+    assert (wide(x, torch.cat([older, ctx], 1), t, s, lab, a) - wide(x, torch.cat([-older, ctx], 1), t, s, lab, a)
+            ).abs().max() > 1e-3
+    with pytest.raises(InputError, match="can only be widened: the model holds 2 latents, asked for 1"):
+        widen_window(net.state_dict(), cfg, 1)
 
 
 def batch_for(cfg, z: torch.Tensor, actions: torch.Tensor, g: torch.Generator) -> DynBatch:

@@ -246,6 +246,15 @@ def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_w
     assert_same(wm.dynamics.state_dict(), init.dynamics.state_dict(), atol=1e-6, rtol=0)
     config = json.loads((tuned / "config.json").read_text())
     assert config["init"].endswith("last") and config["stage2"]["unroll"] == [[0, 2]]
+    # --context widens the window: the older latents start unheard, the rest as it was.
+    assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--context", "4",
+                 "--out", str(tmp_path / "wide"), "--steps", "1", "--lr", "1e-12", *flags]) == 0
+    wide = WorldModel.load(tmp_path / "wide" / "checkpoints" / "last")
+    assert (init.cfg.dynamics.context, wide.cfg.dynamics.context) == (2, 4)
+    w, c = wide.dynamics.conv_in.weight, init.cfg.dynamics.latent_channels
+    assert w[:, c:3 * c].abs().max() < 1e-6
+    torch.testing.assert_close(torch.cat([w[:, :c], w[:, 3 * c:]], 1), init.dynamics.conv_in.weight, atol=1e-6,
+                               rtol=0)
 
 
 def test_dynamics_takes_either_an_autoencoder_or_a_model_to_fine_tune(play_store, tmp_path, capsys):

@@ -103,6 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ours, or a benchmark baseline or ablation: deterministic, diffusion, no-context-noise, "
                         "film-actions, no-points, no-unroll, no-delta, window-6, long-unroll; several joined by '+' "
                         "apply in turn, e.g. long-unroll+deterministic (default: %(default)s)")
+    q.add_argument("--context", type=int, help="latents in the window (default: the preset's, or the fine-tuned "
+                                               "model's); with --init, a wider window starts with the older "
+                                               "latents' weights at zero: the model unchanged")
     q.add_argument("--latent-cache", help="file for the encoded latents, shareable by runs with the same encoder; "
                                           "a store that extends the cached one (a merge of it and more) encodes "
                                           "only its new frames (default: in the run directory)")
@@ -512,6 +515,7 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     if args.init is not None and args.variant != "ours":
         raise InputError("--variant applies to training from scratch; --init keeps the model's own objective "
                          "and network.")
+    _check_positive(args, "context")
     cfg = _resolve_preset(args, DYNAMICS_PRESETS)
     if cfg is None:
         return 0
@@ -520,7 +524,7 @@ def _train_dynamics(args: argparse.Namespace) -> int:
 
     _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
                                   force=args.force, progress=not args.no_progress, latent_cache=args.latent_cache,
-                                  init=args.init))
+                                  init=args.init, context=args.context))
     return 0
 
 

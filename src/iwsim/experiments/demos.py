@@ -228,10 +228,12 @@ class _NoisyExecution:
 
 
 def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, recipe: DemoRecipe, *,
-                world_model: str | os.PathLike | None = None, progress: bool = True) -> DemoStats:
+                world_model: str | os.PathLike | None = None, image_size: int = PUSHT.image_size,
+                progress: bool = True) -> DemoStats:
     """:func:`record_demos` with ``recipe``: at most ``ceil(attempts_per_demo * episodes)``
-    candidates."""
-    return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, accept_iou=recipe.accept_iou,
+    candidates, frames of ``image_size`` (MuJoCo only; a world model renders its own)."""
+    return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, image_size=image_size,
+                        accept_iou=recipe.accept_iou,
                         tail=recipe.tail, batch=recipe.batch,
                         max_attempts=math.ceil(recipe.attempts_per_demo * episodes),
                         give_up_after=recipe.give_up_after, dart_noise=recipe.dart_noise, start=recipe.start,

@@ -147,6 +147,18 @@ class Dynamics(nn.Module):
         return self.conv_out(F.silu(self.norm_out(h))).view(b, *x.shape[1:])
 
 
+def widen_window(state: dict[str, torch.Tensor], cfg: DynamicsConfig, context: int) -> dict[str, torch.Tensor]:
+    """The weights ``state`` of a :class:`Dynamics` with ``cfg``, for one whose window holds
+    ``context`` >= cfg.context latents and that computes the same function: the older
+    latents' input weights are zero, so fine-tuning starts from the model unchanged."""
+    if context < cfg.context:
+        raise InputError(f"a window can only be widened: the model holds {cfg.context} latents, asked for {context}.")
+    w, c = state["conv_in.weight"], cfg.latent_channels
+    older = w.new_zeros(w.shape[0], (context - cfg.context) * c, *w.shape[2:])
+    # Input channels: the new latent's c, then the window's, oldest first (see forward).
+    return {**state, "conv_in.weight": torch.cat([w[:, :c], older, w[:, c:]], 1)}
+
+
 def blobs(positions: torch.Tensor, index: tuple[tuple[int, int], ...], size: int, sigma: float) -> torch.Tensor:
     """Gaussian blobs (B, T, P, size, size), peak 1, at P image positions taken from
     ``positions`` (B, T, A) (entries ``index``: (x, y) in [-1, 1], x right, y up), with

@@ -123,7 +123,9 @@ class DynamicsData:
                                             latent_channels=self.latents.shape[1],
                                             latent_size=self.latents.shape[-1],
                                             **self.points(store.attrs, cfg)))
-        self.cfg = cfg if init is None else replace(cfg, dynamics=init.cfg.dynamics)
+        # Fine-tuning keeps the model's network; only its window may be widened (cfg's).
+        self.cfg = cfg if init is None else replace(cfg, dynamics=replace(init.cfg.dynamics,
+                                                                          context=cfg.dynamics.context))
         # Standardisation of the latents for the dynamics (see WorldModel): per-element
         # mean over the training frames, and the RMS of the per-element standard deviation.
         if init is None:

@@ -40,7 +40,7 @@ from iwsim.metrics import psnr
 from iwsim.tasks import task_from_store
 from iwsim.training import trainer
 from iwsim.world_model.denoiser import Denoiser
-from iwsim.world_model.dynamics import Dynamics
+from iwsim.world_model.dynamics import Dynamics, widen_window
 from iwsim.world_model.dynamics_data import DynamicsData, DynBatch
 from iwsim.world_model.model import KIND, WorldModel
 from iwsim.world_model.objectives import Levels
@@ -139,11 +139,14 @@ class DynamicsTask:
     With ``init`` (a world-model checkpoint, or a run: its last) training fine-tunes it: its autoencoder,
     normalisation, stage-2 config (network, objective, context noise) and weights are the
     start, only ``cfg.train`` is taken from ``cfg`` (``ae_path`` is ignored), and the
-    unroll curriculum, which the model has been through, starts at its longest."""
+    unroll curriculum, which the model has been through, starts at its longest. ``context``
+    (latents in the window) replaces the config's; a fine-tuned model's window is widened
+    to it (:func:`~iwsim.world_model.dynamics.widen_window`)."""
 
     def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path | None,
                  device: torch.device = torch.device("cpu"), progress: bool = True,
-                 latent_cache: Path | None = None, init: str | Path | None = None) -> None:
+                 latent_cache: Path | None = None, init: str | Path | None = None,
+                 context: int | None = None) -> None:
         wm = None
         if init is not None:
             init = resolve_checkpoint(init)  # a checkpoint, or a run's last one
@@ -151,6 +154,8 @@ class DynamicsTask:
             longest = max(n for _, n in wm.cfg.unroll) if wm.cfg.unroll else 1
             cfg = replace(wm.cfg, train=cfg.train, unroll=((0, longest),))  # its objective, noise, ...
             ae_path = init
+        if context is not None:
+            cfg = replace(cfg, dynamics=replace(cfg.dynamics, context=context))
         if ae_path is None:
             raise InputError("a dynamics task needs a stage-1 checkpoint (ae_path) or a world model to fine-tune "
                              "(init).")
@@ -160,7 +165,8 @@ class DynamicsTask:
             torch.manual_seed(cfg.train.seed)
             self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), cfg)
         if wm is not None:
-            self.module.dynamics.load_state_dict(wm.dynamics.state_dict())
+            self.module.dynamics.load_state_dict(widen_window(wm.dynamics.state_dict(), wm.cfg.dynamics,
+                                                              cfg.dynamics.context))
         self.init = None if init is None else str(init)
         # The robot task the checkpoints record: the fine-tuned model's, else the store's.
         d = self.data
@@ -197,16 +203,18 @@ class DynamicsTask:
 
 def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | None, out: str | Path, *,
                    device: torch.device, force: bool = False, progress: bool = True,
-                   latent_cache: str | Path | None = None, init: str | Path | None = None) -> dict[str, float]:
+                   latent_cache: str | Path | None = None, init: str | Path | None = None,
+                   context: int | None = None) -> dict[str, float]:
     """Train (or resume) stage 2 into the run directory ``out``, from scratch on the
-    stage-1 checkpoint ``ae`` or, with ``init``, fine-tuning that world model (see
-    :class:`DynamicsTask`). The frozen encoder's latents are cached in ``latent_cache``
-    (default: the run directory), which runs on the same store and encoder can share; a
-    cache of other frames or weights is rewritten."""
+    stage-1 checkpoint ``ae`` or, with ``init``, fine-tuning that world model, with a
+    window of ``context`` latents if given (see :class:`DynamicsTask`). The frozen
+    encoder's latents are cached in ``latent_cache`` (default: the run directory), which
+    runs on the same store and encoder can share; a cache of other frames or weights is
+    rewritten."""
     if (ae is None) == (init is None):
         raise InputError("train dynamics takes either --ae (train from scratch) or --init (fine-tune), not both.")
     cache = Path(latent_cache) if latent_cache is not None else Path(out) / "latents.safetensors"
-    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache, init=init)
+    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache, init=init, context=context)
     config = task.config(data)
     assert config["kind"] == KIND
     return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress)
