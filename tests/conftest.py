@@ -68,27 +68,17 @@ def point_episodes(episodes: int = 6, steps: int = 20, seed: int = 0) -> dict[st
             "meta/episode_ends": np.arange(1, episodes + 1, dtype=np.int64) * steps}
 
 
-@pytest.fixture(scope="session")
-def point_model(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A world model of the point task, made as a user would: a Diffusion Policy Zarr ->
-    ``data import`` -> ``train ae`` / ``train dynamics`` (tiny presets) -> ``export-model``.
-    Returns the paths of the source, the store and the checkpoint."""
-    import zarr
-
+def train_tiny_world_model(store: Path, root: Path, *make_store: list[str]) -> Path:
+    """Run the commands ``make_store`` that write the episode store ``store``, then ``train
+    ae`` / ``train dynamics`` (tiny presets, one thread) and ``export-model`` into ``root``,
+    as a user would. Returns the world model's checkpoint."""
     from iwsim.cli import main
 
-    root = tmp_path_factory.mktemp("point")
-    src = root / "point.zarr"
-    group = zarr.open_group(src, mode="w", zarr_format=2)
-    for key, value in point_episodes().items():
-        group.create_array(key, shape=value.shape, dtype=value.dtype, fill_value=0)[...] = value
-    group.attrs.update({"fps": 10, "action_names": ["x", "y"]})
-    store, ae, dyn, wm = root / "store.zarr", root / "ae", root / "dyn", root / "wm"
+    ae, dyn, wm = root / "ae", root / "dyn", root / "wm"
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        for argv in (["data", "import", "--format", "zarr", "--in", str(src), "--out", str(store),
-                      "--image-size", "64"],
+        for argv in (*make_store,
                      ["train", "ae", "--data", str(store), "--preset", "tiny", "--out", str(ae), "--no-progress"],
                      ["train", "dynamics", "--data", str(store), "--ae", str(ae), "--preset", "tiny", "--out",
                       str(dyn), "--no-progress"],
@@ -96,4 +86,36 @@ def point_model(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             assert main(argv) == 0, argv
     finally:
         torch.set_num_threads(n)
-    return {"source": src, "store": store, "checkpoint": wm, "run": dyn}
+    return wm
+
+
+@pytest.fixture(scope="session")
+def point_model(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A world model of the point task, made as a user would: a Diffusion Policy Zarr ->
+    ``data import`` -> ``train ae`` / ``train dynamics`` (tiny presets) -> ``export-model``.
+    Returns the paths of the source, the store and the checkpoint."""
+    import zarr
+
+    root = tmp_path_factory.mktemp("point")
+    src = root / "point.zarr"
+    group = zarr.open_group(src, mode="w", zarr_format=2)
+    for key, value in point_episodes().items():
+        group.create_array(key, shape=value.shape, dtype=value.dtype, fill_value=0)[...] = value
+    group.attrs.update({"fps": 10, "action_names": ["x", "y"]})
+    store = root / "store.zarr"
+    wm = train_tiny_world_model(store, root, ["data", "import", "--format", "zarr", "--in", str(src), "--out",
+                                              str(store), "--image-size", "64"])
+    return {"source": src, "store": store, "checkpoint": wm, "run": root / "dyn"}
+
+
+@pytest.fixture(scope="session")
+def pile_model(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A tiny world model of pile sweeping, made as a user would: ``collect --task pilesweep
+    --policy expert`` -> ``train ae`` / ``train dynamics`` (tiny presets) -> ``export-model``.
+    Returns the paths of the store (3 expert episodes of 12 steps) and the checkpoint."""
+    root = tmp_path_factory.mktemp("pile")
+    store = root / "expert.zarr"
+    wm = train_tiny_world_model(store, root, ["collect", "--task", "pilesweep", "--policy", "expert", "--episodes",
+                                              "3", "--steps", "12", "--workers", "1", "--out", str(store),
+                                              "--no-progress"])
+    return {"store": store, "checkpoint": wm}

@@ -23,6 +23,7 @@ from iwsim.experiments.demos import SIM_SEED, DemoRecipe, record_demos, record_w
 from iwsim.experiments.policy_eval import PolicyEvalConfig
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.scripted import ScriptedBatch
+from iwsim.tasks import get_task
 from tests.test_dynamics import tiny_world_model
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -383,3 +384,42 @@ def test_the_command_line_offers_each_studys_presets():
     for study, presets in (("datagen", PRESETS), ("policy-eval", policy_eval.PRESETS)):
         preset = next(a for a in subcommand(experiment, study)._actions if a.dest == "preset")
         assert tuple(preset.choices) == tuple(presets), study
+
+
+def test_tiny_study_on_pile_sweeping(pile_model, tmp_path):
+    """Issue 45: the study on pile sweeping: its expert records in its MuJoCo and in a world
+    model of it, the policies are evaluated in its MuJoCo against its expert, the report
+    names its score; its work and report sit apart from T-push's."""
+    work = tmp_path / "work"
+    assert main(["experiment", "datagen", "--preset", "tiny", "--task", "pilesweep", "--world-model",
+                 str(pile_model["checkpoint"]), "--out", str(tmp_path / "out"), "--work", str(work), "--jobs", "1",
+                 "--no-progress"]) == 0
+    r = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert r["config"]["task"] == "pilesweep" and r["scale"]["eval_steps"] == 6  # the tiny preset's
+    assert r["command"].startswith("iwsim experiment datagen --preset tiny --task pilesweep --world-model ")
+    tag = fingerprint(pile_model["checkpoint"])[:8]
+    stores = {"sim": work / "pilesweep" / "demos" / "sim_expert.zarr",
+              "wm": work / "pilesweep" / "demos" / f"wm_teleop_wm_{tag}.zarr"}
+    assert {k: d["path"] for k, d in r["demos"].items()} == {k: str(v) for k, v in stores.items()}
+    for key, source in (("sim", "mujoco"), ("wm", "world_model")):
+        store = EpisodeStore.open(stores[key])
+        assert (store.attrs["task"], store.attrs["source"], store.n_episodes) == ("pilesweep", source, 2)
+        assert store.keys == sorted(("img", "state", "action", "target", "score"))
+    starts = get_task("pilesweep").initial_frames(64)  # the takes in the model start from MuJoCo's frames
+    np.testing.assert_array_equal(EpisodeStore.open(stores["wm"]).episode(1)["img"][0], starts.draw(300001).frame)
+    starts.close()
+    assert not (work / "demos").exists() and not (work / "datagen").exists()  # T-push's places
+    assert r["expert"]["episodes"][0]["seed"] == 100000 and "mean_max_score" in r["expert"]
+    for run in r["runs"]:
+        assert run["training"]["steps"] == 4 and len(run["episodes"]) == 2 and "max_score" in run["episodes"][0]
+    p = r["parity"]
+    by_name = {run["name"]: run for run in r["runs"]}
+    if p["mean_max_score"]["ratio"] is not None:
+        assert p["mean_max_score"]["ratio"] == pytest.approx(
+            by_name[p["world_model"]]["mean_max_score"] / by_name[p["simulator"]]["mean_max_score"])
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert "score = max share in tray within the horizon, success = share in tray >= 0.9" in md
+    assert "on mean max share in tray" in md and "IoU" not in md
+    assert (tmp_path / "out" / "datagen.png").stat().st_size > 0
+    cached = json.loads((work / "pilesweep" / "datagen" / "eval" / "pilesweep" / "expert.json").read_text())
+    assert cached["key"]["env"] == "pilesweep" and len(cached["score_per_step"][0]) == 7

@@ -162,3 +162,48 @@ def test_config_refuses_a_study_that_cannot_rank():
     with pytest.raises(ValueError, match="at least 3 policies"):
         PolicyEvalConfig(dp_steps=(), dp_small_steps=1, act_steps=(), noise=(), latency=(), play=False,
                          small_demos=1, demo_episodes=2)
+
+
+def test_tiny_study_on_pile_sweeping(pile_model, tmp_path, capsys):
+    """Issue 45: the study on pile sweeping: its MuJoCo the reference, its expert the
+    demonstrator (recorded here, in a work directory of the task's own), its scripted
+    policies in the zoo, its score in the report."""
+    out, work = tmp_path / "out", tmp_path / "work"
+    assert main(["experiment", "policy-eval", "--preset", "tiny", "--task", "pilesweep", "--world-model",
+                 str(pile_model["checkpoint"]), "--out", str(out), "--work", str(work), "--no-progress"]) == 0
+    assert "mean max share in tray: Pearson r" in capsys.readouterr().out
+    report = json.loads((out / "results.json").read_text())
+    assert report["config"]["task"] == "pilesweep" and report["scale"]["steps"] == 6  # the tiny preset's
+    assert "--task pilesweep" in report["command"] and f"--world-model {pile_model['checkpoint']}" in report["command"]
+    assert [p["name"] for p in report["policies"]] == PRESETS["tiny"].policy_names()
+    for p in report["policies"]:
+        for env in ("pilesweep", "world-model"):
+            r = p[env]
+            assert len(r["max_score"]) == 2 and r["mean_max_score"] == pytest.approx(np.mean(r["max_score"]), abs=1e-4)
+        assert "pusht" not in p and "mean_max_iou" not in p["pilesweep"]
+    assert set(report["agreement"]) == {"mean_max_score", "success_rate"}
+    demos = work / "pilesweep" / "demos" / "sim_expert.zarr"
+    assert report["scale"]["demos"]["path"] == str(demos) and not (work / "demos").exists()
+    store = EpisodeStore.open(demos)
+    assert (store.attrs["task"], store.attrs["policy"], store.n_episodes) == ("pilesweep", "expert-pixels", 2)
+    assert store.attrs["teleoperator"] == "expert (pieces from pixels)" and "score" in store.keys
+    cached = json.loads((work / "pilesweep" / "policy_eval" / "eval" / "pilesweep" / "expert.json").read_text())
+    assert len(cached["score_per_step"][0]) == 7 and cached["key"]["env"] == "pilesweep"
+    md = (out / "results.md").read_text()
+    assert "maximum share in tray an episode reaches; success: share in tray >= 0.9" in md
+    assert "MuJoCo max share in tray" in md and "IoU" not in md
+    assert (out / "scatter.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(("extra", "match"), [
+    ([], "task 'pilesweep' has no shipped world model; pass --world-model"),
+    (["--world-model", "WM"], "is a world model of task 'pusht'; the study compares with MuJoCo's 'pilesweep'"),
+    (["--world-model", "PILE", "--demos", "DEMOS"], "holds episodes of task 'pusht'; the study runs on 'pilesweep'"),
+])
+def test_a_study_on_pile_sweeping_refuses_another_tasks_inputs(inputs, pile_model, tmp_path, capsys, extra, match):
+    paths = {"WM": str(inputs["wm"]), "PILE": str(pile_model["checkpoint"]), "DEMOS": str(inputs["demos"])}
+    assert main(["experiment", "policy-eval", "--preset", "tiny", "--task", "pilesweep", "--out", str(tmp_path / "out"),
+                 "--work", str(tmp_path / "work"), "--no-progress", *(paths.get(x, x) for x in extra)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("iwsim: error:") and match in err and "\n" not in err
+    assert not (tmp_path / "out").exists()

@@ -5,6 +5,7 @@ import dataclasses
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from iwsim.errors import InputError
@@ -70,3 +71,32 @@ def test_evaluations_in_a_model_retrained_at_the_same_path_are_redone(tmp_path, 
                                out=tmp_path / "eval", progress=False)["expert"]
     assert first["key"]["world_model"] == second["key"]["world_model"]
     assert first["key"]["world_model_sha256"] != second["key"]["world_model_sha256"]
+
+
+def test_a_study_on_another_task_has_its_horizon_its_directories_and_its_policies(tmp_path):
+    """Issue 45: the presets are written for T-push; on pile sweeping a study evaluates over
+    its horizon, keeps apart from T-push's work, and its scripted policies are its own."""
+    from iwsim.experiments.common import STUDY, on_task, study_dir, study_task
+    from iwsim.experiments.datagen import PRESETS as DATAGEN
+    from iwsim.experiments.policy_eval import PRESETS as POLICY_EVAL
+    from iwsim.policies.scripted import ScriptedBatch
+    from iwsim.tasks import get_task
+
+    pile = get_task("pilesweep")
+    for presets in (DATAGEN, POLICY_EVAL):
+        assert on_task(presets["default"], pile).steps == pile.horizon == 200
+        assert on_task(presets["tiny"], pile).steps == presets["tiny"].steps  # a short preset keeps its own
+        assert on_task(presets["default"], STUDY) == presets["default"]
+    assert study_dir(tmp_path, STUDY) == tmp_path and study_dir(tmp_path, pile) == tmp_path / "pilesweep"
+    with pytest.raises(InputError, match="unknown task 'nowhere'"):
+        study_task("nowhere")
+    with pytest.raises(InputError, match="task 'pilesweep' has no scripted policy 'expert-wide'"):
+        ScriptedBatch("expert-wide", "pilesweep")
+    with pytest.raises(InputError, match="pile sweeping has many"):
+        ScriptedBatch("expert", "pilesweep", miss=0.01).predict_action(
+            {"image": np.zeros((1, 1, 64, 64, 3), np.uint8), "agent_pos": np.zeros((1, 1, 4), np.float32)})
+    result = evaluate_policies({"expert": ScriptedConfig("expert")}, "pilesweep", seeds=[5, 6], steps=3,
+                               world_model=None, out=tmp_path, progress=False)["expert"]
+    assert [e["seed"] for e in result["episodes"]] == [5, 6] and len(result["score_per_step"][0]) == 4
+    assert result["mean_max_score"] == pytest.approx(np.mean(np.max(result["score_per_step"], 1)), abs=1e-4)
+    assert (tmp_path / "pilesweep" / "expert.json").is_file()

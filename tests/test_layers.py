@@ -1,7 +1,7 @@
 """The layers run one way: every module of ``src/iwsim`` imports (at module or function
 level) only from its own layer or those below (``iwsim.layers.LAYERS``), and no imports
 form a cycle. A task's modules are imported only by ``envs/`` and the Task registry (and
-T-push's ground-truth tooling, named in ``iwsim.layers.GROUND_TRUTH_TOOLING``)."""
+the ground-truth tooling, named in ``iwsim.layers.GROUND_TRUTH_TOOLING``)."""
 
 from __future__ import annotations
 
@@ -96,6 +96,19 @@ def test_only_envs_and_the_task_registry_import_a_task_module():
 def test_the_ground_truth_tooling_list_only_names_modules_that_need_it():
     """A module that stops importing a task module leaves the list (so it can only shrink)."""
     assert [m for m in GROUND_TRUTH_TOOLING if not any(within(d, TASK_MODULES) for d in GRAPH[m])] == []
+
+
+def test_scripted_policies_and_the_studies_reach_a_task_through_the_seam():
+    """Issue 45: evaluation, the studies and the scripted policies behind the policy interface
+    make a task's scripted policies, simulator and scores through the Task
+    (``Task.pixel_policy``, ``Task.ground_truth_env``, ``Task.score``), so that they run on
+    any task with a ground truth: the scripted policies import only what every tabletop task
+    shares (their degradations), and evaluation and the studies no task module at all."""
+    shared = ("iwsim.envs.scripting",)
+    assert [d for d in GRAPH["iwsim.policies.scripted"] if within(d, TASK_MODULES) and d not in shared] == []
+    seam_users = [m for m in GRAPH if within(m, ("iwsim.experiments", "iwsim.eval.policy"))]
+    assert "iwsim.experiments.demos" in seam_users
+    assert [f"{m} imports {d}" for m in seam_users for d in sorted(GRAPH[m]) if within(d, TASK_MODULES)] == []
 
 
 def test_the_store_layer_does_not_reach_the_task_registry():

@@ -227,3 +227,33 @@ def test_iwsim_collect_records_a_pilesweep_store(tmp_path: Path, capsys: pytest.
     assert main(["collect", "--task", "pilesweep", "--policy", "play-broad", "--episodes", "1",
                  "--out", str(tmp_path / "x.zarr")]) == 1
     assert "unknown policy 'play-broad' for task 'pilesweep'" in capsys.readouterr().err
+
+
+def test_the_simulator_behind_the_seam_runs_batched_with_its_pixel_policies():
+    """Issue 45: evaluation steps the task's simulator in a vector env (the piles differ in
+    size, so the pieces come padded, as a store holds them), driven by its scripted policies
+    that read only the frame (the expert acts on the pieces it sees)."""
+    from iwsim.eval.policy import rollout
+    from iwsim.policies.scripted import ScriptedBatch
+
+    task = get_task("pilesweep")
+    env = task.ground_truth_env(64)
+    _, info = env.reset(seed=7)
+    env.close()
+    assert info["pieces"].shape == (MAX_PIECES, 2) and np.isnan(info["pieces"][info["n_pieces"]:]).all()
+    with pytest.raises(InputError, match="start must be one of random for task 'pilesweep', got 'goal-turned'"):
+        task.ground_truth_env(64, start="goal-turned")
+    assert isinstance(task.pixel_policy("expert", 0, np.random.default_rng(0)), SweepExpert)
+    with pytest.raises(InputError, match="unknown policy 'expert-wide'"):
+        task.pixel_policy("expert-wide", 0, np.random.default_rng(0))
+    run = rollout(ScriptedBatch("expert", task), "pilesweep", [3, 4], 20, record=1, progress=False,
+                  keep=("pieces", "n_pieces"))
+    assert run["task"] == "pilesweep" and run["score_key"] == "score" and run["scorer"] == task.score_name
+    assert run["iou"].shape == (2, 21) and run["info"]["pieces"].shape == (2, 21, MAX_PIECES, 2)
+    # the expert's commands are those it gives the same frames alone (pixels and agent_pos only)
+    alone = SweepExpert()
+    first = {"pixels": run["frames"][0, 0], "agent_pos": run["agent_pos"][0, 0]}
+    alone.reset(first, {})
+    np.testing.assert_array_equal(alone(first, {}), run["action"][0, 0])
+    with pytest.raises(InputError, match="start must be one of random"):
+        rollout(ScriptedBatch("expert", task), "pilesweep", [3], 2, start="goal-turned", progress=False)

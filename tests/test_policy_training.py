@@ -304,3 +304,72 @@ def test_a_policys_initial_weights_come_from_its_seed_not_the_global_rng(play_st
     assert torch.equal(torch.random.get_rng_state(), state)  # the global RNG is left as it was
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+def test_a_pile_sweeping_policy_records_its_task_and_is_evaluated_on_it(pile_model, tmp_path, capsys):
+    """Issue 45: a policy trained on ``collect --task pilesweep --policy expert`` episodes
+    records its task, and ``eval policy`` evaluates it in that task's MuJoCo (its horizon,
+    its score: the share of the pieces in the tray) or in a world model of it, and refuses
+    another task's in one line."""
+    out = tmp_path / "dp"
+    assert main(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", str(pile_model["store"]),
+                 "--out", str(out), "--steps", "2", "--no-progress"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["task"]["kind"] == "pilesweep" and config["task"]["name"] == "pilesweep"
+    assert load_policy(out).task.name == "pilesweep"
+    capsys.readouterr()
+    assert main(["eval", "policy", "--checkpoint", str(out), "--episodes", "1", "--videos", "0",
+                 "--out", str(tmp_path / "horizon"), "--no-progress"]) == 0
+    result = json.loads((tmp_path / "horizon" / "results.json").read_text())
+    assert (result["env"], result["task"], result["scorer"], result["steps"]) == (
+        "pilesweep", "pilesweep", "share in tray", 200)  # the task's MuJoCo, its score and horizon
+    assert "pilesweep: mean max share in tray" in capsys.readouterr().out
+    # the per-episode score is the maximum of the per-step pixel score, under the task's names
+    assert main(["eval", "policy", "--checkpoint", str(out), "--episodes", "2", "--steps", "4", "--videos", "1",
+                 "--out", str(tmp_path / "sim"), "--no-progress"]) == 0
+    result = json.loads((tmp_path / "sim" / "results.json").read_text())
+    per_step = json.loads((tmp_path / "sim" / "score.json").read_text())["score_per_step"]
+    assert [e["max_score"] for e in result["episodes"]] == pytest.approx(np.max(per_step, 1), abs=1e-4)
+    assert result["mean_max_score"] == pytest.approx(np.mean(np.max(per_step, 1)), abs=1e-4)
+    assert "mean_max_iou" not in result and not (tmp_path / "sim" / "iou.json").exists()
+    assert (tmp_path / "sim" / "episode_100000.mp4").stat().st_size > 0
+    # inside a world model of the task, from the same first frames
+    assert main(["eval", "policy", "--checkpoint", str(out), "--env", "world-model", "--world-model",
+                 str(pile_model["checkpoint"]), "--episodes", "2", "--steps", "3", "--videos", "0",
+                 "--out", str(tmp_path / "wm"), "--no-progress"]) == 0
+    in_model = json.loads((tmp_path / "wm" / "results.json").read_text())
+    assert (in_model["env"], in_model["task"], in_model["world_model"]) == (
+        "world-model", "pilesweep", str(pile_model["checkpoint"]))
+    first = json.loads((tmp_path / "wm" / "score.json").read_text())["score_per_step"]
+    assert np.array(first)[:, 0] == pytest.approx(np.array(per_step)[:, 0], abs=1e-4)
+    # another task's MuJoCo or world model, or no world model to evaluate in: one line each
+    tiny_world_model().save(tmp_path / "pusht-wm")
+    capsys.readouterr()
+    for extra, message in (
+            (["--task", "pusht"], "trained on episodes of task 'pilesweep' (its checkpoint records it), not 'pusht'"),
+            (["--env", "pusht"], "trained on episodes of task 'pilesweep'"),
+            (["--env", "world-model"], "task 'pilesweep' has no shipped world model; pass --world-model"),
+            (["--env", "world-model", "--world-model", str(tmp_path / "pusht-wm")],
+             "is a world model of task 'pusht', not 'pilesweep'"),
+            (["--task", "nowhere"], "unknown task 'nowhere'")):
+        assert main(["eval", "policy", "--checkpoint", str(out), "--episodes", "1", "--steps", "2",
+                     "--out", str(tmp_path / "bad"), *extra]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("iwsim: error:") and message in err and "\n" not in err, (extra, err)
+    assert main(["collect", "--task", "pusht", "--policy", str(out), "--episodes", "1", "--steps", "2",
+                 "--workers", "1", "--out", str(tmp_path / "bad" / "s.zarr")]) == 1
+    assert "trained on episodes of task 'pilesweep'" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    # its learned episodes in its own task's MuJoCo: the store's layout is the scripted policies'
+    assert main(["collect", "--task", "pilesweep", "--policy", str(out), "--episodes", "2", "--steps", "3",
+                 "--workers", "1", "--out", str(tmp_path / "rollouts.zarr"), "--no-progress"]) == 0
+    rollouts = EpisodeStore.open(tmp_path / "rollouts.zarr")
+    assert rollouts.attrs["task"] == "pilesweep" and rollouts.episode(1)["pieces"].shape == (3, 30, 2)
+
+
+def test_a_policy_learns_one_task(play_store, pile_model, tmp_path, capsys):
+    assert main(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data",
+                 f"{play_store}:1,{pile_model['store']}:1", "--out", str(tmp_path / "mixed"), "--steps", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "mixes episodes of task 'pusht'" in err and "task 'pilesweep'" in err
+    assert not (tmp_path / "mixed").exists()

@@ -240,7 +240,7 @@ def test_play_records_and_exports_and_eval_reports_no_scorer(point_model, tmp_pa
                  "--out", str(out), "--no-progress"]) == 0
     assert "no scorer (task 'point' has no pixel scorer)" in capsys.readouterr().out
     result = json.loads((out / "results.json").read_text())
-    assert result["scorer"] is None and result["mean_max_iou"] is None and result["success_rate"] is None
+    assert result["scorer"] is None and result["mean_max_score"] is None and result["success_rate"] is None
     assert result["task"] == "point" and [e["seed"] for e in result["episodes"]] == [100000, 100001]
     assert (out / "episode_100000.mp4").stat().st_size > 0 and not (out / "iou.json").exists()
     assert next(iter(result)) == "command" and result["command"].startswith("iwsim eval policy --checkpoint")

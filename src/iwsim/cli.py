@@ -136,15 +136,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="evaluate a policy closed-loop in MuJoCo or inside the world model")
     eval_sub = p.add_subparsers(dest="eval_command", required=True, metavar="COMMAND")
-    q = eval_sub.add_parser("policy", help="success and max IoU over seeded episodes, with intervals and videos")
+    q = eval_sub.add_parser("policy", help="success and max score (T-push: IoU) over seeded episodes, with "
+                            "intervals and videos")
     q.add_argument("--checkpoint", required=True, help="policy run (its last checkpoint) or checkpoint directory")
-    q.add_argument("--env", default=TASK.kind, choices=(TASK.kind, "world-model"), help="(default: %(default)s)")
-    q.add_argument("--world-model", default=TASK.checkpoint, help="for --env world-model (default: %(default)s)")
+    q.add_argument("--task", help=f"task: {', '.join(TASKS)} (default: the one the policy was trained on, as its "
+                                  f"checkpoint records it, else {TASK.kind})")
+    q.add_argument("--env", default="mujoco", choices=("mujoco", *TASKS, "world-model"),
+                   help="mujoco: the task's simulator (a task's name: that task's); world-model: inside --world-model "
+                        "(default: %(default)s)")
+    q.add_argument("--world-model", help=f"for --env world-model, a world model of the task (default: the task's "
+                                         f"shipped one, {TASK.checkpoint} for {TASK.kind})")
     q.add_argument("--trust-model", help="a second world model of the task (trained differently): the policy runs "
                    "in it too, and each episode's score difference says how far the first can be trusted")
     q.add_argument("--episodes", type=int, default=50, help="(default: %(default)s)")
     q.add_argument("--seed", type=int, default=100000, help="first MuJoCo seed (default: %(default)s)")
-    q.add_argument("--steps", type=int, default=TASK.horizon, help="steps per episode (default: %(default)s)")
+    q.add_argument("--steps", type=int, help=f"steps per episode (default: the task's horizon, {TASK.horizon} for "
+                                             f"{TASK.kind})")
     q.add_argument("--videos", type=int, default=4, help="episodes recorded as videos (default: %(default)s)")
     q.add_argument("--action-steps", type=int,
                    help="actions executed per query, overriding the checkpoint's (Diffusion Policy's Ta)")
@@ -233,47 +240,80 @@ def build_parser() -> argparse.ArgumentParser:
     q = exp_sub.add_parser("datagen", help="policies trained on world-model demonstrations vs simulator ones")
     q.add_argument("--preset", default="default", choices=("default", "act", "tiny"),
                    help="default: Diffusion Policy, mixtures and sizes; act: ACT, mixtures (default: %(default)s)")
-    q.add_argument("--world-model", help=f"world-model checkpoint (default: {TASK.checkpoint})")
+    _study_task_flags(q, TASK)
     q.add_argument("--policy", choices=tuple(LEARNED_POLICIES), help="policy type (default: the preset's)")
     q.add_argument("--episodes", type=int, help="MuJoCo evaluation episodes per policy (default: the preset's, 50)")
-    q.add_argument("--steps", type=int, help=f"steps per evaluation episode (default: the preset's, {TASK.horizon})")
+    q.add_argument("--steps", type=int, help=f"steps per evaluation episode (default: the preset's, the task's "
+                                             f"horizon: {TASK.horizon} for {TASK.kind})")
     q.add_argument("--total", type=int, help="demonstrations per mixture run (default: the preset's, 100)")
     q.add_argument("--fractions", help="world-model shares of the mixture runs, comma-separated (default: the "
                                        "preset's, 0,0.25,0.5,0.75,1)")
     q.add_argument("--sizes", help="simulator dataset sizes, comma-separated (default: the preset's)")
     q.add_argument("--wm-sizes", help="world-model dataset sizes, comma-separated (default: the preset's)")
     q.add_argument("--train-steps", type=int, help="training steps per policy (default: the preset's)")
-    q.add_argument("--accept-iou", type=float,
-                   help="keep takes whose max pixel IoU reaches this (default: the preset's, 0.9)")
+    q.add_argument("--accept-iou", "--accept-score", dest="accept_iou", type=float,
+                   help="keep takes whose max pixel score (T-push: IoU) reaches this (default: the preset's, 0.9)")
     q.add_argument("--demo-steps", type=int, help="horizon of a demonstration take (default: the preset's)")
     q.add_argument("--jobs", type=int, default=min(2, available_cores()),
                    help="trainings/evaluations at once, one thread each (default: %(default)s)")
     q.add_argument("--out", help="report directory (default: bench/results/experiments/datagen, or datagen-act "
-                                 "for --preset act)")
-    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations (default: %(default)s)")
+                                 "for --preset act; another task's under bench/results/experiments/TASK)")
+    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations; another task's under "
+                                                               "WORK/TASK (default: %(default)s)")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     q.set_defaults(func=_experiment_datagen)
     q = exp_sub.add_parser("policy-eval", help="does the world model rank policies like MuJoCo? (r, rho, MMRV)")
     q.add_argument("--preset", default="default", choices=("default", "tiny"), help="scale (default: %(default)s)")
-    q.add_argument("--world-model", help=f"world-model checkpoint (default: {TASK.checkpoint})")
+    _study_task_flags(q, TASK)
     q.add_argument("--episodes", type=int, help="episodes per policy and simulator (default: the preset's, 20)")
-    q.add_argument("--steps", type=int, help=f"steps per episode (default: the preset's, {TASK.horizon})")
+    q.add_argument("--steps", type=int, help=f"steps per episode (default: the preset's, the task's horizon: "
+                                             f"{TASK.horizon} for {TASK.kind})")
     q.add_argument("--seed", type=int, help="episode i starts from MuJoCo seed SEED + i (default: 100000)")
-    q.add_argument("--demos", help="demonstration store the policies train on, e.g. from iwsim collect --policy "
-                                   "expert (default: the simulator expert's, recorded under --work when missing)")
+    q.add_argument("--demos", help="demonstration store of the task the policies train on, e.g. from iwsim collect "
+                                   "--policy expert (default: the simulator expert's, recorded under --work when "
+                                   "missing)")
     q.add_argument("--demo-episodes", type=int, help="demonstrations of the full-data runs (default: 100)")
     q.add_argument("--small-demos", type=int, help="demonstrations of the small-data run (default: 25)")
     q.add_argument("--jobs", type=int, default=min(2, available_cores()),
                    help="trainings/evaluations at once, one thread each (default: %(default)s)")
-    q.add_argument("--out", default="bench/results/experiments/policy_eval",
-                   help="report directory (default: %(default)s)")
-    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations (default: %(default)s)")
+    q.add_argument("--out", help="report directory (default: bench/results/experiments/policy_eval; another task's "
+                                 "under bench/results/experiments/TASK)")
+    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations; another task's under "
+                                                               "WORK/TASK (default: %(default)s)")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     q.set_defaults(func=_experiment_policy_eval)
     for q in _leaf_parsers(parser):
         q.add_argument("--threads", type=int,
                        help="torch threads (default: $OMP_NUM_THREADS, else the CPU cores this process may use)")
     return parser
+
+
+def _study_task_flags(q: argparse.ArgumentParser, default: Any) -> None:
+    """A study's --task and --world-model (``default``: the default task)."""
+    from iwsim.envs import TASKS
+
+    q.add_argument("--task", default=default.kind, choices=tuple(TASKS),
+                   help="the task, its MuJoCo simulator the ground truth and its pixel expert the demonstrator "
+                        "(default: %(default)s)")
+    q.add_argument("--world-model", help=f"a world-model checkpoint of the task (default: the task's shipped one, "
+                                         f"{default.checkpoint} for {default.kind}; a task without one needs it)")
+
+
+def _study_config(args: argparse.Namespace, presets: dict[str, C], report: str, **overrides: Any) -> tuple[C, Path]:
+    """A study's config: its preset on --task (:func:`iwsim.experiments.common.on_task`),
+    the task's world model and the flags' ``overrides`` (None: not given); and its report
+    directory (--out, else ``report`` under the task's ``bench/results/experiments``)."""
+    import dataclasses
+    from pathlib import Path
+
+    from iwsim.experiments.common import on_task, study_dir
+    from iwsim.tasks import get_task, shipped_world_model
+
+    task = get_task(args.task)
+    cfg: Any = on_task(presets[args.preset], task)  # a study's config dataclass
+    overrides["world_model"] = args.world_model or shipped_world_model(task)
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+    return cfg, Path(args.out) if args.out else study_dir("bench/results/experiments", task) / report
 
 
 def _wait_for_lock_flag(p: argparse.ArgumentParser) -> None:
@@ -314,12 +354,14 @@ def _collect(args: argparse.Namespace) -> int:
 
     recorder, policy = None, args.policy
     if policy not in POLICIES.get(args.task, ()) and Path(policy).is_dir():  # a learned policy
+        from iwsim.eval.policy import choose_task
         from iwsim.eval.policy import recorder as learned
         from iwsim.policies.factory import load_policy
 
         if args.out is None:
             raise InputError("collecting a learned policy's episodes needs --out STORE.")
         net = load_policy(policy)
+        choose_task(args.task, None, net.task)  # a policy of another task: one line
         if net.image_size != args.image_size:
             raise InputError(f"{policy} was trained on {net.image_size}x{net.image_size} frames, not --image-size "
                              f"{args.image_size}.")
@@ -549,36 +591,47 @@ def _train_policy(args: argparse.Namespace) -> int:
 def _eval_policy(args: argparse.Namespace) -> int:
     import torch
 
-    from iwsim.eval.policy import check_args, evaluate
+    from iwsim.eval.policy import WORLD_MODEL, check_args, check_model_task, choose_task, evaluate
     from iwsim.eval.records import command_line
-    from iwsim.policies.factory import load_policy
+    from iwsim.policies.factory import load_policy, recorded_task
+    from iwsim.tasks import DEFAULT_TASK, shipped_world_model
     from iwsim.training.trainer import resolve_device
+    from iwsim.world_model_env import score_key
 
-    check_args(args.episodes, args.seed, args.steps, args.videos, args.env)
+    env, task = choose_task(args.env, args.task, recorded_task(args.checkpoint))
+    steps = args.steps if args.steps is not None else (task or DEFAULT_TASK()).horizon or DEFAULT_TASK.horizon
+    check_args(args.episodes, args.seed, steps, args.videos, env)
+    if args.trust_model is not None and env != WORLD_MODEL:
+        raise InputError("--trust-model applies to --env world-model (MuJoCo is the ground truth).")
+    world_model = None
+    if env == WORLD_MODEL:
+        world_model = args.world_model or shipped_world_model(task)
     device = resolve_device(args.device)
     torch.manual_seed(0)  # the policy's sampling noise, as the studies seed it: the same command, the same scores
     policy = load_policy(args.checkpoint, device, n_action_steps=args.action_steps)
-    wm = None
-    if args.env == "world-model":
+    wm = partner = None
+    if world_model is not None:
         from iwsim.world_model import WorldModel
 
-        wm = WorldModel.load(args.world_model, device)
-    if args.trust_model is not None and args.env != "world-model":
-        raise InputError("--trust-model applies to --env world-model (MuJoCo is the ground truth).")
-    partner = None if args.trust_model is None else WorldModel.load(args.trust_model, device)
-    result = evaluate(policy, args.env, episodes=args.episodes, seed=args.seed, steps=args.steps, world_model=wm,
+        wm = WorldModel.load(world_model, device)
+        task = check_model_task(wm, task, f"--world-model {world_model}")
+        if args.trust_model is not None:
+            partner = WorldModel.load(args.trust_model, device)
+            check_model_task(partner, task, f"--trust-model {args.trust_model}")
+    result = evaluate(policy, env, episodes=args.episodes, seed=args.seed, steps=steps, world_model=wm,
                       image_size=policy.image_size, out=args.out, videos=args.videos, progress=not args.no_progress,
                       meta={"checkpoint": str(args.checkpoint), "n_action_steps": policy.cfg.n_action_steps,
-                            "world_model": args.world_model if args.env == "world-model" else None,
-                            "trust_model": args.trust_model}, partner=partner,
+                            "world_model": world_model, "trust_model": args.trust_model}, partner=partner,
                       command=command_line("iwsim", args.argv))
     if result["scorer"] is None:
-        print(f"{args.env}: no scorer (task {result['task']!r} has no pixel scorer): {args.episodes} episodes of "
-              f"{args.steps} steps without a score; {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
+        print(f"{env}: no scorer (task {result['task']!r} has no pixel scorer): {args.episodes} episodes of "
+              f"{steps} steps without a score; {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
         return 0
     post = result["success_beta_posterior"]
     lo, hi = result["success_clopper_pearson"]
-    print(f"{args.env}: mean max IoU {result['mean_max_iou']:.3f}; success {result['success_rate']:.2f} "
+    assert task is not None  # the simulator's, or the world model's
+    mean = result[f"mean_max_{score_key(task)}"]
+    print(f"{env}: mean max {result['scorer']} {mean:.3f}; success {result['success_rate']:.2f} "
           f"(Beta posterior mean {post['mean']:.2f}, 95% {post['low']:.2f}-{post['high']:.2f}; "
           f"Clopper-Pearson {lo:.2f}-{hi:.2f}); {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
     if "disagreement" in result:
@@ -752,30 +805,25 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
 
     base = PRESETS[args.preset]
     recipe = {"accept_iou": args.accept_iou, "steps": args.demo_steps}
-    overrides = {"world_model": args.world_model, "policy": args.policy, "episodes": args.episodes,
-                 "steps": args.steps, "total": args.total, "train_steps": args.train_steps,
-                 "wm_fractions": numbers("--fractions", args.fractions, float),
-                 "sim_sizes": numbers("--sizes", args.sizes, int),
-                 "wm_sizes": numbers("--wm-sizes", args.wm_sizes, int),
-                 "recipe": dataclasses.replace(base.recipe, **{k: v for k, v in recipe.items() if v is not None})}
-    cfg = dataclasses.replace(base, **{k: v for k, v in overrides.items() if v is not None})
-    out = args.out or ("bench/results/experiments/datagen" + ("-act" if args.preset == "act" else ""))
+    report = "datagen" + ("-act" if args.preset == "act" else "")
+    cfg, out = _study_config(
+        args, PRESETS, report, policy=args.policy, episodes=args.episodes, steps=args.steps, total=args.total,
+        train_steps=args.train_steps, wm_fractions=numbers("--fractions", args.fractions, float),
+        sim_sizes=numbers("--sizes", args.sizes, int), wm_sizes=numbers("--wm-sizes", args.wm_sizes, int),
+        recipe=dataclasses.replace(base.recipe, **{k: v for k, v in recipe.items() if v is not None}))
     run_datagen(cfg, out=out, work=args.work, preset=args.preset, jobs=args.jobs, progress=not args.no_progress)
     print(f"{out}/results.md")
     return 0
 
 
 def _experiment_policy_eval(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from iwsim.experiments.policy_eval import PRESETS, headline, run_policy_eval
 
-    overrides = {"world_model": args.world_model, "episodes": args.episodes, "steps": args.steps, "seed": args.seed,
-                 "demos": args.demos, "demo_episodes": args.demo_episodes, "small_demos": args.small_demos}
-    cfg = dataclasses.replace(PRESETS[args.preset], **{k: v for k, v in overrides.items() if v is not None})
-    report = run_policy_eval(cfg, out=args.out, work=args.work, preset=args.preset, jobs=args.jobs,
+    cfg, out = _study_config(args, PRESETS, "policy_eval", episodes=args.episodes, steps=args.steps, seed=args.seed,
+                             demos=args.demos, demo_episodes=args.demo_episodes, small_demos=args.small_demos)
+    report = run_policy_eval(cfg, out=out, work=args.work, preset=args.preset, jobs=args.jobs,
                              progress=not args.no_progress)
-    print(f"{headline(report)} -> {args.out}/results.md")
+    print(f"{headline(report)} -> {out}/results.md")
     return 0
 
 

@@ -44,13 +44,13 @@ TASK_MODULES = ("iwsim.envs.pusht", "iwsim.envs.pixels", "iwsim.envs.geometry", 
                 "iwsim.envs.pilesweep_task",
                 "iwsim.envs.tabletop", "iwsim.envs.palette", "iwsim.envs.scripting", "iwsim.envs.tabletop_task")
 TASK_IMPORTERS = ("iwsim.envs", "iwsim.tasks")  # envs/ itself and the Task registry
-# T-push's ground-truth tooling, by name: it runs the MuJoCo simulator or its scripted
-# experts, which no other robot's data comes with.
+# The ground-truth tooling, by name: it runs a MuJoCo simulator or its scripted policies,
+# which no other robot's data comes with.
 GROUND_TRUTH_TOOLING = {
-    "iwsim.policies.scripted": "T-push's scripted experts behind the policy interface",
+    "iwsim.policies.scripted": "the tasks' scripted policies behind the policy interface, degraded as the tabletop's "
+                               "(iwsim.envs.scripting.Degraded)",
     "iwsim.eval.rollout": "against_mujoco: a scripted expert's take in MuJoCo beside the model's",
     "iwsim.eval.profiling": "the yardstick's measures of T-push's objects (block pose, pushers)",
-    "iwsim.experiments.demos": "the studies' MuJoCo takes from T-push's initial-state distributions (start=)",
 }
 
 # T-push's defaults (frame size, evaluation horizon, shipped checkpoint) live on its Task

@@ -49,6 +49,16 @@ def get_task(name: str) -> Task:
     return REGISTRY[name]()
 
 
+def shipped_world_model(task: Task | None = None) -> str:
+    """The world model shipped for ``task`` (None: the default task's), or one line of error
+    asking for one (a task without a shipped model)."""
+    task = DEFAULT_TASK() if task is None else task
+    if task.checkpoint is None:
+        raise InputError(f"task {task.name!r} has no shipped world model; pass --world-model CHECKPOINT (a world "
+                         f"model of {task.name!r}).")
+    return task.checkpoint
+
+
 @dataclass(frozen=True)
 class DatasetTask(Task):
     """The generic task (see :class:`~iwsim.envs.task.Task`) whose initial frames are the

@@ -31,6 +31,7 @@ from iwsim.envs.pilesweep import IMAGE_SIZE, PIECE_RADIUS, TRAY, in_tray, padded
 from iwsim.envs.pilesweep_pixels import find_pieces, piece_fraction
 from iwsim.envs.scripting import Degraded, Hand, ScriptedPolicy, Transition, advance, check_policy, record, run_policy
 from iwsim.envs.tabletop import MAX_STEP, PUSHER_RADIUS, WORKSPACE
+from iwsim.errors import InputError
 
 POLICIES = TASK_POLICIES["pilesweep"]
 GAP = 0.010  # between the broom's two pushers: less than a piece is wide
@@ -339,6 +340,22 @@ def make_policy(name: str, seed: int) -> ScriptedPolicy:
     jitter = float(rng.uniform(0.0, MAX_NOISE))
     latency = int(rng.integers(0, MAX_LATENCY + 1)) if name == "expert-lagged" else 0
     return degraded_expert(seed, jitter=jitter, latency=latency)
+
+
+# The policies behind PileSweepTask.pixel_policy (every policy here reads only the observation;
+# the studies degrade the expert themselves, as ScriptedConfig does any task's).
+PIXEL_POLICIES = ("expert", "play")
+
+
+def pixel_policy(kind: str, seed: int, rng: np.random.Generator, miss: float = 0.0) -> ScriptedPolicy:
+    """The expert or the play policy (randomised by ``seed``) of :data:`PIXEL_POLICIES`;
+    nothing is drawn per episode from ``rng``. ``miss`` (T-push's experts aim off the block)
+    has no meaning here: pile sweeping's expert aims at whichever piece it sees."""
+    del rng
+    check_policy(kind, PIXEL_POLICIES)
+    if miss:
+        raise InputError(f"miss displaces an expert's aim at its one object; pile sweeping has many, got miss={miss}.")
+    return SweepExpert() if kind == "expert" else PlayPolicy(seed)
 
 
 def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, image_size: int = IMAGE_SIZE,

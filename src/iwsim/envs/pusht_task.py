@@ -11,7 +11,8 @@ import numpy as np
 
 from iwsim.envs import scripted
 from iwsim.envs.pixels import PALETTE_MODEL, pixel_iou, read_frames
-from iwsim.envs.pusht import IMAGE_SIZE, SUCCESS_IOU, TaskSpec
+from iwsim.envs.pusht import IMAGE_SIZE, STARTS, SUCCESS_IOU, TaskSpec
+from iwsim.envs.scripting import ScriptedPolicy
 from iwsim.envs.tabletop_task import TabletopTask
 
 SPEC = TaskSpec()
@@ -34,12 +35,19 @@ class PushTTask(TabletopTask):
     image_size = IMAGE_SIZE  # the frames collected, trained on and evaluated at (the shipped model's)
     horizon = 600  # steps of an evaluation episode (the paper's T-push horizon)
     checkpoint = "checkpoints/pusht-64"  # the shipped world model
+    starts = STARTS
+    pixel_policies = scripted.PIXEL_POLICIES
+    pixel_experts = tuple(scripted.EXPERTS)
+    pixel_reading = "block pose"
 
     def score(self, frames: np.ndarray) -> np.ndarray:
         return np.asarray(pixel_iou(frames), np.float64)
 
     def read(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return read_frames(frames)
+
+    def pixel_policy(self, kind: str, seed: int, rng: np.random.Generator, miss: float = 0.0) -> ScriptedPolicy:
+        return scripted.pixel_policy(kind, seed, rng, miss)
 
     def record_episode(self, policy: str, seed: int, steps: int, image_size: int) -> dict[str, np.ndarray]:
         return scripted.record_episode("pusht", policy, seed, steps, image_size)

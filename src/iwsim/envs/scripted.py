@@ -704,6 +704,61 @@ def make_policy(name: str, seed: int) -> ExpertPolicy | PlayPolicy:
     return NoisyExpertPolicy(seed) if name == "expert-noisy" else PlayPolicy(seed)
 
 
+class _MissingExpert(ExpertPolicy):
+    """A pixel expert (its ``pinch``) aiming at a block displaced by ``offset`` (x, y, yaw)
+    from where it sees it: the expert's kind of motion, not aimed at where the block is."""
+
+    def __init__(self, pinch: Pinch, offset: np.ndarray) -> None:
+        super().__init__(pose_source="pixels", pinch=pinch)
+        self.offset = offset
+
+    def block_pose(self, obs: dict, info: dict) -> np.ndarray | None:
+        pose = super().block_pose(obs, info)
+        return None if pose is None else pose + self.offset
+
+
+class _PixelPose:
+    """A scripted policy that takes its block pose from the frame (for the play policy,
+    which otherwise reads ``info["block_pose"]`` from the simulator)."""
+
+    def __init__(self, policy: ScriptedPolicy) -> None:
+        self.policy = policy
+        self._pose = np.zeros(3)
+
+    def _info(self, obs: dict) -> dict:
+        est = estimate_block_pose(obs["pixels"])
+        if est.found:  # when the block is hidden, keep the last pose seen
+            self._pose = est.pose
+        return {"block_pose": self._pose}
+
+    def reset(self, obs: dict, info: dict) -> None:
+        self.policy.reset(obs, self._info(obs))
+
+    def __call__(self, obs: dict, info: dict) -> np.ndarray:
+        return self.policy(obs, self._info(obs))
+
+
+# The policies that read the block pose from the frame (PushTTask.pixel_policy): the experts and play.
+PIXEL_POLICIES = (*EXPERTS, "play")
+
+
+def pixel_policy(kind: str, seed: int, rng: np.random.Generator, miss: float = 0.0) -> ScriptedPolicy:
+    """A policy of :data:`PIXEL_POLICIES` that estimates the block pose from the frame: an
+    expert of :data:`EXPERTS` (with ``miss`` > 0 aimed at a block displaced by ``miss`` m in
+    a direction, and turned by an angle, drawn from ``rng``) or play (randomised by ``seed``)."""
+    check_policy(kind, PIXEL_POLICIES)
+    if kind not in EXPERTS:
+        if miss:
+            raise InputError(f"miss displaces an expert's aim; the {kind!r} policy has none.")
+        return _PixelPose(PlayPolicy(seed))
+    pinch = EXPERTS[kind]()
+    if miss:
+        angle = rng.uniform(-np.pi, np.pi)
+        return _MissingExpert(pinch, np.array([miss * np.cos(angle), miss * np.sin(angle),
+                                               rng.uniform(-np.pi / 2, np.pi / 2)]))
+    return ExpertPolicy(pose_source="pixels", pinch=pinch)
+
+
 def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, task: str = "pusht",
                  image_size: int = IMAGE_SIZE, env: gym.Env | None = None) -> Generator[Transition, None, None]:
     """Drive ``task`` (or ``env``) with a scripted policy (a name of :data:`POLICIES`,

@@ -29,6 +29,7 @@ from iwsim.envs.tabletop import (
     spaces,
 )
 from iwsim.envs.task import Bindings, Start, Task
+from iwsim.errors import InputError
 
 KEY_SPEED = 0.2  # m/s of a target under a held key or a full stick (one key tap: 2 cm)
 DRAG_SPEED = 0.3  # m/s at most when a target follows the mouse (the play data's top speed)
@@ -126,8 +127,10 @@ class TabletopTask(Task):
         spec["task"] = spec.pop("name")
         return spec
 
-    def ground_truth_env(self, image_size: int) -> gym.Env:
-        return make_env(self.kind, image_size)
+    def ground_truth_env(self, image_size: int | None = None, start: str = "random") -> gym.Env:
+        if start not in self.starts:
+            raise InputError(f"start must be one of {', '.join(self.starts)} for task {self.name!r}, got {start!r}.")
+        return make_env(self.kind, image_size, **({} if start == "random" else {"start": start}))
 
 
 class MujocoStarts:

@@ -8,6 +8,10 @@ task says otherwise, e.g. T-push's speed limit), an optional scorer from pixels
 fake one), the optional declaration of which action entries are positions in the image
 (``action_points`` with ``view_half``, which the dynamics turns into action maps),
 teleoperation bindings (:class:`Bindings`) and its initial frames (:meth:`Task.start`).
+A task with a ground truth (a simulator) adds it (:meth:`Task.ground_truth_env`), its
+scripted policies (:meth:`Task.record_episode`; those that read only the observation, so
+that they run inside a world model too: :meth:`Task.pixel_policy`) and its defaults for
+the commands and the studies (frame size, evaluation horizon, shipped world model).
 
 This base class is the generic task of any robot's data; a built-in task (T-push,
 :mod:`iwsim.envs.pusht_task`) subclasses it and registers itself by name. The registry,
@@ -19,12 +23,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Any, ClassVar, Protocol
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import gymnasium as gym
 import numpy as np
 
 from iwsim.errors import InputError
+
+if TYPE_CHECKING:
+    from iwsim.envs.scripting import ScriptedPolicy
 
 # Keys the play page keeps for itself (record, discard, restart, store start, side by side; Shift+S / Enter save).
 RESERVED_KEYS = ("c", "q", "r", "t", "b")
@@ -188,6 +195,14 @@ class Task:
     # (start_from_record reads them; T-push: the block's pose).
     state_keys: ClassVar[tuple[str, ...]] = ()
     episode_score: ClassVar[str | None] = None  # the array of record_episode's episodes holding the score
+    # A task with a ground truth: its defaults for the commands and the studies (None: none).
+    image_size: ClassVar[int | None] = None  # the frames collected, trained on and evaluated at
+    horizon: ClassVar[int | None] = None  # steps of an evaluation episode
+    checkpoint: ClassVar[str | None] = None  # the shipped world model
+    starts: ClassVar[tuple[str, ...]] = ("random",)  # the simulator's initial-state distributions
+    pixel_policies: ClassVar[tuple[str, ...]] = ()  # scripted policies that read only the observation
+    pixel_experts: ClassVar[tuple[str, ...]] = ()  # those of them that do the task (demonstrators)
+    pixel_reading: ClassVar[str] = "the frame"  # what they read from the frame (a demonstration store says)
 
     def __post_init__(self) -> None:
         low, high = tuple(float(v) for v in self.action_low), tuple(float(v) for v in self.action_high)
@@ -296,15 +311,26 @@ class Task:
         command = np.clip(np.asarray(record[key], np.float64), self.action_low, self.action_high)
         return Start(frame, command.astype(np.float32), command)
 
-    def ground_truth_env(self, image_size: int) -> gym.Env | None:
-        """The simulator the world model stands in for, if the task has one (side by side in play)."""
-        del image_size
+    def ground_truth_env(self, image_size: int | None = None, start: str = "random") -> gym.Env | None:
+        """The simulator the world model stands in for, if the task has one (side by side in
+        play, policy evaluation): frames ``image_size`` pixels square (None: the task's own),
+        initial states from the distribution ``start`` (one of :attr:`starts`)."""
+        del image_size, start
         return None
 
     @property
     def scripted_policies(self) -> tuple[str, ...]:
         """The names of the scripted policies :meth:`record_episode` runs (none without a simulator)."""
         return ()
+
+    def pixel_policy(self, kind: str, seed: int, rng: np.random.Generator, miss: float = 0.0) -> ScriptedPolicy:
+        """A scripted policy of :attr:`pixel_policies` that reads nothing but the observation
+        (the frame and ``agent_pos``), so that it acts alike in the simulator and inside a
+        world model: ``policy(obs, info) -> action`` after ``policy.reset(obs, info)``.
+        ``seed`` randomises it (a play policy), ``rng`` draws what is drawn per episode;
+        ``miss`` > 0 aims an expert at its object displaced by that much (a task may refuse)."""
+        del seed, rng, miss
+        raise InputError(f"task {self.name!r} has no scripted policies; {kind!r} needs a task with a simulator.")
 
     def record_episode(self, policy: str, seed: int, steps: int, image_size: int) -> dict[str, np.ndarray]:
         """One seeded episode of the simulator under a scripted policy, in the episode

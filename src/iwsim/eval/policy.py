@@ -1,4 +1,4 @@
-"""Closed-loop evaluation of a policy in the MuJoCo task or inside the world model
+"""Closed-loop evaluation of a policy in a task's MuJoCo simulator or inside the world model
 (``iwsim eval policy``).
 
 Episode i starts from MuJoCo seed ``seed + i`` in both environments: the world model
@@ -6,9 +6,14 @@ starts from MuJoCo's rendering of that seed's initial state (a world model of an
 robot's task starts from the first frame of its dataset's episode ``(seed + i) %
 episodes``, and without a pixel scorer its episodes report no score). All episodes step together:
 inside the world model that is one batched forward pass per step; in MuJoCo the
-environments step one after another (Gymnasium's ``SyncVectorEnv``). The score of an episode is the maximum IoU it
-reaches (the paper's T-pushing score), success is IoU >= 0.9; the success rate comes with
-a Beta posterior (uniform prior) and a Clopper-Pearson interval.
+environments step one after another (Gymnasium's ``SyncVectorEnv``). The score of an episode
+is the maximum of the task's pixel score it reaches (T-push's: the IoU, the paper's
+T-pushing score; pile sweeping's: the share of the pieces in the tray), success is a score
+at or above the task's ``success_score`` (0.9 for both); the success rate comes with a Beta
+posterior (uniform prior) and a Clopper-Pearson interval. The results name the score as
+the world model's ``info`` does (:func:`iwsim.world_model_env.score_key`): T-push's
+``max_iou``, ``mean_max_iou`` and ``iou.json``, as ever; another task's ``max_score``,
+``mean_max_score`` and ``score.json``.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium import spaces
@@ -28,17 +34,20 @@ from tqdm import tqdm
 
 from iwsim.checkpoint import write_json_atomic
 from iwsim.data.collect import Recorder
-from iwsim.envs import SMALLEST_FRAME_BYTES, make_env
+from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.eval.video import upscale, write_video
 from iwsim.policies.common import PolicyLike
 from iwsim.resources import require_memory
-from iwsim.tasks import get_task
+from iwsim.tasks import DEFAULT_TASK, REGISTRY, get_task, task_of
 from iwsim.world_model_env import WorldModelVectorEnv, score_key
 
-ENVS = ("pusht", "world-model")
+WORLD_MODEL = "world-model"
+MUJOCO = "mujoco"  # iwsim eval policy --env: the task's simulator
+# Where policies are evaluated: each built-in task's simulator (by the task's name), the world model.
+ENVS = (*(kind for kind, make in REGISTRY.items() if make().has_ground_truth), WORLD_MODEL)
 # An episode whose mean novelty is above this strays from the training data (about 1 for
 # steps like the training data's). On the yardstick novelty did not rank the episodes by
 # their error (bench/results/ablations.md, issue 41): an out-of-distribution flag, not a trust score.
@@ -50,16 +59,23 @@ DISAGREE_WARN = 0.2
 
 def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int | None = None,
                     start: str = "random") -> SyncVectorEnv | WorldModelVectorEnv:
-    """``n`` environments in lockstep as a Gymnasium vector env: MuJoCo's in a
-    :class:`~gymnasium.vector.SyncVectorEnv` (its initial states from the distribution
-    ``start``, :data:`iwsim.envs.pusht.STARTS`), or the world model's batched
-    :class:`~iwsim.world_model_env.WorldModelVectorEnv` (one forward pass per step).
+    """``n`` environments in lockstep as a Gymnasium vector env: task ``env``'s simulator
+    in a :class:`~gymnasium.vector.SyncVectorEnv` (its initial states from the distribution
+    ``start``, one of the task's ``starts``), or for ``env="world-model"`` the world model's
+    batched :class:`~iwsim.world_model_env.WorldModelVectorEnv` (one forward pass per step).
     ``image_size``: the policy's frame size, which the environment must render (None: the
     environment's own, the task's frame size in MuJoCo, the world model's)."""
     if env not in ENVS:
         raise InputError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
-    if env == "pusht":
-        return SyncVectorEnv([lambda: make_env("pusht", image_size, start=start)] * n)
+    if env != WORLD_MODEL:
+        task = get_task(env)
+
+        def simulator() -> gym.Env:  # (a start the task has not fails as the first one is made)
+            sim = task.ground_truth_env(image_size, start)
+            assert sim is not None  # ENVS names the tasks with a simulator
+            return sim
+
+        return SyncVectorEnv([simulator] * n)
     if start != "random":
         raise InputError(f"the world model starts from MuJoCo's random initial states only, not start={start!r}.")
     if world_model is None:
@@ -67,9 +83,47 @@ def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, im
     if image_size is not None and world_model.image_size != image_size:
         raise InputError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
                          f"renders {world_model.image_size}x{world_model.image_size}.")
-    # the task's own starts: for T-push MuJoCo's rendering of each seed, for another robot's
-    # task the first frame of its dataset's episode seed % episodes
+    # the task's own starts: for a task with a simulator its rendering of each seed, for
+    # another robot's task the first frame of its dataset's episode seed % episodes
     return WorldModelVectorEnv(n, model=world_model, max_episode_steps=steps + 1)
+
+
+def choose_task(env: str, task: str | None, recorded: Task | None) -> tuple[str, Task | None]:
+    """Where ``iwsim eval policy`` evaluates, and on which task, from its flags: ``env``
+    ("mujoco"; a built-in task's name, the same for that task; or "world-model"), ``task``
+    (--task, a built-in task's name) and the task the policy's checkpoint records
+    (``recorded``; None for a policy trained before policies recorded one). Returns the
+    environment of :func:`evaluate` (a task's name, or "world-model") and the task (in
+    MuJoCo T-push when nothing names one; in the world model None: the model's own). A
+    built-in task other than the one the policy was trained on, or a task without a
+    simulator in MuJoCo, is one line of error."""
+    named = None if task is None else get_task(task)
+    if env not in (MUJOCO, WORLD_MODEL):  # a task's name: its simulator
+        by_env = get_task(env)
+        if named is not None and named.name != by_env.name:
+            raise InputError(f"--env {env} is the simulator of task {env!r}, not of --task {task}; use --env {MUJOCO}.")
+        named, env = by_env, MUJOCO
+    if named is not None and recorded is not None and recorded.kind in REGISTRY and recorded.name != named.name:
+        raise InputError(f"the policy was trained on episodes of task {recorded.name!r} (its checkpoint records it), "
+                         f"not {named.name!r}; evaluate it on {recorded.name!r}.")
+    chosen = named or recorded
+    if env == WORLD_MODEL:
+        return env, chosen
+    chosen = chosen or DEFAULT_TASK()
+    if not chosen.has_ground_truth:
+        raise InputError(f"task {chosen.name!r} has no simulator to evaluate in; evaluate inside its world model "
+                         f"(--env {WORLD_MODEL} --world-model CHECKPOINT), or name a built-in task with --task.")
+    return chosen.kind, chosen
+
+
+def check_model_task(model: Any, task: Task | None, what: str) -> Task:
+    """The task of the world model ``model`` (``what`` names it in the error), which must be
+    ``task`` when one is given: a policy of one task is not evaluated in a model of another."""
+    own = task_of(model)
+    if task is not None and own.name != task.name:
+        raise InputError(f"{what} is a world model of task {own.name!r}, not {task.name!r}; give a world model of "
+                         f"{task.name!r}.")
+    return own
 
 
 def env_task(venv: VectorEnv, env: str) -> Task:
@@ -81,9 +135,11 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
             image_size: int | None = None, record: int = 0, progress: bool = True,
             stop: Callable[[dict[str, np.ndarray]], bool] | None = None, start: str = "random",
             keep: tuple[str, ...] = ()) -> dict[str, Any]:
-    """Run ``policy`` for ``steps`` steps from each seed, all episodes together. Returns
-    the task's per-step pixel score ``iou`` (E, T + 1) (T-push: the IoU; None when the task
-    has no scorer; its name in ``scorer``), ``agent_pos`` (E, T + 1, A) (T-push: the
+    """Run ``policy`` for ``steps`` steps from each seed, all episodes together in ``env``
+    (a built-in task's simulator, by the task's name, or "world-model"). Returns the task's
+    per-step pixel score ``iou`` (E, T + 1) (whatever the task's score is, T-push's IoU or
+    pile sweeping's share in the tray; None when the task has no scorer; its name in
+    ``scorer``, the task's name in ``task``), ``agent_pos`` (E, T + 1, A) (a tabletop's: the
     pushers' positions), the commanded ``action`` and executed ``target`` (info["target"],
     for T-push the speed-limited setpoints) of every step (E, T, A) and the frames
     ``frames`` (E', T + 1, H, W, 3) of the first ``record`` episodes; step t's action
@@ -141,7 +197,7 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
     finally:
         venv.close()
     return {"iou": None if task.score_name is None else np.stack(ious, 1), "scorer": task.score_name,
-            "task": task.name, "success_score": task.success_score,
+            "score_key": key, "task": task.name, "success_score": task.success_score,
             "frames": np.stack(frames, 1) if record else None,
             "agent_pos": np.stack(positions, 1), "action": np.stack(actions, 1), "target": np.stack(targets, 1),
             "novelty": np.stack(novelty, 1) if novelty else None, "info": {k: np.stack(v, 1) for k, v in kept.items()},
@@ -178,15 +234,16 @@ def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int | Non
     return record
 
 
-def summarize(max_iou: np.ndarray, seeds: list[int], success_score: float) -> dict[str, Any]:
-    """Per-episode scores and the statistics over episodes."""
-    success = max_iou >= success_score
+def summarize(max_score: np.ndarray, seeds: list[int], success_score: float, key: str = "iou") -> dict[str, Any]:
+    """Per-episode scores and the statistics over episodes, the score named ``key`` (the
+    task's :func:`~iwsim.world_model_env.score_key`: ``max_iou``, ``mean_max_iou``, ... for T-push)."""
+    success = max_score >= success_score
     k, n = int(success.sum()), len(success)
     return {
-        "episodes": [{"seed": s, "max_iou": float(m), "success": bool(ok)}
-                     for s, m, ok in zip(seeds, max_iou, success)],
-        "mean_max_iou": float(max_iou.mean()),
-        "std_max_iou": float(max_iou.std()),
+        "episodes": [{"seed": s, f"max_{key}": float(m), "success": bool(ok)}
+                     for s, m, ok in zip(seeds, max_score, success)],
+        f"mean_max_{key}": float(max_score.mean()),
+        f"std_max_{key}": float(max_score.std()),
         "success_rate": k / n,
         "success_beta_posterior": beta_posterior(k, n),
         "success_clopper_pearson": list(clopper_pearson(k, n)),
@@ -204,9 +261,9 @@ def trust(novelty: np.ndarray | None) -> dict[str, Any]:
                         "above_warn": float((per_episode > NOVELTY_WARN).mean()), "warn": NOVELTY_WARN}}
 
 
-def no_score(seeds: list[int]) -> dict[str, Any]:
+def no_score(seeds: list[int], key: str = "score") -> dict[str, Any]:
     """The scores of episodes of a task without a scorer: none, said as such (never a fake number)."""
-    return {"episodes": [{"seed": s} for s in seeds], "mean_max_iou": None, "std_max_iou": None,
+    return {"episodes": [{"seed": s} for s in seeds], f"mean_max_{key}": None, f"std_max_{key}": None,
             "success_rate": None, "note": "no scorer: the task has no pixel scorer, so episodes have no score."}
 
 
@@ -252,10 +309,12 @@ def disagreement(scores: np.ndarray, partner_scores: np.ndarray) -> dict[str, An
 def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
              image_size: int | None = None, out: str | Path | None = None, videos: int = 4, progress: bool = True,
              meta: dict[str, Any] | None = None, partner: Any = None, command: str | None = None) -> dict[str, Any]:
-    """Evaluate ``policy`` on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``,
-    write ``results.json`` (and ``iou.json``, each step's IoU) and videos of the first
-    ``videos`` episodes; with ``command`` too (the command line that ran this, from
-    :func:`iwsim.eval.records.command_line`), both JSON files begin with it. With ``partner``
+    """Evaluate ``policy`` in ``env`` (a built-in task's simulator, by the task's name, or
+    "world-model") on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``, write
+    ``results.json`` (and each step's score: T-push's ``iou.json``, another task's
+    ``score.json``) and videos of the first ``videos`` episodes; with ``command`` too (the
+    command line that ran this, from :func:`iwsim.eval.records.command_line`), both JSON
+    files begin with it. With ``partner``
     (a second world model, for ``env="world-model"``), the policy also runs in it from the
     same seeds and the result gains ``disagreement`` (:func:`disagreement`). ``image_size``:
     the policy's frame size (None: the environment's, as in :func:`make_vector_env`)."""
@@ -265,8 +324,10 @@ def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: i
     seeds = [seed + i for i in range(episodes)]
     run = rollout(policy, env, seeds, steps, world_model=world_model, image_size=image_size,
                   record=min(videos, episodes) if out is not None else 0, progress=progress)
+    key = run["score_key"]
     result = {"env": env, "steps": steps, **(meta or {}), "task": run["task"], "scorer": run["scorer"],
-              **(no_score(seeds) if run["iou"] is None else summarize(run["iou"].max(1), seeds, run["success_score"])),
+              **(no_score(seeds, key) if run["iou"] is None else
+                 summarize(run["iou"].max(1), seeds, run["success_score"], key)),
               **trust(run["novelty"]), "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
     if partner is not None and run["iou"] is not None:
         other = rollout(policy, env, seeds, steps, world_model=partner, image_size=image_size, progress=progress)
@@ -279,6 +340,6 @@ def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: i
         for i in range(0 if run["frames"] is None else len(run["frames"])):
             write_video(out / f"episode_{seeds[i]}.mp4", upscale(run["frames"][i], 4), fps=10)
         if run["iou"] is not None:
-            (out / "iou.json").write_text(json.dumps({**head, "seeds": seeds,
-                                                      "iou_per_step": run["iou"].round(4).tolist()}))
+            (out / f"{key}.json").write_text(json.dumps({**head, "seeds": seeds,
+                                                         f"{key}_per_step": run["iou"].round(4).tolist()}))
     return result

@@ -1,5 +1,11 @@
-"""What both studies share: policy trainings run side by side, and closed-loop
+"""What both studies share: their task, policy trainings run side by side, and closed-loop
 evaluations cached on disk, so that rerunning a study's command resumes it.
+
+A study runs on a built-in task with a ground truth (``--task``; T-push by default, whose
+shipped world model, evaluation horizon, scorer and success threshold it then uses; pile
+sweeping's are its own, and a world model of it must be given): MuJoCo is its reference and
+the task's pixel expert its demonstrator. A study of another task than T-push keeps its work
+and writes its report in a directory of its own (:func:`study_dir`).
 
 Parallel work goes to spawned processes with one torch thread each: on a small machine,
 two single-threaded trainings side by side finish sooner than the same two one after the
@@ -26,24 +32,26 @@ from tqdm import tqdm
 from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.config import from_dict, to_dict
 from iwsim.data.lock import DirLock, LockedError
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
-from iwsim.eval.policy import rollout, summarize, trust
+from iwsim.eval.policy import WORLD_MODEL, rollout, summarize, trust
 from iwsim.eval.records import command_line
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class
 from iwsim.policies.data import Source
 from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
-from iwsim.tasks import DEFAULT_TASK, task_from_config
+from iwsim.tasks import DEFAULT_TASK, get_task, task_from_config, task_of
 from iwsim.training.policy import train_policy
 from iwsim.world_model import WorldModel
 from iwsim.world_model_env import OBSERVATION_VERSION
 
 log = logging.getLogger(__name__)
-# The studies' task, in one place: their ground truth is MuJoCo's T-push (the default task),
-# whose success threshold, scorer, evaluation horizon and shipped world model they use.
+# The studies' default task, in one place: MuJoCo's T-push, whose success threshold, scorer,
+# evaluation horizon and shipped world model the presets are written for.
 STUDY = DEFAULT_TASK()
 STUDY_TASK = STUDY.kind
 
+TASK_FLAG = {"task": "--task"}  # a study config's task field and its flag (study_command)
 PolicySource = str | Path | ScriptedConfig  # a policy run or checkpoint directory, or a scripted policy
 
 
@@ -111,9 +119,38 @@ def lock_work(work: Path, study: str) -> DirLock:
                          "time: wait for it, or pass another --work.") from None
 
 
-def check_study_model(world_model: str | os.PathLike | None) -> None:
-    """One line unless ``world_model`` is a T-push world-model checkpoint: the studies
-    compare the model with MuJoCo's T-push, their ground truth, which no other task has."""
+def study_task(name: str) -> Task:
+    """The built-in task ``name`` a study runs on, or one line of error: a study compares
+    with the task's simulator and records its expert's demonstrations."""
+    task = get_task(name)
+    if not task.has_ground_truth or not task.pixel_experts:
+        raise InputError(f"task {name!r} has no simulator and expert for a study to compare with.")
+    return task
+
+
+def study_dir(root: str | os.PathLike, task: Task) -> Path:
+    """Where a study of ``task`` keeps its work or writes its report under ``root``: ``root``
+    itself for the default task (as ever), ``root / task.kind`` for another, so that the
+    tasks' demonstrations, policy runs, cached evaluations and reports never meet."""
+    return Path(root) if task.kind == STUDY_TASK else Path(root) / task.kind
+
+
+def on_task(cfg: Any, task: Task) -> Any:
+    """A study's preset ``cfg`` (written for the default task; a config with ``task`` and
+    ``steps``) on ``task``: its evaluation horizon where the preset evaluates over the
+    default task's (a short preset keeps its own). What a run of the study changes is then
+    ``--task`` against the preset (:data:`TASK_FLAG`) and the other flags against this."""
+    return dataclasses.replace(cfg, task=task.kind, steps=task.horizon if cfg.steps == STUDY.horizon else cfg.steps)
+
+
+def report_task(report: dict[str, Any]) -> Task:
+    """The task of a study's report (reports written before studies took a task: T-push's)."""
+    return get_task(report["config"].get("task", STUDY_TASK))
+
+
+def check_study_model(world_model: str | os.PathLike | None, task: Task = STUDY) -> None:
+    """One line unless ``world_model`` is a world-model checkpoint of ``task``: a study
+    compares the model with the task's simulator, its ground truth."""
     path = Path(world_model) if world_model is not None else None
     if path is None or not (path / "config.json").is_file():
         raise InputError(f"world model {world_model} is not a checkpoint directory (config.json + "
@@ -121,12 +158,14 @@ def check_study_model(world_model: str | os.PathLike | None) -> None:
     config = load_json(path / "config.json")
     kind = config.get("kind") if isinstance(config, dict) else None
     if kind != "world_model":
+        example = f" (e.g. {task.checkpoint})" if task.checkpoint else ""
         raise InputError(f"{path} is {'a ' + repr(kind) if kind else 'not a'} checkpoint, not a world model; pass "
-                         f"--world-model a world model (e.g. {STUDY.checkpoint}).")
-    task = task_from_config(config, path / "config.json")
-    if task.kind != STUDY_TASK:
-        raise InputError(f"{path} is a world model of task {task.name!r}; the studies compare with MuJoCo's "
-                         f"{STUDY_TASK!r}, their only ground truth (evaluate a policy in it with iwsim eval policy).")
+                         f"--world-model a world model{example}.")
+    own = task_from_config(config, path / "config.json")
+    if own.name != task.name:
+        raise InputError(f"{path} is a world model of task {own.name!r}; the study compares with MuJoCo's "
+                         f"{task.name!r} (--task): give a world model of {task.name!r} (evaluate a policy in any "
+                         "world model with iwsim eval policy).")
 
 
 def fingerprint(world_model: str | os.PathLike) -> str:
@@ -237,22 +276,24 @@ def _describe(source: PolicySource) -> Any:
     return str((last if last.exists() else path).resolve())
 
 
-def _load(source: PolicySource) -> Any:
-    return ScriptedBatch(source) if isinstance(source, ScriptedConfig) else load_policy(source)
+def _load(source: PolicySource, task: Task) -> Any:
+    return ScriptedBatch(source, task) if isinstance(source, ScriptedConfig) else load_policy(source)
 
 
 def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps: int, world_model: str | None,
               path: Path, key: dict[str, Any], progress: bool) -> dict[str, Any]:
     torch.manual_seed(0)  # the policies' sampling noise: the same evaluation gives the same scores
-    policy = _load(source)
     wm = None
-    if env == "world-model":
+    if env == WORLD_MODEL:
         assert world_model is not None  # evaluate_policies checks it
         wm = WorldModel.load(world_model)
+    policy = _load(source, get_task(env) if wm is None else task_of(wm))
     image_size = wm.image_size if wm is not None else getattr(policy, "image_size", None)
     run = rollout(policy, env, seeds, steps, world_model=wm, image_size=image_size, progress=progress)
-    result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds, run["success_score"]),
-              **trust(run["novelty"]), "seconds": run["seconds"], "iou_per_step": np.round(run["iou"], 4).tolist()}
+    score = run["score_key"]
+    result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds, run["success_score"], score),
+              **trust(run["novelty"]), "seconds": run["seconds"],
+              f"{score}_per_step": np.round(run["iou"], 4).tolist()}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(path, result, sort_keys=False)
     return result
@@ -261,19 +302,22 @@ def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps
 def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: Sequence[int], steps: int,
                       world_model: str | Path | None, out: Path, jobs: int = 1,
                       progress: bool = True) -> dict[str, dict[str, Any]]:
-    """Closed-loop evaluation of each named policy in ``env`` ("pusht" or "world-model")
-    from ``seeds``, all episodes of a policy in lockstep (:func:`iwsim.eval.policy.rollout`).
+    """Closed-loop evaluation of each named policy in ``env`` (a built-in task's simulator,
+    by the task's name, or "world-model"; a scripted policy is that task's, or the world
+    model's) from ``seeds``, all episodes of a policy in lockstep
+    (:func:`iwsim.eval.policy.rollout`).
 
     Cached: ``out / env / f"{name}.json"`` holds :func:`iwsim.eval.policy.summarize`'s
-    dict, ``iou_per_step`` (E, steps + 1), ``seconds`` and a ``key`` (the policy, seeds,
-    steps, world model and its weights); a cached result with the same key is reused. Up to
+    dict, each step's score (E, steps + 1) (T-push's ``iou_per_step``, another task's
+    ``score_per_step``), ``seconds`` and a ``key`` (the policy, seeds, steps, world model
+    and its weights); a cached result with the same key is reused. Up to
     ``jobs`` policies at once in spawned processes with one torch thread each. Returns
     name -> result.
     """
-    if env == "world-model" and world_model is None:
+    if env == WORLD_MODEL and world_model is None:
         raise InputError("evaluating inside the world model needs a world-model checkpoint.")
     seeds = [int(s) for s in seeds]
-    wm = str(world_model) if env == "world-model" else None
+    wm = str(world_model) if env == WORLD_MODEL else None
     wm_sha256 = wm and fingerprint(wm)  # a retrained model at the same path is another model
     results: dict[str, dict[str, Any]] = {}
     calls = []

@@ -2,8 +2,11 @@
 first robot-learning study: do policies trained on demonstrations recorded inside the
 world model perform, in the real task, like policies trained on real ones?
 
+The task (``task``, ``--task``): T-push by default, or another built-in task with a
+simulator (pile sweeping), whose expert, scorer and horizon the study then uses.
+
 1. Demonstrations (:func:`iwsim.experiments.demos.record_with` a
-   :class:`~iwsim.experiments.demos.DemoRecipe`): the pixel-reading expert drives MuJoCo
+   :class:`~iwsim.experiments.demos.DemoRecipe`): the task's pixel-reading expert drives MuJoCo
    (simulator demonstrations, seeds from 0, the store shared with ``iwsim experiment
    policy-eval``) and the world model from
    MuJoCo's initial frames (seeds from 300000); only successful takes are kept. Seeds of
@@ -12,9 +15,11 @@ world model perform, in the real task, like policies trained on real ones?
    100% world model) and on simulator datasets of several sizes; a run shared by the two
    sweeps is trained once.
 3. Every policy and the expert itself evaluated in MuJoCo on seeds from 100000: the
-   paper's score (max IoU within the horizon) and success (IoU >= 0.9), with Beta-posterior
-   and Clopper-Pearson intervals, and the parity ratio score(100% world model) /
-   score(100% simulator) with a paired bootstrap interval over the evaluation seeds.
+   paper's score (the max pixel score within the horizon: T-push's IoU, pile sweeping's
+   share in the tray) and success (a score >= the task's 0.9), with Beta-posterior and
+   Clopper-Pearson intervals, and the parity ratio score(100% world model) / score(100%
+   simulator) with a paired bootstrap interval over the evaluation seeds. The report names
+   the scores as the evaluations do (T-push's ``mean_max_iou``, another task's ``mean_max_score``).
 
 Work files (demonstration stores, policy runs, cached evaluations) go under ``work``, so
 rerunning the command resumes; the report (``results.json``, ``results.md``,
@@ -33,23 +38,33 @@ from typing import Any
 import numpy as np
 
 from iwsim.checkpoint import write_json_atomic, write_text_atomic
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
+from iwsim.eval.policy import WORLD_MODEL
 from iwsim.experiments.common import (
     STUDY,
+    STUDY_TASK,
+    TASK_FLAG,
     PolicyRun,
     check_dirs,
     check_study_model,
     evaluate_policies,
     fingerprint,
     lock_work,
+    on_task,
+    report_task,
     study_command,
+    study_dir,
+    study_task,
     train_runs,
     training_time,
 )
 from iwsim.experiments.demos import DemoRecipe, DemoStats, record_with, simulator_demos, simulator_store
 from iwsim.policies import policy_type
 from iwsim.policies.scripted import ScriptedConfig
+from iwsim.tasks import get_task
+from iwsim.world_model_env import score_key
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +78,7 @@ RECIPE_FLAGS = {"accept_iou": "--accept-iou", "steps": "--demo-steps"}
 
 @dataclasses.dataclass(frozen=True)
 class DatagenConfig:
+    task: str = STUDY_TASK  # a built-in task with a simulator (the presets are written for T-push: on_task)
     world_model: str = STUDY.checkpoint
     policy: str = "dp"  # a registered policy (iwsim.policies.POLICIES)
     policy_preset: str = ""  # prefix of the policy's preset: "" (dp, act) or "tiny-"
@@ -79,6 +95,7 @@ class DatagenConfig:
     steps: int = 300  # evaluation steps per episode
 
     def __post_init__(self) -> None:
+        study_task(self.task)
         policy_type(self.policy)  # a registered policy (else its one-line InputError)
         for name in ("total", "episodes", "steps"):
             v = getattr(self, name)
@@ -169,24 +186,30 @@ def demo_paths(cfg: DatagenConfig, work: Path, wm_tag: str) -> dict[str, Path]:
 def command(cfg: DatagenConfig, preset: str, out: Path, work: Path) -> str:
     """The command that reproduces this study (the flags that differ from the preset)."""
     base = PRESETS[preset]
-    return study_command("datagen", preset, [(cfg, base, FLAGS), (cfg.recipe, base.recipe, RECIPE_FLAGS)],
-                         "--out", str(out), "--work", str(work))
+    changed = [(cfg, base, TASK_FLAG), (cfg, on_task(base, get_task(cfg.task)), FLAGS),
+               (cfg.recipe, base.recipe, RECIPE_FLAGS)]
+    return study_command("datagen", preset, changed, "--out", str(out), "--work", str(work))
 
 
 def run_datagen(cfg: DatagenConfig, *, out: str | Path, work: str | Path, preset: str = "default", jobs: int = 1,
                 progress: bool = True) -> dict[str, Any]:
     """Run (or resume) the study; write ``results.json``, ``results.md`` and
-    ``datagen.png`` to ``out``. Returns the results."""
-    out, work = Path(out), Path(work)
+    ``datagen.png`` to ``out``. Returns the results. Its work goes to
+    :func:`~iwsim.experiments.common.study_dir` of ``work`` (``work`` itself for T-push)."""
+    task = study_task(cfg.task)
+    out = Path(out)
     if jobs < 1:
         raise InputError(f"jobs must be a positive integer, got {jobs}.")
-    check_study_model(cfg.world_model)
+    check_study_model(cfg.world_model, task)
     check_dirs(out=out)
+    reproduce = command(cfg, preset, out, Path(work))
+    work = study_dir(work, task)
     with lock_work(work, "datagen"):
-        return _run_datagen(cfg, out, work, preset, jobs, progress)
+        return _run_datagen(cfg, task, out, work, reproduce, preset, jobs, progress)
 
 
-def _run_datagen(cfg: DatagenConfig, out: Path, work: Path, preset: str, jobs: int, progress: bool) -> dict[str, Any]:
+def _run_datagen(cfg: DatagenConfig, task: Task, out: Path, work: Path, reproduce: str, preset: str, jobs: int,
+                 progress: bool) -> dict[str, Any]:
     t0 = time.perf_counter()
     runs = plan(cfg)
     tag = fingerprint(cfg.world_model)[:8]
@@ -195,13 +218,13 @@ def _run_datagen(cfg: DatagenConfig, out: Path, work: Path, preset: str, jobs: i
     need = {"sim": max((r.n_sim for r in runs), default=0), "wm": max((r.n_wm for r in runs), default=0)}
     demos: dict[str, DemoStats] = {}
     if need["sim"]:
-        _, demos["sim"] = simulator_demos(work, need["sim"], cfg.recipe, progress)
+        _, demos["sim"] = simulator_demos(work, need["sim"], cfg.recipe, progress, task)
     if need["wm"]:
-        demos["wm"] = record_with("world-model", paths["wm"], need["wm"], cfg.wm_seed, cfg.recipe,
+        demos["wm"] = record_with(WORLD_MODEL, paths["wm"], need["wm"], cfg.wm_seed, cfg.recipe,
                                   world_model=cfg.world_model, progress=progress)
     trainable, skipped = [], {}
     for r in runs:
-        short = _shortfall(r, demos)
+        short = _shortfall(r, demos, task)
         if short:
             skipped[names[r]] = short
             log.warning("not training %s: %s", names[r], short)
@@ -212,19 +235,20 @@ def _run_datagen(cfg: DatagenConfig, out: Path, work: Path, preset: str, jobs: i
     run_dirs = train_runs(policy_runs, work / "datagen" / "runs", jobs=jobs, progress=progress)
     seeds = list(range(cfg.eval_seed, cfg.eval_seed + cfg.episodes))
     sources: dict[str, Any] = {**run_dirs, "expert": ScriptedConfig("expert")}
-    scores = evaluate_policies(sources, "pusht", seeds=seeds, steps=cfg.steps, world_model=None,
+    scores = evaluate_policies(sources, task.kind, seeds=seeds, steps=cfg.steps, world_model=None,
                                out=work / "datagen" / "eval", jobs=jobs, progress=progress)
+    key = score_key(task)
     results: dict[str, Any] = {
-        "command": command(cfg, preset, out, work),
+        "command": reproduce,
         "config": dataclasses.asdict(cfg),
         "preset": preset,
         "scale": {"demonstrations": need, "runs": len(runs), "trained": len(trainable),
                   "train_steps": policy_runs[0].stage_config().train.steps if policy_runs else None,
                   "eval_episodes": cfg.episodes, "eval_steps": cfg.steps, "eval_seeds": [seeds[0], seeds[-1]]},
         "demos": {k: {**dataclasses.asdict(s), "complete": s.complete} for k, s in demos.items()},
-        "expert": _score(scores["expert"]),
-        "runs": [_run_result(r, names[r], paths, run_dirs, scores, skipped) for r in runs],
-        "parity": parity(cfg, names, scores),
+        "expert": _score(scores["expert"], key),
+        "runs": [_run_result(r, names[r], paths, run_dirs, scores, skipped, key) for r in runs],
+        "parity": parity(cfg, names, scores, task),
     }
     results["time"] = {  # seconds of each phase, over every invocation that did its part
         "demos": sum(d.seconds for d in demos.values()),
@@ -240,14 +264,14 @@ def _run_datagen(cfg: DatagenConfig, out: Path, work: Path, preset: str, jobs: i
     return results
 
 
-def _shortfall(r: Run, demos: dict[str, DemoStats]) -> str | None:
+def _shortfall(r: Run, demos: dict[str, DemoStats], task: Task) -> str | None:
     """Why ``r`` cannot be trained (its stores hold too few demonstrations), or None."""
     short = []
     for key, label, n in (("wm", "world-model", r.n_wm), ("sim", "simulator", r.n_sim)):
         if n and n > demos[key].episodes:
             d = demos[key]
             short.append(f"{n} {label} demonstrations, only {d.episodes} were kept ({d.candidates} candidates, "
-                         f"acceptance {100 * d.acceptance_rate:.0f}% at pixel IoU >= {d.accept_iou})")
+                         f"acceptance {100 * d.acceptance_rate:.0f}% at pixel {task.score_name} >= {d.accept_iou})")
     return "needs " + "; ".join(short) if short else None
 
 
@@ -255,39 +279,42 @@ def _data(r: Run, paths: dict[str, Path]) -> tuple[tuple[str, int], ...]:
     return tuple((str(paths[k]), n) for k, n in (("wm", r.n_wm), ("sim", r.n_sim)) if n)
 
 
-def _score(result: dict[str, Any]) -> dict[str, Any]:
-    """The statistics of an evaluation (without its per-step IoU)."""
-    keep = ("mean_max_iou", "std_max_iou", "success_rate", "success_beta_posterior", "success_clopper_pearson",
+def _score(result: dict[str, Any], key: str) -> dict[str, Any]:
+    """The statistics of an evaluation (without its per-step scores), the score named ``key``."""
+    keep = (f"mean_max_{key}", f"std_max_{key}", "success_rate", "success_beta_posterior", "success_clopper_pearson",
             "seconds", "episodes")
     return {k: result[k] for k in keep if k in result}
 
 
 def _run_result(r: Run, name: str, paths: dict[str, Path], run_dirs: dict[str, Path], scores: dict[str, dict],
-                skipped: dict[str, str]) -> dict[str, Any]:
+                skipped: dict[str, str], key: str) -> dict[str, Any]:
     row: dict[str, Any] = {"name": name, "sweeps": list(r.sweeps), "n_wm": r.n_wm, "n_sim": r.n_sim,
                            "wm_fraction": r.wm_fraction,
                            "data": [{"store": s, "episodes": n} for s, n in _data(r, paths)]}
     if name in skipped:
         return {**row, "skipped": skipped[name]}
-    return {**row, "run": str(run_dirs[name]), "training": training_time(run_dirs[name]), **_score(scores[name])}
+    return {**row, "run": str(run_dirs[name]), "training": training_time(run_dirs[name]),
+            **_score(scores[name], key)}
 
 
-def parity(cfg: DatagenConfig, names: dict[Run, str], scores: dict[str, dict]) -> dict[str, Any]:
-    """score(100% world model) / score(100% simulator) at the mixture total, for mean max
-    IoU and success rate, with a 95% paired bootstrap interval over the evaluation seeds."""
+def parity(cfg: DatagenConfig, names: dict[Run, str], scores: dict[str, dict], task: Task = STUDY) -> dict[str, Any]:
+    """score(100% world model) / score(100% simulator) at the mixture total, for ``task``'s
+    mean max score (T-push: IoU) and success rate, with a 95% paired bootstrap interval over
+    the evaluation seeds."""
     by_data = {(r.n_wm, r.n_sim): name for r, name in names.items()}
     wm, sim = by_data.get((cfg.total, 0)), by_data.get((0, cfg.total))
     if wm is None or sim is None:
         return {"note": "the mixture sweep lacks 0% or 100% world model"}
     if wm not in scores or sim not in scores:
         return {"note": f"{wm if wm not in scores else sim} was not trained (too few demonstrations)"}
-    a = np.array([e["max_iou"] for e in scores[wm]["episodes"]])
-    b = np.array([e["max_iou"] for e in scores[sim]["episodes"]])
+    key = score_key(task)
+    a = np.array([e[f"max_{key}"] for e in scores[wm]["episodes"]])
+    b = np.array([e[f"max_{key}"] for e in scores[sim]["episodes"]])
     rng = np.random.default_rng(0)
     idx = rng.integers(len(a), size=(BOOTSTRAP, len(a)))
     out: dict[str, Any] = {"world_model": wm, "simulator": sim}
-    for metric, fa, fb in (("mean_max_iou", a, b), ("success_rate", a >= STUDY.success_score,
-                                                                               b >= STUDY.success_score)):
+    success = task.success_score
+    for metric, fa, fb in ((f"mean_max_{key}", a, b), ("success_rate", a >= success, b >= success)):
         den = fb.mean()
         ratio = float(fa.mean() / den) if den > 0 else None
         boot_a, boot_b = fa[idx].mean(1), fb[idx].mean(1)
@@ -302,13 +329,15 @@ def headline(r: dict[str, Any]) -> str:
     p = r["parity"]
     if "note" in p:
         return f"parity ratio unavailable: {p['note']}."
+    task = report_task(r)
 
     def fmt(metric: str) -> str:
         ratio, (lo, hi) = p[metric]["ratio"], p[metric]["bootstrap_95"]
         return "n/a" if ratio is None else f"{ratio:.2f} [{_num(lo)}, {_num(hi)}]"
 
     return (f"parity ratio score(100% world model) / score(100% simulator) with {r['config']['total']} "
-            f"demonstrations: {fmt('mean_max_iou')} on mean max IoU, {fmt('success_rate')} on success rate "
+            f"demonstrations: {fmt(f'mean_max_{score_key(task)}')} on mean max {task.score_name}, "
+            f"{fmt('success_rate')} on success rate "
             f"(95% paired bootstrap intervals).")
 
 
@@ -324,6 +353,8 @@ def markdown(r: dict[str, Any]) -> str:
     """The report: scale, demonstrations, the two sweeps and the parity ratio."""
     c, s, t = r["config"], r["scale"], r["time"]
     recipe = c["recipe"]
+    task = report_task(r)
+    name, key = task.score_name, score_key(task)
     lines = [
         "# Demonstrations generated in the world model",
         "",
@@ -335,8 +366,8 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         f"Policy: {c['policy']} (preset `{c['policy_preset']}{c['policy']}`, {s['train_steps']} training steps); "
         f"world model `{c['world_model']}`. Evaluation in MuJoCo: {s['eval_episodes']} episodes of "
-        f"{s['eval_steps']} steps (seeds {s['eval_seeds'][0]}..{s['eval_seeds'][1]}); score = max IoU within the "
-        f"horizon, success = IoU >= {STUDY.success_score}.",
+        f"{s['eval_steps']} steps (seeds {s['eval_seeds'][0]}..{s['eval_seeds'][1]}); score = max {name} within the "
+        f"horizon, success = {name} >= {task.success_score}.",
         "",
         f"Compute (one thread per job, summed over jobs and over the invocations that did the work): "
         f"demonstrations {t['demos'] / 60:.1f} min, training {t['training'] / 60:.1f} min, evaluation "
@@ -344,10 +375,11 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         "## Demonstrations",
         "",
-        "The pixel-reading expert; a take is kept when its max pixel IoU reaches "
+        f"The pixel-reading expert; a take is kept when its max pixel {name} reaches "
         f"{recipe['accept_iou']} and ends {recipe['tail']} steps after that (horizon {recipe['steps']} steps).",
         "",
-        "| source | kept / wanted | candidates | acceptance | mean max pixel IoU | steps per demo | s per candidate |",
+        f"| source | kept / wanted | candidates | acceptance | mean max pixel {name} | steps per demo | "
+        "s per candidate |",
         "|---|---|---|---|---|---|---|",
     ]
     for k, d in r["demos"].items():
@@ -359,13 +391,13 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         "## Policies",
         "",
-        "Mean max IoU (95% normal interval), success rate with its Beta-posterior mean and Clopper-Pearson 95% "
+        f"Mean max {name} (95% normal interval), success rate with its Beta-posterior mean and Clopper-Pearson 95% "
         "interval.",
         "",
-        "| run | sweeps | world model / simulator demos | training (steps, min) | mean max IoU | success | "
+        f"| run | sweeps | world model / simulator demos | training (steps, min) | mean max {name} | success | "
         "Beta mean | Clopper-Pearson |",
         "|---|---|---|---|---|---|---|---|",
-        f"| expert (reference) | | | | {e['mean_max_iou']:.3f} {_mean_interval(e, s['eval_episodes'])} | "
+        f"| expert (reference) | | | | {e[f'mean_max_{key}']:.3f} {_mean_interval(e, s['eval_episodes'], key)} | "
         f"{100 * e['success_rate']:.0f}% | {e['success_beta_posterior']['mean']:.2f} | "
         f"{_interval(e['success_clopper_pearson'])} |",
     ]
@@ -375,15 +407,15 @@ def markdown(r: dict[str, Any]) -> str:
             lines.append(f"{head} not trained: {run['skipped']} | | | | |")
             continue
         t = run["training"]
-        lines.append(f"{head} {t['steps']}, {t['seconds'] / 60:.1f} | {run['mean_max_iou']:.3f} "
-                     f"{_mean_interval(run, s['eval_episodes'])} | {100 * run['success_rate']:.0f}% | "
+        lines.append(f"{head} {t['steps']}, {t['seconds'] / 60:.1f} | {run[f'mean_max_{key}']:.3f} "
+                     f"{_mean_interval(run, s['eval_episodes'], key)} | {100 * run['success_rate']:.0f}% | "
                      f"{run['success_beta_posterior']['mean']:.2f} | {_interval(run['success_clopper_pearson'])} |")
     lines += ["", "![score against world-model share and dataset size](datagen.png)", ""]
     return "\n".join(lines)
 
 
-def _mean_interval(score: dict[str, Any], n: int) -> str:
-    half = 1.96 * score["std_max_iou"] / math.sqrt(n)
+def _mean_interval(score: dict[str, Any], n: int, key: str) -> str:
+    half = 1.96 * score[f"std_max_{key}"] / math.sqrt(n)
     return f"± {half:.3f}"
 
 
@@ -392,6 +424,8 @@ def figure(r: dict[str, Any], path: Path) -> None:
     panel per sweep the study ran), each panel with its legend below it."""
     plt = pyplot()
     n = r["scale"]["eval_episodes"]
+    task = report_task(r)
+    name, key = task.score_name, score_key(task)
     trained = [run for run in r["runs"] if "skipped" not in run]
     sweeps = [("mixture", "world-model share of the demonstrations", [("mixture", trained)]),
               ("size", "demonstrations", [("simulator", [t for t in trained if t["n_wm"] == 0]),
@@ -407,16 +441,16 @@ def figure(r: dict[str, Any], path: Path) -> None:
             if not rows:
                 continue
             x = np.array([x_of(t) for t in rows])
-            iou = np.array([t["mean_max_iou"] for t in rows])
-            half = np.array([1.96 * t["std_max_iou"] / math.sqrt(n) for t in rows])
+            best = np.array([t[f"mean_max_{key}"] for t in rows])
+            half = np.array([1.96 * t[f"std_max_{key}"] / math.sqrt(n) for t in rows])
             succ = np.array([t["success_rate"] for t in rows])
             cp = np.array([t["success_clopper_pearson"] for t in rows])
             suffix = "" if sweep == "mixture" else f" ({label})"
-            ax.errorbar(x, iou, yerr=half, marker="o", capsize=3, label=f"mean max IoU{suffix}")
+            ax.errorbar(x, best, yerr=half, marker="o", capsize=3, label=f"mean max {name}{suffix}")
             ax.errorbar(x, succ, yerr=[succ - cp[:, 0], cp[:, 1] - succ], marker="s", capsize=3, linestyle="--",
                         label=f"success rate{suffix}")
         e = r["expert"]
-        ax.axhline(e["mean_max_iou"], color="grey", linewidth=0.8, label="expert: mean max IoU")
+        ax.axhline(e[f"mean_max_{key}"], color="grey", linewidth=0.8, label=f"expert: mean max {name}")
         ax.axhline(e["success_rate"], color="grey", linewidth=0.8, linestyle=":", label="expert: success rate")
         ax.set_xlabel(xlabel)
         ax.set_ylim(-0.02, 1.02)

@@ -4,19 +4,21 @@ kept only when they succeed (what ``iwsim experiment datagen`` trains policies o
     stats = record_demos("world-model", "runs/demos/wm.zarr", episodes=50, steps=300, seed=300000,
                          world_model="checkpoints/pusht-64")
 
-The teleoperator is a pixel-reading expert (:class:`~iwsim.policies.scripted.ScriptedBatch`
-``"expert"``, or the ``demonstrator`` chosen, e.g. ``"expert-wide"``: the block pose estimated
-from the frame, exactly what a person sees). With
-``env="world-model"`` it drives the world model's batched vector env from MuJoCo's initial
-frames (the same first frame as MuJoCo for the same seed), the motion a person makes in
-``iwsim play``; with ``env="pusht"`` the same code drives MuJoCo and gives the simulator
-demonstrations. Both go through :func:`iwsim.eval.policy.rollout`, the loop that evaluates
-policies.
+The teleoperator is the task's pixel-reading expert (:class:`~iwsim.policies.scripted.ScriptedBatch`
+``"expert"``, or the ``demonstrator`` chosen, e.g. T-push's ``"expert-wide"``: what it acts on,
+T-push's block pose or pile sweeping's pieces, is read from the frame, exactly what a person
+sees). With ``env="world-model"`` it drives the world model's batched vector env from MuJoCo's
+initial frames (the same first frame as MuJoCo for the same seed), the motion a person makes
+in ``iwsim play``; with ``env`` a task's name (``"pusht"``, ``"pilesweep"``) the same code
+drives that task's MuJoCo simulator and gives the simulator demonstrations. The task is the
+world model's, or the simulator's. Both go through :func:`iwsim.eval.policy.rollout`, the
+loop that evaluates policies.
 
 Acceptance, as a person discards a failed take: a candidate episode is kept when its
-pixel score (the IoU of the block segmented from the frame with the goal, the same
-scorer in both envs) reaches ``accept_iou`` at some step. Candidate i starts from seed
-``seed + i``; candidates are drawn in batches until ``episodes`` are kept or
+pixel score (the task's scorer on the frame, the same in both envs: T-push's IoU of the block
+segmented from the frame with the goal, pile sweeping's share of the pieces in the tray;
+``accept_iou`` is named after T-push's, the first task) reaches ``accept_iou`` at some step.
+Candidate i starts from seed ``seed + i``; candidates are drawn in batches until ``episodes`` are kept or
 ``max_attempts`` were tried. All candidates of a batch step together; the batch stops
 early once every one of them has recorded all it will keep (see Length).
 
@@ -31,8 +33,9 @@ its horizon ends. ``tail=None`` keeps whole episodes. The same rule applies in b
 Per step (the layout of ``iwsim play``'s recorder and ``iwsim collect``): ``img`` (T, H,
 W, 3) uint8, the frame before action t; ``state`` (T, 4) float32, agent_pos (read from the
 pixels in the world model); ``action`` (T, 4) float32, the command; ``target`` (T, 4)
-float32, the speed-limited setpoints action t executed (``info["target"]``); ``iou`` (T,)
-float32, the frame's pixel score. Attributes: the task spec (as ``iwsim collect``), the
+float32, the speed-limited setpoints action t executed (``info["target"]``); the frame's
+pixel score (T,) float32, named as the world model's ``info`` names it (T-push's ``iou``,
+another task's ``score``). Attributes: the task spec (as ``iwsim collect``), the
 policy (``world-model-teleop`` or ``expert-pixels``), the demonstrator, the world-model
 checkpoint, the acceptance rule and the candidates tried with their scores.
 
@@ -42,7 +45,8 @@ more ``episodes`` / ``max_attempts``) continues from the first candidate not yet
 The studies record with a :class:`DemoRecipe` (:func:`record_with`); the simulator
 expert's demonstrations, which both ``iwsim experiment datagen`` and ``iwsim experiment
 policy-eval`` train on, live in one shared store (:func:`simulator_demos`,
-``work/demos/sim_expert.zarr``, seeds from :data:`SIM_SEED`).
+``work/demos/sim_expert.zarr``, seeds from :data:`SIM_SEED`; a study of another task than
+T-push works in a directory of its own, :func:`iwsim.experiments.common.study_dir`).
 """
 
 from __future__ import annotations
@@ -61,25 +65,30 @@ from tqdm import tqdm
 from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs import IMAGE_SIZES
-from iwsim.envs.pusht import check_start
-from iwsim.envs.scripted import EXPERTS
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
-from iwsim.eval.policy import ENVS, MAX_SEED, rollout
+from iwsim.eval.policy import ENVS, MAX_SEED, WORLD_MODEL, rollout
 from iwsim.experiments.common import STUDY, fingerprint
-from iwsim.play.engine import EPISODE_KEYS
+from iwsim.play.engine import episode_keys
 from iwsim.policies.scripted import ScriptedBatch
+from iwsim.tasks import REGISTRY, get_task, task_of
 from iwsim.world_model import WorldModel
+from iwsim.world_model_env import score_key
 
 log = logging.getLogger(__name__)
 
-PUSHT = STUDY  # the demonstrations are of the studies' task (bench/yardstick.py reads this name)
-POLICY_NAMES = {"world-model": "world-model-teleop", "pusht": "expert-pixels"}
-SOURCES = {"world-model": "world_model", "pusht": "mujoco"}
+PUSHT = STUDY  # the studies' default task (bench/yardstick.py reads this name)
+# The store's policy and source: takes in the world model, or in a task's simulator.
+POLICY_NAMES = {WORLD_MODEL: "world-model-teleop", "simulator": "expert-pixels"}
+SOURCES = {WORLD_MODEL: "world_model", "simulator": "mujoco"}
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world_model_sha256", "first_seed",
                   "accept_iou", "tail_steps", "dart_noise", "start", "demonstrator")
 # What stores written before an attribute existed hold.
 OLDER_ATTRS = {"dart_noise": 0.0, "start": "random", "demonstrator": "expert"}
+# What a recipe may name, over every registered task (a recording checks its own task's).
+ANY_STARTS = tuple(dict.fromkeys(s for make in REGISTRY.values() for s in make().starts))
+ANY_EXPERTS = tuple(dict.fromkeys(e for make in REGISTRY.values() for e in make().pixel_experts))
 EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
 SIM_STORE = "sim_expert.zarr"  # the simulator expert's demonstrations, under work/demos: shared by the studies
 SIM_SEED = 0  # the first candidate's seed in SIM_STORE (disjoint from evaluation seeds, 100000+)
@@ -93,13 +102,13 @@ class DemoRecipe:
 
     steps: int = 300  # horizon of a take
     tail: int | None = 10  # a kept take ends this many steps after success (None: whole)
-    accept_iou: float = PUSHT.success_score  # a take is kept when its max pixel IoU reaches this
+    accept_iou: float = PUSHT.success_score  # a take is kept when its max pixel score reaches this (T-push: IoU)
     attempts_per_demo: float = 2.0  # at most this many candidates per demonstration wanted
     batch: int = 16  # candidates recorded in lockstep
     give_up_after: int | None = 32  # stop when this many candidates were tried and none was kept (None: never)
     dart_noise: float = 0.0  # std (m) of the noise added to the executed commands; the clean ones are recorded
-    start: str = "random"  # MuJoCo's initial states (iwsim.envs.pusht.STARTS): "goal-turned" records recoveries
-    demonstrator: str = "expert"  # the pixel expert that records (iwsim.envs.scripted.EXPERTS): or "expert-wide"
+    start: str = "random"  # MuJoCo's initial states (the task's starts): T-push's "goal-turned" records recoveries
+    demonstrator: str = "expert"  # the pixel expert that records (the task's pixel_experts): T-push's "expert-wide"
 
     def __post_init__(self) -> None:
         positive = {"demo_steps": self.steps, "demo_batch": self.batch}
@@ -114,8 +123,8 @@ class DemoRecipe:
         if not (isinstance(self.attempts_per_demo, (int, float)) and self.attempts_per_demo >= 1):
             raise InputError(f"attempts_per_demo must be >= 1, got {self.attempts_per_demo!r}.")
         _check_noise(self.dart_noise)
-        check_start(self.start)
-        _check_demonstrator(self.demonstrator)
+        _check_choice("start", self.start, ANY_STARTS)
+        _check_choice("demonstrator", self.demonstrator, ANY_EXPERTS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,13 +134,13 @@ class DemoStats:
 
     env: str
     path: str
-    accept_iou: float  # a candidate is kept when its max pixel IoU reaches this
+    accept_iou: float  # a candidate is kept when its max pixel score (T-push: IoU) reaches this
     first_seed: int  # candidate i starts from seed first_seed + i
     wanted: int  # accepted episodes asked for
     episodes: int  # accepted episodes the store holds
     candidates: int  # candidates tried (all runs)
     acceptance_rate: float  # episodes / candidates (nan before any candidate)
-    mean_candidate_max_iou: float  # mean over candidates of the max pixel IoU (nan before any)
+    mean_candidate_max_iou: float  # mean over candidates of the max pixel score (nan before any)
     frames: int  # frames the store holds
     mean_length: float  # steps per kept episode
     seconds: float  # recording time (all runs)
@@ -145,20 +154,21 @@ class DemoStats:
 
     def summary(self) -> str:
         return (f"{self.path}: {self.episodes}/{self.wanted} episodes kept of {self.candidates} candidates "
-                f"(acceptance {100 * self.acceptance_rate:.1f}%, mean max pixel IoU "
+                f"(acceptance {100 * self.acceptance_rate:.1f}%, mean max pixel score "
                 f"{self.mean_candidate_max_iou:.3f}, {self.mean_length:.0f} steps per episode, "
                 f"{self.seconds_per_candidate:.1f} s per candidate); this run added {self.added} of {self.tried} tried")
 
 
 def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, seed: int, accept_iou: float,
                tail: int | None, dart_noise: float = 0.0, start: str = "random",
-               demonstrator: str = "expert") -> dict[str, Any]:
-    """Root attributes of a demonstration store: ``iwsim collect``'s (the task spec,
-    policy, steps, ...) plus the teleoperator, the source and the acceptance rule."""
-    return {**store_attrs("pusht", POLICY_NAMES[env], steps, image_size), "source": SOURCES[env],
+               demonstrator: str = "expert", task: Task = PUSHT) -> dict[str, Any]:
+    """Root attributes of a demonstration store of ``task``: ``iwsim collect``'s (the task
+    spec, policy, steps, ...) plus the teleoperator, the source and the acceptance rule."""
+    where = WORLD_MODEL if env == WORLD_MODEL else "simulator"
+    return {**store_attrs(task.kind, POLICY_NAMES[where], steps, image_size), "source": SOURCES[where],
             "world_model": world_model, "world_model_sha256": None if world_model is None else fingerprint(world_model),
-            "teleoperator": f"{demonstrator} (block pose from pixels)", "demonstrator": demonstrator,
-            "keys": list(EPISODE_KEYS), "first_seed": seed, "accept_iou": accept_iou, "tail_steps": tail,
+            "teleoperator": f"{demonstrator} ({task.pixel_reading} from pixels)", "demonstrator": demonstrator,
+            "keys": list(episode_keys(task)), "first_seed": seed, "accept_iou": accept_iou, "tail_steps": tail,
             "dart_noise": dart_noise, "start": start,
             "candidates_tried": 0, "candidate_max_iou": [], "acceptance_rate": None, "record_seconds": 0.0}
 
@@ -168,41 +178,47 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                  tail: int | None = 10,
                  batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
                  dart_noise: float = 0.0, start: str = "random", demonstrator: str = "expert",
-                 image_size: int = PUSHT.image_size, progress: bool = True,
+                 image_size: int | None = None, progress: bool = True,
                  wait_for_lock: bool = False) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
     accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried
     (see the module docstring), or, with ``give_up_after``, until the store holds nothing
     after that many candidates: a teleoperator who has kept none of 32 takes concludes
     that the task cannot be done in this model (the acceptance rate's 95% Clopper-Pearson
-    upper bound is then 11%) instead of spending the rest of the budget. ``env``: "pusht"
-    (MuJoCo) or "world-model" (needs the checkpoint ``world_model``). ``dart_noise`` > 0
-    records as DART does (Laskey et al. 2017): every executed command gets Gaussian noise
-    of that std (metres, per coordinate, seeded by the candidate's seed), and the store
-    holds the expert's clean commands as the actions, so imitation sees how the expert
-    recovers from the small errors a learned policy makes. ``start`` chooses MuJoCo's
-    initial states (:data:`iwsim.envs.pusht.STARTS`; "goal-turned": the block on the goal's
-    position but turned, so the takes show the turn a policy that only carries is missing;
-    MuJoCo only). ``demonstrator``: the pixel expert that records (:data:`iwsim.envs.scripted.EXPERTS`;
-    a store holds one demonstrator's takes). Returns the store's :class:`DemoStats`."""
+    upper bound is then 11%) instead of spending the rest of the budget. ``env``: a
+    built-in task's name (its MuJoCo simulator; frames of ``image_size``, None: the task's
+    own) or "world-model" (needs the checkpoint ``world_model``; the task is the model's).
+    ``dart_noise`` > 0 records as DART does (Laskey et al. 2017): every executed command
+    gets Gaussian noise of that std (metres, per coordinate, seeded by the candidate's
+    seed), and the store holds the expert's clean commands as the actions, so imitation
+    sees how the expert recovers from the small errors a learned policy makes. ``start``
+    chooses MuJoCo's initial states (the task's ``starts``; T-push's "goal-turned": the
+    block on the goal's position but turned, so the takes show the turn a policy that only
+    carries is missing; MuJoCo only). ``demonstrator``: the pixel expert that records (the
+    task's ``pixel_experts``; a store holds one demonstrator's takes). Returns the store's
+    :class:`DemoStats`."""
     max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
     _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, image_size)
     _check_noise(dart_noise)
-    check_start(start)
-    _check_demonstrator(demonstrator)
-    if env != "pusht" and start != "random":
+    if env == WORLD_MODEL and start != "random":
         raise InputError(f"start={start!r} chooses MuJoCo's initial states; the world model starts from random ones.")
     model = None
-    if env == "world-model":
+    if env == WORLD_MODEL:
         assert world_model is not None  # _check_args checks it
         model = WorldModel.load(world_model)
-        image_size = model.image_size
-    wm_name = None if world_model is None or env == "pusht" else os.fspath(world_model)
+        task, image_size = task_of(model), model.image_size
+    else:
+        task = get_task(env)
+        image_size = image_size or task.image_size
+        _check_choice("start", start, task.starts)
+    _check_choice("demonstrator", demonstrator, task.pixel_experts)
+    assert image_size is not None  # a task with a simulator has a frame size
+    wm_name = None if world_model is None or env != WORLD_MODEL else os.fspath(world_model)
     attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise), start,
-                       demonstrator)
-    with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs),
+                       demonstrator, task)
+    with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs, task),
                                      wait=wait_for_lock) as store:
-        return _record_into(store, env, model, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
+        return _record_into(store, env, model, task, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
                             give_up_after, float(dart_noise), start, demonstrator, progress)
 
 
@@ -212,8 +228,8 @@ class _NoisyExecution:
 
     obs_horizon = n_action_steps = 1
 
-    def __init__(self, noise: float, seeds: list[int], demonstrator: str) -> None:
-        self.expert, self.noise, self.seeds = ScriptedBatch(demonstrator), noise, seeds
+    def __init__(self, noise: float, seeds: list[int], demonstrator: str, task: Task) -> None:
+        self.expert, self.noise, self.seeds, self.task = ScriptedBatch(demonstrator, task), noise, seeds, task
 
     def reset(self) -> None:
         self.expert.reset()
@@ -224,14 +240,15 @@ class _NoisyExecution:
         clean = self.expert.predict_action(obs)  # (B, 1, A)
         self.clean.append(clean[:, 0])
         noise = np.stack([rng.normal(0.0, self.noise, clean.shape[2]) for rng in self.rngs])[:, None]
-        return np.clip(clean + noise, PUSHT.action_low, PUSHT.action_high).astype(np.float32)
+        return np.clip(clean + noise, self.task.action_low, self.task.action_high).astype(np.float32)
 
 
 def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, recipe: DemoRecipe, *,
-                world_model: str | os.PathLike | None = None, image_size: int = PUSHT.image_size,
+                world_model: str | os.PathLike | None = None, image_size: int | None = None,
                 progress: bool = True) -> DemoStats:
     """:func:`record_demos` with ``recipe``: at most ``ceil(attempts_per_demo * episodes)``
-    candidates, frames of ``image_size`` (MuJoCo only; a world model renders its own)."""
+    candidates, frames of ``image_size`` (MuJoCo only, None: the task's; a world model
+    renders its own)."""
     return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, image_size=image_size,
                         accept_iou=recipe.accept_iou,
                         tail=recipe.tail, batch=recipe.batch,
@@ -246,15 +263,17 @@ def simulator_store(work: str | os.PathLike) -> Path:
 
 
 def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
-                    progress: bool = True) -> tuple[Path, DemoStats]:
-    """Record (or resume) the simulator expert's demonstrations in :func:`simulator_store`
-    until it holds ``episodes`` (or the recipe's attempts are spent), candidates from
-    seed :data:`SIM_SEED`. Returns the store's path and its :class:`DemoStats`."""
+                    progress: bool = True, task: Task = PUSHT) -> tuple[Path, DemoStats]:
+    """Record (or resume) the simulator expert's demonstrations of ``task`` in
+    :func:`simulator_store` until it holds ``episodes`` (or the recipe's attempts are
+    spent), candidates from seed :data:`SIM_SEED`. Returns the store's path and its
+    :class:`DemoStats`."""
     path = simulator_store(work)
-    return path, record_with("pusht", path, episodes, SIM_SEED, recipe, progress=progress)
+    return path, record_with(task.kind, path, episodes, SIM_SEED, recipe, progress=progress)
 
 
-def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episodes: int, steps: int, seed: int,
+def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: Task, episodes: int, steps: int,
+                 seed: int,
                  accept_iou: float, tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
                  dart_noise: float, start: str, demonstrator: str, progress: bool) -> DemoStats:
     a = store.attrs
@@ -272,25 +291,27 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
                disable=not progress)
     while store.n_episodes < episodes and tried < max_attempts:
         if give_up_after is not None and store.n_episodes == 0 and tried >= give_up_after:
-            log.warning("%s: none of %d candidates reached pixel IoU %g; giving up", store.path, tried, accept_iou)
+            log.warning("%s: none of %d candidates reached pixel %s %g; giving up", store.path, tried,
+                        task.score_name, accept_iou)
             break
         # enough candidates for the episodes still missing at the rate so far (Laplace's rule)
         rate = (store.n_episodes + 1) / (tried + 2)
         n = min(batch, max_attempts - tried, math.ceil((episodes - store.n_episodes) / rate))
         seeds = [seed + tried + i for i in range(n)]
         t0 = time.perf_counter()
-        scores = _Scores(n, accept_iou, tail)
-        expert = _NoisyExecution(dart_noise, seeds, demonstrator) if dart_noise else ScriptedBatch(demonstrator)
+        scores = _Scores(task, n, accept_iou, tail)
+        expert = (_NoisyExecution(dart_noise, seeds, demonstrator, task) if dart_noise else
+                  ScriptedBatch(demonstrator, task))
         run = rollout(expert, env, seeds, steps, world_model=model,
                       image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores, start=start)
         if isinstance(expert, _NoisyExecution):  # dart_noise
             run["action"] = np.stack(expert.clean, 1)  # the labels: what the expert meant
-        ious = np.stack([PUSHT.score(run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
+        ious = np.stack([_pixel_score(task, run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
         for i, s in enumerate(seeds):
             tried += 1
             max_ious.append(round(float(ious[i].max()), 4))
             if ious[i].max() >= accept_iou:
-                store.append(_episode(run, ious, i, accept_iou, tail), seed=s)
+                store.append(_episode(run, ious, i, accept_iou, tail, score_key(task)), seed=s)
                 bar.update()
                 if store.n_episodes >= episodes:
                     break
@@ -311,45 +332,53 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, episod
     log.info("%s", stats.summary())
     if not stats.complete:
         log.warning("%s holds %d of the %d demonstrations asked for: %d candidates tried (the most allowed is %d), "
-                    "%.1f%% reached pixel IoU %g", store.path, stats.episodes, episodes, tried, max_attempts,
-                    100 * stats.acceptance_rate, accept_iou)
+                    "%.1f%% reached pixel %s %g", store.path, stats.episodes, episodes, tried, max_attempts,
+                    100 * stats.acceptance_rate, task.score_name, accept_iou)
     return stats
 
 
-class _Scores:
-    """The rollout's ``stop``: scores each step's frames (pixel IoU) and ends the batch once
-    every episode has run ``tail`` steps past its first frame that reaches ``accept_iou``
-    (no episode of the batch would record more; never with ``tail=None``)."""
+def _pixel_score(task: Task, frames: np.ndarray) -> np.ndarray:
+    """The task's pixel score (B,) of frames (B, H, W, 3) (a task with a simulator has a scorer)."""
+    scores = task.score(frames)
+    assert scores is not None
+    return scores
 
-    def __init__(self, n: int, accept_iou: float, tail: int | None) -> None:
-        self.accept_iou, self.tail = accept_iou, tail
+
+class _Scores:
+    """The rollout's ``stop``: scores each step's frames (``task``'s pixel score) and ends the
+    batch once every episode has run ``tail`` steps past its first frame that reaches
+    ``accept_iou`` (no episode of the batch would record more; never with ``tail=None``)."""
+
+    def __init__(self, task: Task, n: int, accept_iou: float, tail: int | None) -> None:
+        self.task, self.accept_iou, self.tail = task, accept_iou, tail
         self.ious: list[np.ndarray] = []  # (n,) per step, from step 1
         self.first = np.full(n, np.inf)  # first step whose frame reached accept_iou
 
     def __call__(self, obs: dict[str, np.ndarray]) -> bool:
-        self.ious.append(np.atleast_1d(PUSHT.score(obs["pixels"])))
+        self.ious.append(np.atleast_1d(_pixel_score(self.task, obs["pixels"])))
         t = len(self.ious)
         self.first = np.where(np.isinf(self.first) & (self.ious[-1] >= self.accept_iou), t, self.first)
         return self.tail is not None and bool(np.all(self.first + self.tail <= t))
 
 
-def _episode(run: dict[str, Any], ious: np.ndarray, i: int, accept_iou: float,
-             tail: int | None) -> dict[str, np.ndarray]:
-    """Episode ``i`` of a rollout in the store's layout, cut ``tail`` steps after its first
-    frame with pixel IoU >= ``accept_iou`` (whole with ``tail=None``)."""
+def _episode(run: dict[str, Any], ious: np.ndarray, i: int, accept_iou: float, tail: int | None,
+             key: str) -> dict[str, np.ndarray]:
+    """Episode ``i`` of a rollout in the store's layout (its pixel scores ``ious`` under
+    ``key``), cut ``tail`` steps after its first frame scoring >= ``accept_iou`` (whole with
+    ``tail=None``)."""
     first = int(np.argmax(ious[i] >= accept_iou))
     steps = run["action"].shape[1]  # the steps run (a batch stops once no episode needs more)
     t = steps if tail is None else min(first + tail, steps)
     return {"img": run["frames"][i, :t], "state": run["agent_pos"][i, :t].astype(np.float32),
             "action": run["action"][i, :t].astype(np.float32), "target": run["target"][i, :t].astype(np.float32),
-            "iou": ious[i, :t]}
+            key: ious[i, :t]}
 
 
 def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any, accept_iou: float,
-                tail: int | None, batch: int, max_attempts: int, image_size: int) -> None:
+                tail: int | None, batch: int, max_attempts: int, image_size: int | None) -> None:
     if env not in ENVS:
         raise InputError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
-    if env == "world-model" and world_model is None:
+    if env == WORLD_MODEL and world_model is None:
         raise InputError("demonstrations in the world model need a world-model checkpoint.")
     for name, value in (("episodes", episodes), ("steps", steps), ("batch", batch), ("max_attempts", max_attempts)):
         if not isinstance(value, int) or value < 1:
@@ -361,7 +390,7 @@ def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any
     if not isinstance(seed, int) or not 0 <= seed <= MAX_SEED - max_attempts + 1:
         raise InputError(f"seed must be in 0..{MAX_SEED - max_attempts + 1} for {max_attempts} candidates, "
                          f"got {seed!r}.")
-    if env == "pusht" and image_size not in IMAGE_SIZES:
+    if env != WORLD_MODEL and image_size is not None and image_size not in IMAGE_SIZES:
         raise InputError(f"image size must be one of {list(IMAGE_SIZES)}, got {image_size!r}.")
 
 
@@ -370,16 +399,17 @@ def _check_noise(noise: float) -> None:
         raise InputError(f"dart_noise must be a finite number of metres >= 0, got {noise!r}.")
 
 
-def _check_demonstrator(demonstrator: str) -> None:
-    if demonstrator not in EXPERTS:
-        raise InputError(f"demonstrator must be one of {', '.join(EXPERTS)}, got {demonstrator!r}.")
+def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise InputError(f"{name} must be one of {', '.join(choices)}, got {value!r}.")
 
 
-def _check_existing(store: EpisodeStore, attrs: dict[str, Any]) -> None:
+def _check_existing(store: EpisodeStore, attrs: dict[str, Any], task: Task) -> None:
     """Raise unless this run may append to ``store`` (the same demonstrations)."""
     mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS, absent=OLDER_ATTRS)
     if mismatch:
         raise InputError(f"{store.path} holds demonstrations with {mismatch}; choose another store.")
-    if store.n_episodes and set(store.keys) != set(EPISODE_KEYS):
-        raise InputError(f"{store.path} holds arrays {store.keys}, not the recorded {sorted(EPISODE_KEYS)}; "
+    keys = episode_keys(task)
+    if store.n_episodes and set(store.keys) != set(keys):
+        raise InputError(f"{store.path} holds arrays {store.keys}, not the recorded {sorted(keys)}; "
                          "choose another store.")

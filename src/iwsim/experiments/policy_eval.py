@@ -2,17 +2,22 @@
 second robot-learning study: does a policy's score inside the world model rank policies
 as the simulator (our stand-in for the real robot) does?
 
+The task (``task``, ``--task``): T-push by default, or another built-in task with a
+simulator (pile sweeping), whose scripted policies, scorer and horizon the study then uses.
+
 1. A zoo of policies with a wide spread of skill: Diffusion Policy trained on simulator
    expert demonstrations, at several training steps and on a smaller dataset; ACT at two
-   training steps; the scripted expert, the expert degraded by Gaussian action noise or by
-   latency at several levels, and the play policy.
+   training steps; the task's scripted pixel expert, the expert degraded by Gaussian action
+   noise or by latency at several levels, and the task's play policy.
 2. Every policy evaluated closed-loop from the same seeds (``seed + i``) in MuJoCo and in
    the world model, which starts each episode from MuJoCo's rendering of the same seed
    (identical first frames); all episodes of a policy run in lockstep through the vector
    envs (:func:`iwsim.experiments.common.evaluate_policies`).
-3. Agreement of the world model's scores with MuJoCo's over the zoo, for the mean max IoU
-   (the paper's T-pushing score) and for the success rate: Pearson r, Spearman rho and
-   MMRV (:mod:`iwsim.eval.ranking`), as in the paper's evaluation figure.
+3. Agreement of the world model's scores with MuJoCo's over the zoo, for the mean max score
+   (T-push: the IoU, the paper's T-pushing score; pile sweeping: the share of the pieces in
+   the tray) and for the success rate: Pearson r, Spearman rho and MMRV
+   (:mod:`iwsim.eval.ranking`), as in the paper's evaluation figure. The report names the
+   scores as the evaluations do (T-push's ``mean_max_iou``, another task's ``mean_max_score``).
 
 Demonstrations: the simulator expert's (``work/demos/sim_expert.zarr``, recorded by
 :func:`iwsim.experiments.demos.simulator_demos` with the same recipe as ``iwsim experiment
@@ -37,12 +42,15 @@ import numpy as np
 from iwsim.checkpoint import write_json_atomic, write_text_atomic
 from iwsim.config import to_dict
 from iwsim.data.store import EpisodeStore
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
-from iwsim.eval.policy import check_args
+from iwsim.eval.policy import WORLD_MODEL, check_args
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import (
     STUDY,
+    STUDY_TASK,
+    TASK_FLAG,
     PolicyRun,
     PolicySource,
     check_dirs,
@@ -50,30 +58,45 @@ from iwsim.experiments.common import (
     checkpoints,
     evaluate_policies,
     lock_work,
+    on_task,
+    report_task,
     study_command,
+    study_dir,
+    study_task,
     train_runs,
     training_time,
 )
 from iwsim.experiments.demos import DemoRecipe, simulator_demos
 from iwsim.policies.scripted import ScriptedConfig
+from iwsim.tasks import REGISTRY, get_task, task_from_store
+from iwsim.world_model_env import score_key
 
 log = logging.getLogger(__name__)
 
-ENVS = ("pusht", "world-model")  # the reference (MuJoCo), then the proxy
-SCORES = {"mean_max_iou": "mean max IoU", "success_rate": "success rate"}
-BOOTSTRAP = 2000  # resamples of the episodes for the interval of a mean max IoU
+BOOTSTRAP = 2000  # resamples of the episodes for the interval of a mean max score
 LEVEL = 0.95
 # The config fields the command's flags override.
 FLAGS = {"world_model": "--world-model", "episodes": "--episodes", "steps": "--steps", "seed": "--seed",
          "demos": "--demos", "demo_episodes": "--demo-episodes", "small_demos": "--small-demos"}
 
 
+def envs(task: Task) -> tuple[str, str]:
+    """Where the study evaluates: the reference (``task``'s simulator, by its name), then the proxy."""
+    return task.kind, WORLD_MODEL
+
+
+def scores(task: Task) -> dict[str, str]:
+    """The scores the study compares, by their key in the evaluations, with their names."""
+    return {f"mean_max_{score_key(task)}": f"mean max {task.score_name}", "success_rate": "success rate"}
+
+
 @dataclasses.dataclass(frozen=True)
 class PolicyEvalConfig:
+    task: str = STUDY_TASK  # a built-in task with a simulator (the presets are written for T-push: on_task)
     world_model: str = STUDY.checkpoint
     episodes: int = 20  # evaluation episodes per policy and environment
     seed: int = 100000  # episode i starts from MuJoCo seed seed + i in both environments
-    steps: int = STUDY.horizon  # steps per evaluation episode (the paper's T-push horizon)
+    steps: int = STUDY.horizon  # steps per evaluation episode (the task's horizon: T-push's 600)
     demos: str | None = None  # a demonstration store; None: the simulator expert's under work/demos
     demo_episodes: int = 100  # demonstrations of the full-data runs (their first N)
     small_demos: int = 25  # demonstrations of the small-data Diffusion Policy run
@@ -95,6 +118,7 @@ class PolicyEvalConfig:
     recipe: DemoRecipe = DemoRecipe()
 
     def __post_init__(self) -> None:
+        study_task(self.task)
         check_args(self.episodes, self.seed, self.steps, 0)
         for name in ("demo_episodes", "small_demos", "dp_small_steps"):
             v = getattr(self, name)
@@ -148,8 +172,9 @@ PRESETS: dict[str, PolicyEvalConfig] = {
 
 def command(cfg: PolicyEvalConfig, preset: str, out: Path, work: Path, jobs: int) -> str:
     """The command that reproduces this study (the flags that differ from the preset)."""
-    return study_command("policy-eval", preset, [(cfg, PRESETS[preset], FLAGS)],
-                         "--jobs", str(jobs), "--out", str(out), "--work", str(work))
+    base = PRESETS[preset]
+    changed = [(cfg, base, TASK_FLAG), (cfg, on_task(base, get_task(cfg.task)), FLAGS)]
+    return study_command("policy-eval", preset, changed, "--jobs", str(jobs), "--out", str(out), "--work", str(work))
 
 
 def _store_tag(path: Path) -> str:
@@ -160,16 +185,20 @@ def _store_tag(path: Path) -> str:
 def _demos(cfg: PolicyEvalConfig, work: Path, progress: bool) -> tuple[Path, dict[str, Any]]:
     """The demonstration store the policies train on, checked (or recorded) before any
     training starts, and what it holds."""
-    need = cfg.demo_episodes
+    need, task = cfg.demo_episodes, get_task(cfg.task)
     if cfg.demos is not None:
         path = Path(cfg.demos)
         store = EpisodeStore.open(path, "r")
         if store.n_episodes < need:
             raise InputError(f"{path} holds {store.n_episodes} demonstrations; the study trains on the first {need} "
                              "(lower --demo-episodes or bring a bigger store).")
+        own = task_from_store(path)
+        if own.kind in REGISTRY and own.name != task.name:
+            raise InputError(f"{path} holds episodes of task {own.name!r}; the study runs on {task.name!r} "
+                             "(--task): bring demonstrations of it.")
         return path, {"path": str(path), "episodes": store.n_episodes, "policy": store.attrs.get("policy"),
                       "given": True}
-    path, stats = simulator_demos(work, need, cfg.recipe, progress)
+    path, stats = simulator_demos(work, need, cfg.recipe, progress, task)
     if stats.episodes < need:
         raise InputError(f"{path} holds {stats.episodes} of the {need} simulator demonstrations the study needs "
                          f"after {stats.candidates} candidates (acceptance {100 * stats.acceptance_rate:.0f}%).")
@@ -188,32 +217,37 @@ def mean_interval(values: np.ndarray, level: float = LEVEL, resamples: int = BOO
     return float(lo), float(hi)
 
 
-def _scores(result: dict[str, Any]) -> dict[str, Any]:
-    """One policy's scores in one environment, for the report."""
-    max_iou = np.array([e["max_iou"] for e in result["episodes"]])
-    return {"mean_max_iou": result["mean_max_iou"], "mean_max_iou_interval": list(mean_interval(max_iou)),
-            "std_max_iou": result["std_max_iou"], "success_rate": result["success_rate"],
+def _scores(result: dict[str, Any], key: str) -> dict[str, Any]:
+    """One policy's scores in one environment, for the report (the score named ``key``: the
+    task's :func:`~iwsim.world_model_env.score_key`)."""
+    best = np.array([e[f"max_{key}"] for e in result["episodes"]])
+    return {f"mean_max_{key}": result[f"mean_max_{key}"], f"mean_max_{key}_interval": list(mean_interval(best)),
+            f"std_max_{key}": result[f"std_max_{key}"], "success_rate": result["success_rate"],
             "successes": int(sum(e["success"] for e in result["episodes"])),
             "success_clopper_pearson": result["success_clopper_pearson"],
             "success_beta_posterior": result["success_beta_posterior"], "seconds": result["seconds"],
-            "max_iou": [round(float(m), 4) for m in max_iou]}
+            f"max_{key}": [round(float(m), 4) for m in best]}
 
 
 def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path, preset: str = "default",
                     jobs: int = 1, progress: bool = True) -> dict[str, Any]:
     """Run (or resume) the study; write ``results.json``, ``results.md`` and
-    ``scatter.png`` to ``out``. Returns the results."""
-    out, work = Path(out), Path(work)
+    ``scatter.png`` to ``out``. Returns the results. Its work goes to
+    :func:`~iwsim.experiments.common.study_dir` of ``work`` (``work`` itself for T-push)."""
+    task = study_task(cfg.task)
+    out = Path(out)
     if not isinstance(jobs, int) or jobs < 1:
         raise InputError(f"--jobs must be a positive integer, got {jobs}.")
-    check_study_model(cfg.world_model)
+    check_study_model(cfg.world_model, task)
     check_dirs(out=out)
+    reproduce = command(cfg, preset, out, Path(work), jobs)
+    work = study_dir(work, task)
     with lock_work(work, "policy-eval"):
-        return _run_policy_eval(cfg, out, work, preset, jobs, progress)
+        return _run_policy_eval(cfg, task, out, work, reproduce, jobs, progress, preset)
 
 
-def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, jobs: int, progress: bool
-                     ) -> dict[str, Any]:
+def _run_policy_eval(cfg: PolicyEvalConfig, task: Task, out: Path, work: Path, reproduce: str, jobs: int,
+                     progress: bool, preset: str) -> dict[str, Any]:
     t0, timings = time.perf_counter(), {}
 
     log.info("policy-eval 1/4: demonstrations")
@@ -243,21 +277,21 @@ def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, 
 
     seeds = [cfg.seed + i for i in range(cfg.episodes)]
     results: dict[str, dict[str, dict[str, Any]]] = {}
-    for k, env in enumerate(ENVS):
+    for k, env in enumerate(envs(task)):
         log.info("policy-eval %d/4: evaluating %d policies in %s (%d episodes x %d steps)", 3 + k, len(sources), env,
                  cfg.episodes, cfg.steps)
         t = time.perf_counter()
         results[env] = evaluate_policies(sources, env, seeds=seeds, steps=cfg.steps,
-                                         world_model=cfg.world_model if env == "world-model" else None,
+                                         world_model=cfg.world_model if env == WORLD_MODEL else None,
                                          out=work / "policy_eval" / "eval", jobs=jobs, progress=progress)
         timings[f"eval_{env.replace('-', '_')}_s"] = time.perf_counter() - t
         timings[f"eval_{env.replace('-', '_')}_measured_s"] = sum(r["seconds"] for r in results[env].values())
     timings["total_s"] = time.perf_counter() - t0
 
-    policies = [{"name": name, **info, **{env: _scores(results[env][name]) for env in ENVS}}
+    policies = [{"name": name, **info, **{env: _scores(results[env][name], score_key(task)) for env in envs(task)}}
                 for name, info in zoo.items()]
     report: dict[str, Any] = {
-        "command": command(cfg, preset, out, work, jobs),
+        "command": reproduce,
         "study": "policy-eval",
         "preset": preset,
         "config": to_dict(cfg),
@@ -265,10 +299,10 @@ def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, 
                   "seeds": [seeds[0], seeds[-1]], "world_model": cfg.world_model, "demos": demo_info,
                   "jobs": jobs, "groups": {g: len(m) for g, m in _groups(policies).items()}},
         "policies": policies,
-        "agreement": _agreement(policies),
+        "agreement": _agreement(policies, task),
         # the same within the scripted and the learned policies: a world model can order
         # each group well yet be biased for one of them, which the pooled figures hide
-        "agreement_within": {group: _agreement(members) for group, members in _groups(policies).items()},
+        "agreement_within": {group: _agreement(members, task) for group, members in _groups(policies).items()},
         "timings": {k: round(v, 1) for k, v in timings.items()},
         "note": ("timings are this invocation's, so a rerun that reuses cached work shows less; the *_measured_s "
                  "entries sum the trainings' and evaluations' own times (one process each), whenever they ran."),
@@ -277,19 +311,18 @@ def _run_policy_eval(cfg: PolicyEvalConfig, out: Path, work: Path, preset: str, 
     write_json_atomic(out / "results.json", report, sort_keys=False)
     scatter(report, out / "scatter.png")
     write_text_atomic(out / "results.md", markdown(report))
-    a = report["agreement"]["mean_max_iou"]
-    log.info("policy-eval: mean max IoU Pearson r %s, Spearman rho %s, MMRV %s over %d policies -> %s",
-             _fmt(a["pearson"]), _fmt(a["spearman"]), _fmt(a["mmrv"]), len(policies), out)
+    log.info("policy-eval: %s -> %s", headline(report), out)
     return report
 
 
-def _agreement(policies: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+def _agreement(policies: list[dict[str, Any]], task: Task) -> dict[str, dict[str, Any]]:
     """Per score: :func:`agreement` of the world model's scores with MuJoCo's, and the mean
     offset (world model minus MuJoCo)."""
     out = {}
-    for score, label in SCORES.items():
-        real = [p["pusht"][score] for p in policies]
-        sim = [p["world-model"][score] for p in policies]
+    reference, proxy = envs(task)
+    for score, label in scores(task).items():
+        real = [p[reference][score] for p in policies]
+        sim = [p[proxy][score] for p in policies]
         out[score] = {**agreement(real, sim, labels=(f"MuJoCo {label}s", f"world-model {label}s")),
                       "mean_offset": float(np.mean(np.subtract(sim, real)))}
     return out
@@ -309,7 +342,7 @@ def _fmt(v: float | None, digits: int = 3) -> str:
 def headline(report: dict[str, Any]) -> str:
     """One line per score: the three agreement statistics."""
     lines = []
-    for score, label in SCORES.items():
+    for score, label in scores(report_task(report)).items():
         a = report["agreement"][score]
         lines.append(f"{label}: Pearson r {_fmt(a['pearson'])}, Spearman rho {_fmt(a['spearman'])}, "
                      f"MMRV {_fmt(a['mmrv'])}")
@@ -321,6 +354,8 @@ def markdown(report: dict[str, Any]) -> str:
     s = report["scale"]
     lo, hi = s["seeds"]
     demos = s["demos"]
+    task = report_task(report)
+    name, key, (reference, proxy) = task.score_name, score_key(task), envs(task)
     lines = [
         "# Policy evaluation in the world model: does it rank policies like MuJoCo?",
         "",
@@ -328,9 +363,10 @@ def markdown(report: dict[str, Any]) -> str:
         "",
         f"{s['policies']} policies, each evaluated from the same {s['episodes']} initial states (MuJoCo seeds "
         f"{lo}-{hi}) for {s['steps']} steps in MuJoCo and in the world model `{s['world_model']}` (which starts from "
-        "MuJoCo's rendering of the same seed). Score: the maximum IoU an episode reaches; success: IoU >= 0.9. "
+        f"MuJoCo's rendering of the same seed). Score: the maximum {name} an episode reaches; success: {name} >= "
+        f"{task.success_score:g}. "
         f"Learned policies trained on the first N (the demos column) of the {demos['episodes']} demonstrations "
-        f"in `{demos['path']}` (policy `{demos['policy']}`). Intervals: 95%; mean max IoU by a bootstrap over "
+        f"in `{demos['path']}` (policy `{demos['policy']}`). Intervals: 95%; mean max {name} by a bootstrap over "
         "episodes, success by Clopper-Pearson.",
         "",
         "## Agreement (world model against MuJoCo)",
@@ -339,7 +375,7 @@ def markdown(report: dict[str, Any]) -> str:
         "|---|---|---|---|",
     ]
     notes = []
-    for score, label in SCORES.items():
+    for score, label in scores(task).items():
         a = report["agreement"][score]
         lines.append(f"| {label} | {_fmt(a['pearson'])} | {_fmt(a['spearman'])} | {_fmt(a['mmrv'])} |")
         notes += [f"- {label}, {k}: {why}" for k, why in a["undefined"].items()]
@@ -352,7 +388,7 @@ def markdown(report: dict[str, Any]) -> str:
                   "|---|---|---|---|---|---|---|"]
         sizes = report["scale"].get("groups", {})
         for group, by_score in within.items():
-            for score, label in SCORES.items():
+            for score, label in scores(task).items():
                 a = by_score[score]
                 lines.append(f"| {group} | {sizes.get(group, '')} | {label} | {_fmt(a['pearson'])} | "
                              f"{_fmt(a['spearman'])} | {_fmt(a['mmrv'])} | {a['mean_offset']:+.3f} |")
@@ -363,17 +399,17 @@ def markdown(report: dict[str, Any]) -> str:
         "",
         "## Policies",
         "",
-        "| policy | kind | train steps | demos | MuJoCo max IoU | world model max IoU | MuJoCo success | "
+        f"| policy | kind | train steps | demos | MuJoCo max {name} | world model max {name} | MuJoCo success | "
         "world model success |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for p in sorted(report["policies"], key=lambda p: -p["pusht"]["mean_max_iou"]):
+    for p in sorted(report["policies"], key=lambda p: -p[reference][f"mean_max_{key}"]):
         cells = [p["name"], p["kind"], p["train_steps"] or "-", p["demos"] or "-"]
-        for env in ENVS:
+        for env in (reference, proxy):
             r = p[env]
-            lo_, hi_ = r["mean_max_iou_interval"]
-            cells.append(f"{r['mean_max_iou']:.3f} ({lo_:.2f}-{hi_:.2f})")
-        for env in ENVS:
+            lo_, hi_ = r[f"mean_max_{key}_interval"]
+            cells.append(f"{r[f'mean_max_{key}']:.3f} ({lo_:.2f}-{hi_:.2f})")
+        for env in (reference, proxy):
             r = p[env]
             lo_, hi_ = r["success_clopper_pearson"]
             cells.append(f"{r['success_rate']:.2f} ({lo_:.2f}-{hi_:.2f})")
@@ -389,28 +425,29 @@ COLORS = {"dp": "tab:blue", "act": "tab:orange", "scripted": "tab:green"}
 
 
 def scatter(report: dict[str, Any], path: Path) -> None:
-    """World-model score against MuJoCo score per policy, for mean max IoU (bootstrap
-    intervals) and success rate (Clopper-Pearson intervals), with the y = x line and the
-    agreement statistics in each title."""
+    """World-model score against MuJoCo score per policy, for the mean max score (T-push:
+    IoU; bootstrap intervals) and success rate (Clopper-Pearson intervals), with the y = x
+    line and the agreement statistics in each title."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(12, 5.8))
     policies = report["policies"]
-    for ax, (score, label) in zip(axes, SCORES.items()):
-        interval = "mean_max_iou_interval" if score == "mean_max_iou" else "success_clopper_pearson"
+    task = report_task(report)
+    mean, (ref, proxy) = f"mean_max_{score_key(task)}", envs(task)
+    for ax, (score, label) in zip(axes, scores(task).items()):
+        interval = f"{mean}_interval" if score == mean else "success_clopper_pearson"
         for kind, color in COLORS.items():
             group = [p for p in policies if p["kind"] == kind]
             if not group:
                 continue
-            x = np.array([p["pusht"][score] for p in group])
-            y = np.array([p["world-model"][score] for p in group])
-            xe = np.array([[x_ - p["pusht"][interval][0], p["pusht"][interval][1] - x_] for x_, p in zip(x, group)]).T
-            ye = np.array([[y_ - p["world-model"][interval][0], p["world-model"][interval][1] - y_]
-                           for y_, p in zip(y, group)]).T
+            x = np.array([p[ref][score] for p in group])
+            y = np.array([p[proxy][score] for p in group])
+            xe = np.array([[x_ - p[ref][interval][0], p[ref][interval][1] - x_] for x_, p in zip(x, group)]).T
+            ye = np.array([[y_ - p[proxy][interval][0], p[proxy][interval][1] - y_] for y_, p in zip(y, group)]).T
             ax.errorbar(x, y, xerr=np.maximum(xe, 0), yerr=np.maximum(ye, 0), fmt="o", color=color, ms=5,
                         elinewidth=0.8, capsize=2, alpha=0.85, label=kind)
         placed: list[tuple[float, float]] = []
-        for p in sorted(policies, key=lambda p: (p["pusht"][score], p["world-model"][score])):
-            xy = (p["pusht"][score], p["world-model"][score])
+        for p in sorted(policies, key=lambda p: (p[ref][score], p[proxy][score])):
+            xy = (p[ref][score], p[proxy][score])
             # labels of nearby points are stacked upwards instead of drawn over each other
             near = sum(abs(xy[0] - a) < 0.12 and abs(xy[1] - b) < 0.03 for a, b in placed)
             placed.append(xy)
@@ -428,6 +465,6 @@ def scatter(report: dict[str, Any], path: Path) -> None:
         ax.legend(fontsize=7, loc="upper left")
     s = report["scale"]
     fig.suptitle(f"{s['policies']} policies x {s['episodes']} episodes x {s['steps']} steps; 95% intervals "
-                 "(max IoU: bootstrap; success: Clopper-Pearson)", fontsize=9)
+                 f"(max {task.score_name}: bootstrap; success: Clopper-Pearson)", fontsize=9)
     fig.tight_layout()
     save_figure(fig, path)

@@ -23,6 +23,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.normalize import Normalizer
 from iwsim.policies.registry import policy_name
@@ -60,6 +61,7 @@ class Policy(nn.Module):
     observed steps and ``horizon`` actions from the first of them."""
 
     image_size: int  # the frames it was trained on; set by iwsim.policies.factory.load_policy
+    task: Task | None = None  # the task of its training episodes (load_policy: as its checkpoint records it)
 
     def __init__(self, cfg, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__()

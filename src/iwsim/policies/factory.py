@@ -7,12 +7,13 @@ from typing import Any
 
 import torch
 
-from iwsim.checkpoint import CheckpointError, build_within_memory, load_model_dir
+from iwsim.checkpoint import CheckpointError, build_within_memory, load_json, load_model_dir
 from iwsim.config import from_dict, to_dict
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.policies.common import Normalizer, Policy
 from iwsim.policies.registry import POLICIES, config_class, policy_type
-from iwsim.tasks import DEFAULT_TASK
+from iwsim.tasks import DEFAULT_TASK, task_from_config
 
 KIND = "policy"
 
@@ -29,6 +30,24 @@ def describe(policy: Policy) -> dict[str, Any]:
             "action_dim": policy.action_dim, "state_dim": policy.state_dim}
 
 
+def checkpoint_dir(path: str | Path) -> Path:
+    """The checkpoint directory of a policy run (its last checkpoint) or of a checkpoint."""
+    path = Path(path)
+    last = path / "checkpoints" / "last"
+    return last.resolve() if last.exists() else path
+
+
+def recorded_task(path: str | Path) -> Task | None:
+    """The task whose episodes the policy at ``path`` (a run or a checkpoint) was trained on,
+    as its ``config.json`` records it; None when it records none (trained before policies
+    recorded their task) or there is no such file (loading the policy says what is wrong)."""
+    config_path = checkpoint_dir(path) / "config.json"
+    if not config_path.is_file():
+        return None
+    config = load_json(config_path)
+    return task_from_config(config, config_path) if isinstance(config, dict) and "task" in config else None
+
+
 def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_steps: int | None = None,
                 **execution: Any) -> Policy:
     """A trained policy from a checkpoint directory, or from a run (its last checkpoint).
@@ -38,9 +57,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_s
     changes execution: the chunk the network predicts is the same. ``execution`` overrides
     the policy's other registered execution fields the same way (DP's ``inference_steps``;
     ACT's ``temporal_ensemble``, None to execute ``n_action_steps`` of each chunk)."""
-    path = Path(path)
-    if (path / "checkpoints" / "last").exists():
-        path = (path / "checkpoints" / "last").resolve()
+    path = checkpoint_dir(path)
     if not (path / "config.json").is_file() or not (path / "model.safetensors").is_file():
         raise CheckpointError(f"{path} is not a policy checkpoint (model.safetensors + config.json) or a run of "
                               "iwsim train policy.")
@@ -65,4 +82,5 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_s
         policy.image_size = int(config.get("image_size", DEFAULT_TASK.image_size))
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path} does not hold a loadable policy ({' '.join(str(e).split())[:200]}).") from None
+    policy.task = task_from_config(config, path / "config.json") if "task" in config else None
     return policy.to(device).eval()

@@ -2,14 +2,16 @@
 (:func:`iwsim.eval.policy.rollout`, MuJoCo's vector env or the world model's) drive both.
 
     policy = ScriptedBatch("expert", noise=0.01, latency=2)  # or "expert-wide", "play", "still"
+    policy = ScriptedBatch("expert", task="pilesweep")       # a task's own (default: T-push's)
     policy.reset()
     actions = policy.predict_action({"image": (B, 1, H, W, 3) uint8, "agent_pos": (B, 1, 4)})
     # -> (B, 1, 4)
 
 Each of the B episodes gets its own scripted policy, made on the first call after
-``reset()``. They see nothing but the frame and ``agent_pos``: the block pose is
-estimated from the pixels (``pose_source="pixels"``), so a scripted policy behaves the
-same in MuJoCo and inside a world model. Degradations, for policies of graded skill:
+``reset()``: the task's (:meth:`iwsim.envs.task.Task.pixel_policy`), which sees nothing but
+the frame and ``agent_pos`` (T-push's experts estimate the block pose from the pixels), so
+a scripted policy behaves the same in MuJoCo and inside a world model. Degradations, for
+policies of graded skill:
 ``noise`` adds Gaussian noise (metres, per coordinate) to every command, ``latency``
 executes each command that many steps late (holding the pushers' first positions until
 then). A human-like hand (:class:`iwsim.envs.scripting.Hand`) between the policy and the robot: ``lag`` (a
@@ -19,8 +21,8 @@ slow hand that follows the policy's commands with that time constant, in steps),
 ``overshoot`` (a hand that leads its motion by that many steps, so every stop overshoots
 and comes back); ``miss`` aims the expert at a block displaced by that many metres in a
 direction (and turned by an angle) drawn per episode: expert-like motions that miss.
-The experts are those of :data:`iwsim.envs.scripted.EXPERTS` (``expert``, the precise pinch;
-``expert-wide``, the forgiving one); the ``still`` policy holds the pushers where they start.
+T-push's experts are ``expert``, the precise pinch, and ``expert-wide``, the forgiving one;
+the ``still`` policy (any task's) holds the pushers where they start.
 All draws are seeded per episode index, so results do not depend on the batch size.
 """
 
@@ -30,12 +32,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from iwsim.envs.pixels import estimate_block_pose
-from iwsim.envs.scripted import EXPERTS, ExpertPolicy, Pinch, PlayPolicy
 from iwsim.envs.scripting import Degraded, ScriptedPolicy
+from iwsim.envs.task import Task
 from iwsim.errors import InputError
+from iwsim.tasks import DEFAULT_TASK, REGISTRY, get_task
 
-KINDS = (*EXPERTS, "play", "still")
+STILL = "still"  # holds the pushers where they start: a policy of every task
+# Every scripted policy of a registered task, and the still one.
+KINDS = (*dict.fromkeys(k for make in REGISTRY.values() for k in make().pixel_policies), STILL)
 
 
 @dataclass(frozen=True)
@@ -61,7 +65,7 @@ class ScriptedConfig:
             raise InputError(f"pause must be a chance per step in [0, 1), got {self.pause}.")
         if self.latency < 0:
             raise InputError(f"latency must be 0 or more steps, got {self.latency}.")
-        if self.miss and self.kind not in EXPERTS:
+        if self.miss and self.kind in ("play", STILL):
             raise InputError(f"miss displaces an expert's aim; the {self.kind!r} policy has none.")
 
     @property
@@ -69,40 +73,6 @@ class ScriptedConfig:
         parts = [self.kind] + [f"{k}{getattr(self, k):g}" for k in ("noise", "latency", "lag", "pause", "jitter",
                                                                     "overshoot", "miss") if getattr(self, k)]
         return "-".join(parts)
-
-
-class _MissingExpert(ExpertPolicy):
-    """A pixel expert (its ``pinch``) aiming at a block displaced by ``offset`` (x, y, yaw)
-    from where it sees it: the expert's kind of motion, not aimed at where the block is."""
-
-    def __init__(self, pinch: Pinch, offset: np.ndarray) -> None:
-        super().__init__(pose_source="pixels", pinch=pinch)
-        self.offset = offset
-
-    def block_pose(self, obs: dict, info: dict) -> np.ndarray | None:
-        pose = super().block_pose(obs, info)
-        return None if pose is None else pose + self.offset
-
-
-class _PixelPose:
-    """A scripted policy that takes its block pose from the frame (for the play policy,
-    which otherwise reads ``info["block_pose"]`` from the simulator)."""
-
-    def __init__(self, policy: ScriptedPolicy) -> None:
-        self.policy = policy
-        self._pose = np.zeros(3)
-
-    def _info(self, obs: dict) -> dict:
-        est = estimate_block_pose(obs["pixels"])
-        if est.found:  # when the block is hidden, keep the last pose seen
-            self._pose = est.pose
-        return {"block_pose": self._pose}
-
-    def reset(self, obs: dict, info: dict) -> None:
-        self.policy.reset(obs, self._info(obs))
-
-    def __call__(self, obs: dict, info: dict) -> np.ndarray:
-        return self.policy(obs, self._info(obs))
 
 
 class _Still:
@@ -122,21 +92,19 @@ class ScriptedBatch:
     n_action_steps = 1
     kind = "scripted"
 
-    def __init__(self, cfg: ScriptedConfig | str = "expert", **overrides) -> None:
+    def __init__(self, cfg: ScriptedConfig | str = "expert", task: Task | str | None = None, **overrides) -> None:
+        """``task``: whose scripted policies (a Task or a built-in task's name; None: T-push's)."""
         self.cfg = ScriptedConfig(cfg, **overrides) if isinstance(cfg, str) else cfg
+        self.task = DEFAULT_TASK() if task is None else get_task(task) if isinstance(task, str) else task
+        if self.cfg.kind not in (*self.task.pixel_policies, STILL):
+            raise InputError(f"task {self.task.name!r} has no scripted policy {self.cfg.kind!r}; expected one of "
+                             f"{', '.join((*self.task.pixel_policies, STILL))}.")
         self.reset()
 
     def _make(self, i: int, rng: np.random.Generator) -> ScriptedPolicy:
-        if self.cfg.kind == "still":
+        if self.cfg.kind == STILL:
             return _Still()
-        if self.cfg.kind not in EXPERTS:
-            return _PixelPose(PlayPolicy(self.cfg.seed + i))
-        pinch = EXPERTS[self.cfg.kind]()
-        if self.cfg.miss:
-            angle = rng.uniform(-np.pi, np.pi)
-            return _MissingExpert(pinch, np.array([self.cfg.miss * np.cos(angle), self.cfg.miss * np.sin(angle),
-                                                   rng.uniform(-np.pi / 2, np.pi / 2)]))
-        return ExpertPolicy(pose_source="pixels", pinch=pinch)
+        return self.task.pixel_policy(self.cfg.kind, self.cfg.seed + i, rng, self.cfg.miss)
 
     def reset(self) -> None:
         self._episodes: list[Degraded] | None = None

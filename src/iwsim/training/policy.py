@@ -10,10 +10,13 @@ from typing import Any
 import torch
 
 from iwsim.config import from_dict, to_dict
+from iwsim.envs.task import Task
+from iwsim.errors import InputError
 from iwsim.policies import PolicyStageConfig, config_class
 from iwsim.policies.common import Policy, random_shift
 from iwsim.policies.data import PolicyData, Source
 from iwsim.policies.factory import describe, make_policy
+from iwsim.tasks import REGISTRY, task_from_store
 from iwsim.training import trainer
 
 EVAL_WINDOWS = 64  # fixed windows scored at every evaluation
@@ -31,6 +34,7 @@ class PolicyTask:
             torch.manual_seed(cfg.train.seed)
             self.module = make_policy(cfg.policy, cfg.model, self.action_norm, self.state_norm)
         self.cfg, self.sources = cfg, sources
+        self.task = mixture_task(sources)
         g = torch.Generator().manual_seed(12345)
         self.eval_steps = torch.randint(0, self.data.n_frames, (min(EVAL_WINDOWS, self.data.n_frames),), generator=g)
 
@@ -64,9 +68,23 @@ class PolicyTask:
         return dict(module.state_dict())
 
     def config(self) -> dict[str, Any]:
-        return {**describe(self.module), "train": to_dict(self.cfg.train), "shift": self.cfg.shift,
+        return {**describe(self.module), "task": self.task.describe(), "train": to_dict(self.cfg.train),
+                "shift": self.cfg.shift,
                 "data": [{"path": str(s.path), "episodes": s.episodes} for s in self.sources],
                 "episodes_used": self.data.counts, "image_size": self.data.image_size}
+
+
+def mixture_task(sources: list[Source]) -> Task:
+    """The task whose episodes a mixture holds (what the policy's config records): the
+    built-in task its stores name, else the first store's; stores of two built-in tasks are
+    one line of error."""
+    tasks = [task_from_store(s.path) for s in sources]
+    built_in = {t.name: s.path for t, s in zip(tasks, sources) if t.kind in REGISTRY}
+    if len(built_in) > 1:
+        (a, path_a), (b, path_b) = list(built_in.items())[:2]
+        raise InputError(f"--data mixes episodes of task {a!r} ({path_a}) and task {b!r} ({path_b}); a policy "
+                         "learns one task.")
+    return next((t for t in tasks if t.kind in REGISTRY), tasks[0])
 
 
 def train_policy(cfg: PolicyStageConfig, sources: list[Source], out: str | Path, *, device: torch.device,
