@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from iwsim.checkpoint import CheckpointError, build_within_memory, load_json, load_model_dir
+from iwsim.checkpoint import CheckpointError, build_within_memory, load_json, load_model_dir, locate
 from iwsim.config import from_dict, to_dict
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
@@ -31,8 +31,9 @@ def describe(policy: Policy) -> dict[str, Any]:
 
 
 def checkpoint_dir(path: str | Path) -> Path:
-    """The checkpoint directory of a policy run (its last checkpoint) or of a checkpoint."""
-    path = Path(path)
+    """The checkpoint directory of a policy run (its last checkpoint) or of a checkpoint
+    (a shipped one, ``checkpoints/NAME``, from any working directory: :func:`locate`)."""
+    path = locate(path)
     last = path / "checkpoints" / "last"
     return last.resolve() if last.exists() else path
 
