@@ -18,9 +18,10 @@ from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import GOAL_POSE
 from iwsim.eval.policy import rollout
 from iwsim.experiments.common import fingerprint
-from iwsim.experiments.datagen import PRESETS, DatagenConfig, command, plan
+from iwsim.experiments.datagen import PRESETS, DatagenConfig, command, demo_paths, plan
 from iwsim.experiments.demos import SIM_SEED, DemoRecipe, record_demos, record_with, simulator_store
 from iwsim.experiments.policy_eval import PolicyEvalConfig
+from iwsim.experiments.policy_eval import command as policy_eval_command
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.tasks import get_task
@@ -160,6 +161,17 @@ def test_one_recipe_for_both_studies():
     cfg = dataclasses.replace(tiny, total=3, recipe=dataclasses.replace(tiny.recipe, steps=9, accept_iou=0.5))
     assert command(cfg, "tiny", Path("o"), Path("w")) == (
         "iwsim experiment datagen --preset tiny --total 3 --accept-iou 0.5 --demo-steps 9 --out o --work w")
+    # Another demonstrator's takes: their own stores, and the flag in the command that reproduces the study.
+    wide = dataclasses.replace(tiny, recipe=dataclasses.replace(tiny.recipe, demonstrator="expert-wide"))
+    assert simulator_store(Path("w"), "expert-wide") == Path("w/demos/sim_expert-wide.zarr")
+    paths = demo_paths(wide, Path("w"), "abc")
+    assert paths["sim"] == Path("w/demos/sim_expert-wide.zarr") and paths["wm"].name.endswith("_abc_expert-wide.zarr")
+    assert demo_paths(tiny, Path("w"), "abc")["wm"].name.endswith("_abc.zarr")
+    assert command(wide, "tiny", Path("o"), Path("w")) == (
+        "iwsim experiment datagen --preset tiny --demonstrator expert-wide --out o --work w")
+    policy_eval = dataclasses.replace(PolicyEvalConfig(), recipe=DemoRecipe(demonstrator="expert-wide"))
+    assert policy_eval_command(policy_eval, "default", Path("o"), Path("w"), 2) == (
+        "iwsim experiment policy-eval --preset default --demonstrator expert-wide --jobs 2 --out o --work w")
 
 
 def test_recipe_flags_are_checked_before_any_work(tmp_path, capsys):

@@ -289,14 +289,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _study_task_flags(q: argparse.ArgumentParser, default: Any) -> None:
-    """A study's --task and --world-model (``default``: the default task)."""
+    """A study's --task, --world-model and --demonstrator (``default``: the default task)."""
     from iwsim.envs import TASKS
+    from iwsim.tasks import ANY_EXPERTS
 
     q.add_argument("--task", default=default.kind, choices=tuple(TASKS),
                    help="the task, its MuJoCo simulator the ground truth and its pixel expert the demonstrator "
                         "(default: %(default)s)")
     q.add_argument("--world-model", help=f"a world-model checkpoint of the task (default: the task's shipped one, "
                                          f"{default.checkpoint} for {default.kind}; a task without one needs it)")
+    q.add_argument("--demonstrator", choices=ANY_EXPERTS,
+                   help="the task's pixel expert that records the demonstrations, e.g. T-push's expert-wide (wider "
+                        "margins, easier to imitate); its takes get their own stores (default: expert)")
 
 
 def _study_config(args: argparse.Namespace, presets: dict[str, C], report: str, **overrides: Any) -> tuple[C, Path]:
@@ -804,7 +808,7 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
             raise InputError(f"{flag} must be comma-separated {kind.__name__}s, got {text!r}.") from None
 
     base = PRESETS[args.preset]
-    recipe = {"accept_iou": args.accept_iou, "steps": args.demo_steps}
+    recipe = {"accept_iou": args.accept_iou, "steps": args.demo_steps, "demonstrator": args.demonstrator}
     report = "datagen" + ("-act" if args.preset == "act" else "")
     cfg, out = _study_config(
         args, PRESETS, report, policy=args.policy, episodes=args.episodes, steps=args.steps, total=args.total,
@@ -817,10 +821,15 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
 
 
 def _experiment_policy_eval(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from iwsim.experiments.policy_eval import PRESETS, headline, run_policy_eval
 
+    base = PRESETS[args.preset].recipe
+    recipe = base if args.demonstrator is None else dataclasses.replace(base, demonstrator=args.demonstrator)
     cfg, out = _study_config(args, PRESETS, "policy_eval", episodes=args.episodes, steps=args.steps, seed=args.seed,
-                             demos=args.demos, demo_episodes=args.demo_episodes, small_demos=args.small_demos)
+                             demos=args.demos, demo_episodes=args.demo_episodes, small_demos=args.small_demos,
+                             recipe=recipe)
     report = run_policy_eval(cfg, out=out, work=args.work, preset=args.preset, jobs=args.jobs,
                              progress=not args.no_progress)
     print(f"{headline(report)} -> {out}/results.md")

@@ -36,6 +36,8 @@ REGISTRY: dict[str, Callable[[], Task]] = {PushTTask.kind: PushTTask,  # built w
 # The task the commands and the studies default to: its name (``kind``), frame size
 # (``image_size``), evaluation horizon (``horizon``) and shipped world model (``checkpoint``).
 DEFAULT_TASK: type[PushTTask] = PushTTask
+# Every built-in task's pixel experts (demonstrators), e.g. T-push's "expert" and "expert-wide".
+ANY_EXPERTS = tuple(dict.fromkeys(e for make in REGISTRY.values() for e in make().pixel_experts))
 # Per-frame arrays a start reads from a store (whichever the store has), besides the task's state_keys.
 RECORD_KEYS = ("state", "target", "action")
 STEP_OF_SPREAD = 0.1  # a teleop step is this share of the standard deviation of a dimension's actions

@@ -73,7 +73,7 @@ BOOTSTRAP = 2000  # resamples of the evaluation episodes for the parity ratio's 
 FLAGS = {"world_model": "--world-model", "policy": "--policy", "total": "--total", "wm_fractions": "--fractions",
          "sim_sizes": "--sizes", "wm_sizes": "--wm-sizes", "train_steps": "--train-steps", "episodes": "--episodes",
          "steps": "--steps"}
-RECIPE_FLAGS = {"accept_iou": "--accept-iou", "steps": "--demo-steps"}
+RECIPE_FLAGS = {"accept_iou": "--accept-iou", "steps": "--demo-steps", "demonstrator": "--demonstrator"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,9 +178,11 @@ def plan(cfg: DatagenConfig) -> list[Run]:
 
 def demo_paths(cfg: DatagenConfig, work: Path, wm_tag: str) -> dict[str, Path]:
     """The demonstration stores: ``sim`` (stable, shared with other studies) and ``wm``
-    (named after the world-model checkpoint and its fingerprint)."""
-    return {"sim": simulator_store(work),
-            "wm": work / "demos" / f"wm_teleop_{Path(cfg.world_model).name}_{wm_tag}.zarr"}
+    (named after the world-model checkpoint and its fingerprint), each the recipe's
+    demonstrator's (another than the expert's: its name in the store's)."""
+    who = "" if cfg.recipe.demonstrator == "expert" else f"_{cfg.recipe.demonstrator}"
+    return {"sim": simulator_store(work, cfg.recipe.demonstrator),
+            "wm": work / "demos" / f"wm_teleop_{Path(cfg.world_model).name}_{wm_tag}{who}.zarr"}
 
 
 def command(cfg: DatagenConfig, preset: str, out: Path, work: Path) -> str:

@@ -71,7 +71,7 @@ from iwsim.eval.policy import ENVS, MAX_SEED, WORLD_MODEL, rollout
 from iwsim.experiments.common import STUDY, fingerprint
 from iwsim.play.engine import episode_keys
 from iwsim.policies.scripted import ScriptedBatch
-from iwsim.tasks import REGISTRY, get_task, task_of
+from iwsim.tasks import ANY_EXPERTS, REGISTRY, get_task, task_of
 from iwsim.world_model import WorldModel
 from iwsim.world_model_env import score_key
 
@@ -88,7 +88,6 @@ MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world
 OLDER_ATTRS = {"dart_noise": 0.0, "start": "random", "demonstrator": "expert"}
 # What a recipe may name, over every registered task (a recording checks its own task's).
 ANY_STARTS = tuple(dict.fromkeys(s for make in REGISTRY.values() for s in make().starts))
-ANY_EXPERTS = tuple(dict.fromkeys(e for make in REGISTRY.values() for e in make().pixel_experts))
 EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
 SIM_STORE = "sim_expert.zarr"  # the simulator expert's demonstrations, under work/demos: shared by the studies
 SIM_SEED = 0  # the first candidate's seed in SIM_STORE (disjoint from evaluation seeds, 100000+)
@@ -257,9 +256,10 @@ def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, reci
                         demonstrator=recipe.demonstrator, progress=progress)
 
 
-def simulator_store(work: str | os.PathLike) -> Path:
-    """The simulator expert's demonstration store of a work directory (shared by the studies)."""
-    return Path(work) / "demos" / SIM_STORE
+def simulator_store(work: str | os.PathLike, demonstrator: str = "expert") -> Path:
+    """The simulator expert's demonstration store of a work directory (shared by the
+    studies); another ``demonstrator``'s takes go beside it (``sim_expert-wide.zarr``)."""
+    return Path(work) / "demos" / (SIM_STORE if demonstrator == "expert" else f"sim_{demonstrator}.zarr")
 
 
 def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
@@ -268,7 +268,7 @@ def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
     :func:`simulator_store` until it holds ``episodes`` (or the recipe's attempts are
     spent), candidates from seed :data:`SIM_SEED`. Returns the store's path and its
     :class:`DemoStats`."""
-    path = simulator_store(work)
+    path = simulator_store(work, recipe.demonstrator)
     return path, record_with(task.kind, path, episodes, SIM_SEED, recipe, progress=progress)
 
 

@@ -76,6 +76,7 @@ log = logging.getLogger(__name__)
 BOOTSTRAP = 2000  # resamples of the episodes for the interval of a mean max score
 LEVEL = 0.95
 # The config fields the command's flags override.
+RECIPE_FLAGS = {"demonstrator": "--demonstrator"}  # the recipe fields the command's flags override
 FLAGS = {"world_model": "--world-model", "episodes": "--episodes", "steps": "--steps", "seed": "--seed",
          "demos": "--demos", "demo_episodes": "--demo-episodes", "small_demos": "--small-demos"}
 
@@ -173,7 +174,8 @@ PRESETS: dict[str, PolicyEvalConfig] = {
 def command(cfg: PolicyEvalConfig, preset: str, out: Path, work: Path, jobs: int) -> str:
     """The command that reproduces this study (the flags that differ from the preset)."""
     base = PRESETS[preset]
-    changed = [(cfg, base, TASK_FLAG), (cfg, on_task(base, get_task(cfg.task)), FLAGS)]
+    changed = [(cfg, base, TASK_FLAG), (cfg, on_task(base, get_task(cfg.task)), FLAGS),
+               (cfg.recipe, base.recipe, RECIPE_FLAGS)]
     return study_command("policy-eval", preset, changed, "--jobs", str(jobs), "--out", str(out), "--work", str(work))
 
 
