@@ -21,6 +21,7 @@ from iwsim.play import protocol as proto
 from iwsim.play.access import TOKEN_ENV, Access, PlayError, bind, resolve_token
 from iwsim.play.engine import EPISODE_KEYS, Engine, PlayConfig
 from iwsim.play.server import WS_MAX_BYTES, check_bind, running, serve
+from iwsim.world_model import WorldModel
 from tests.test_dynamics import tiny_world_model
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -230,6 +231,23 @@ def test_side_by_side_and_store_starts(play_store):
     stored = EpisodeStore.open(play_store).array("img")[:]
     assert any(np.array_equal(views[0], f) for f in stored)
     assert np.mean(views[0] != views[1]) < 0.02  # MuJoCo restarted from the stored state
+
+
+def test_side_by_side_on_pile_sweeping(pile_model):
+    """A world model of another MuJoCo task plays beside its own simulator, with its score."""
+    eng = Engine(WorldModel.load(pile_model["checkpoint"]), PlayConfig())
+    s = eng.open()
+    assert "side by side on" in eng.handle(s, proto.SideBySide(True))[0]
+    sim = make_env("pilesweep", 64)
+    obs, info = sim.reset(seed=s.seed)
+    header, views = proto.unpack_frame(eng.frame_message(s))
+    assert header["views"] == ["world_model", "mujoco"] and header["mujoco_iou"] == info["score"]
+    np.testing.assert_array_equal(views[1], obs["pixels"])
+    eng.handle(s, action(0, [0.1, 0.1, -0.1, -0.1]))
+    eng.tick()
+    obs, _, _, _, info = sim.step(np.array([0.1, 0.1, -0.1, -0.1], np.float32))
+    np.testing.assert_array_equal(s.twin_frame, obs["pixels"])
+    assert s.twin_iou == info["score"] and 0 <= s.iou <= 1
 
 
 # -- the server over real sockets ------------------------------------------------------------

@@ -1,5 +1,6 @@
 """iwsim play end to end in a real browser: Debian's chromium driven by Playwright against
 the real server (a tiny world model): keys, mouse drag, record, save, discard, side by side;
+pile sweeping (a second MuJoCo task) driven, recorded and beside its simulator;
 and for tasks other than T-push (the point task of ``conftest.point_model``, 14-D actions)
 the task's key bindings and a slider per action dimension."""
 
@@ -165,6 +166,37 @@ def test_drive_record_and_save_in_chromium(browser, tmp_path):
     right_y = ep["action"][:, 3]
     assert right_y[-1] > right_y[0] + 0.02  # i moved the right pusher up while recording
     assert np.allclose(ep["action"][:, :3], ep["action"][0, :3])
+
+
+def test_pile_sweeping_driven_recorded_and_side_by_side_in_chromium(browser, pile_model, tmp_path):
+    """The second MuJoCo task in the browser: the same bindings drive the pushers, a take is
+    recorded with the task's score, and side by side shows its simulator and score."""
+    from iwsim.play.engine import Engine, PlayConfig
+    from iwsim.world_model import WorldModel
+
+    store = tmp_path / "pile_demos.zarr"
+    eng = Engine(WorldModel.load(pile_model["checkpoint"]), PlayConfig(record_to=store, hz=20))
+    errors: list[str] = []
+    with running(eng) as srv:
+        page = browser.new_page(viewport={"width": 1500, "height": 900})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.page)
+        wait(page, "window.iwsim.stats.frames > 2")
+        before, after, sx = hold_d_or_a(page)
+        assert sx * (after[0] - before[0]) > 0.02 and np.allclose(after[1:], before[1:])
+        page.keyboard.press("c")
+        wait(page, "document.getElementById('rec').textContent.includes('REC')")
+        wait(page, "window.iwsim.state.header.recording >= 5")
+        page.keyboard.press("Shift+S")
+        wait(page, "document.getElementById('message').textContent.includes('saved episode 0')")
+        page.click("#side")
+        wait(page, "!document.getElementById('twin-view').hidden")
+        wait(page, "window.iwsim.state.header.mujoco_iou !== null")
+        page.close()
+    assert not errors, errors
+    ep = EpisodeStore.open(store).episode(0)
+    assert len(ep["img"]) >= 5 and ep["img"].shape[1:] == (64, 64, 3)
+    assert ((ep["score"] >= 0) & (ep["score"] <= 1)).all()
 
 
 # -- a task other than T-push: keys and sliders from the task's bindings ------------------------

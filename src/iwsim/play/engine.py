@@ -331,7 +331,7 @@ class Engine:
         s.twin_frame = s.twin_iou = None
         if s.twin is not None and start.state is not None:
             obs, info = s.twin.reset(seed=seed, options={"reset_to_state": start.state})
-            s.twin_frame, s.twin_iou = obs["pixels"], float(info["iou"])
+            s.twin_frame, s.twin_iou = obs["pixels"], float(info[score_key(self.task)])
 
     def tick(self) -> list[Session]:
         """One control step of every session: record, then step all world models in one
@@ -364,7 +364,7 @@ class Engine:
             s.iou, s.agent_pos, s.step = None if ious is None else float(ious[i]), p, s.step + 1
             if s.twin_frame is not None:
                 obs, _, _, _, info = s.twin.step(s.target)
-                s.twin_frame, s.twin_iou = obs["pixels"], float(info["iou"])
+                s.twin_frame, s.twin_iou = obs["pixels"], float(info[score_key(self.task)])
         self.last_step_ms = 1000 * (time.perf_counter() - t0)
         return sessions
 
