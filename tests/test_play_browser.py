@@ -168,14 +168,19 @@ def test_drive_record_and_save_in_chromium(browser, tmp_path):
     assert np.allclose(ep["action"][:, :3], ep["action"][0, :3])
 
 
-def test_pile_sweeping_driven_recorded_and_side_by_side_in_chromium(browser, pile_model, tmp_path):
-    """The second MuJoCo task in the browser: the same bindings drive the pushers, a take is
-    recorded with the task's score, and side by side shows its simulator and score."""
+def recording_engine(checkpoint: Path, store: Path):
+    """The play engine of a world-model checkpoint, recording into ``store``, at 20 Hz."""
     from iwsim.play.engine import Engine, PlayConfig
     from iwsim.world_model import WorldModel
 
+    return Engine(WorldModel.load(checkpoint), PlayConfig(record_to=store, hz=20))
+
+
+def test_pile_sweeping_driven_recorded_and_side_by_side_in_chromium(browser, pile_model, tmp_path):
+    """The second MuJoCo task in the browser: the same bindings drive the pushers, a take is
+    recorded with the task's score, and side by side shows its simulator and score."""
     store = tmp_path / "pile_demos.zarr"
-    eng = Engine(WorldModel.load(pile_model["checkpoint"]), PlayConfig(record_to=store, hz=20))
+    eng = recording_engine(pile_model["checkpoint"], store)
     errors: list[str] = []
     with running(eng) as srv:
         page = browser.new_page(viewport={"width": 1500, "height": 900})
@@ -226,11 +231,8 @@ def wide_world_model(store: Path, action_dim: int = 14):
 
 
 def test_point_task_driven_with_keys_gamepad_and_sliders_and_recorded(browser, point_model, tmp_path):
-    from iwsim.play.engine import Engine, PlayConfig
-    from iwsim.world_model import WorldModel
-
     demos = tmp_path / "demos.zarr"
-    eng = Engine(WorldModel.load(point_model["checkpoint"]), PlayConfig(record_to=demos, hz=20))
+    eng = recording_engine(point_model["checkpoint"], demos)
     errors: list[str] = []
     with running(eng) as srv:
         page = browser.new_page(viewport={"width": 1500, "height": 900})
