@@ -5,6 +5,7 @@ and for tasks other than T-push (the point task of ``conftest.point_model``, 14-
 the task's key bindings and a slider per action dimension."""
 
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,24 @@ def browser():
         b = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS, headless=True)
         yield b
         b.close()
+
+
+@contextmanager
+def served_page(browser, eng, height: int = 900, init_script: str | None = None):
+    """``eng`` served (:func:`running`) and its page open in ``browser`` (1500 x ``height``,
+    the token in its address) once the first frames have arrived; the test fails on any
+    error the page raised."""
+    errors: list[str] = []
+    with running(eng) as srv:
+        page = browser.new_page(viewport={"width": 1500, "height": height})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        if init_script:
+            page.add_init_script(init_script)
+        page.goto(srv.page)
+        wait(page, "window.iwsim.stats.frames > 2")
+        yield page
+        page.close()
+    assert not errors, errors
 
 
 def wait(page, js: str, timeout: float = 15.0) -> None:
@@ -77,11 +96,7 @@ navigator.getGamepads = () => [window.fakePad];
 
 
 def test_gamepad_sticks_and_buttons(browser):
-    with running(engine(hz=20)) as srv:
-        page = browser.new_page()
-        page.add_init_script(FAKE_PAD)
-        page.goto(srv.page)  # the page it serves here carries the token
-        wait(page, "window.iwsim.stats.frames > 2")
+    with served_page(browser, engine(hz=20), init_script=FAKE_PAD) as page:
         before = target(page)
         sx, sy = room(before[0]), room(before[3])  # left stick along x, right stick along y (up is -)
         page.evaluate(f"window.fakePad.axes = [{0.9 * sx}, 0, 0, {-0.9 * sy}]")
@@ -93,18 +108,12 @@ def test_gamepad_sticks_and_buttons(browser):
         assert np.allclose(after[[1, 2]], before[[1, 2]])
         page.evaluate("window.fakePad.buttons[2].pressed = true")  # X: record
         wait(page, "document.getElementById('message').textContent.includes('recording is off')")
-        page.close()
 
 
 def test_drive_record_and_save_in_chromium(browser, tmp_path):
     store = tmp_path / "demos.zarr"
     eng = engine(record_to=store, hz=20)
-    errors: list[str] = []
-    with running(eng) as srv:
-        page = browser.new_page(viewport={"width": 1500, "height": 900})
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(srv.page)  # the page it serves here carries the token
-        wait(page, "window.iwsim.stats.frames > 2")
+    with served_page(browser, eng) as page:
         assert page.inner_text("#conn") == "connected"
         canvas = page.eval_on_selector("#wm", "c => c.toDataURL()")
 
@@ -156,8 +165,6 @@ def test_drive_record_and_save_in_chromium(browser, tmp_path):
         page.click("#side")
         wait(page, "!document.getElementById('twin-view').hidden")
         wait(page, "window.iwsim.state.header.mujoco_iou !== null")
-        page.close()
-    assert not errors, errors
 
     back = EpisodeStore.open(store)
     assert back.n_episodes == 1
@@ -181,12 +188,7 @@ def test_pile_sweeping_driven_recorded_and_side_by_side_in_chromium(browser, pil
     recorded with the task's score, and side by side shows its simulator and score."""
     store = tmp_path / "pile_demos.zarr"
     eng = recording_engine(pile_model["checkpoint"], store)
-    errors: list[str] = []
-    with running(eng) as srv:
-        page = browser.new_page(viewport={"width": 1500, "height": 900})
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(srv.page)
-        wait(page, "window.iwsim.stats.frames > 2")
+    with served_page(browser, eng) as page:
         before, after, sx = hold_d_or_a(page)
         assert sx * (after[0] - before[0]) > 0.02 and np.allclose(after[1:], before[1:])
         page.keyboard.press("c")
@@ -197,8 +199,6 @@ def test_pile_sweeping_driven_recorded_and_side_by_side_in_chromium(browser, pil
         page.click("#side")
         wait(page, "!document.getElementById('twin-view').hidden")
         wait(page, "window.iwsim.state.header.mujoco_iou !== null")
-        page.close()
-    assert not errors, errors
     ep = EpisodeStore.open(store).episode(0)
     assert len(ep["img"]) >= 5 and ep["img"].shape[1:] == (64, 64, 3)
     assert ((ep["score"] >= 0) & (ep["score"] <= 1)).all()
@@ -233,13 +233,7 @@ def wide_world_model(store: Path, action_dim: int = 14):
 def test_point_task_driven_with_keys_gamepad_and_sliders_and_recorded(browser, point_model, tmp_path):
     demos = tmp_path / "demos.zarr"
     eng = recording_engine(point_model["checkpoint"], demos)
-    errors: list[str] = []
-    with running(eng) as srv:
-        page = browser.new_page(viewport={"width": 1500, "height": 900})
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.add_init_script(FAKE_PAD)
-        page.goto(srv.page)
-        wait(page, "window.iwsim.stats.frames > 2")
+    with served_page(browser, eng, init_script=FAKE_PAD) as page:
         sliders = page.locator("#sliders input[type=range]")
         assert sliders.count() == 2 and page.locator("#sliders span").all_inner_texts() == ["x", "y"]
         assert page.inner_text("#iou") == "no scorer" and page.locator("#side-row").is_hidden()
@@ -271,8 +265,6 @@ def test_point_task_driven_with_keys_gamepad_and_sliders_and_recorded(browser, p
         wait(page, "window.iwsim.state.header.recording >= 4")
         page.keyboard.press("Shift+S")
         wait(page, "document.getElementById('message').textContent.includes('saved episode 0')")
-        page.close()
-    assert not errors, errors
     ep = EpisodeStore.open(demos).episode(0)
     assert sorted(ep) == ["action", "img", "state", "target"] and ep["action"].shape[1] == 2
     assert ep["action"][-1, 1] == pytest.approx(0.25, abs=1e-3)
@@ -287,10 +279,7 @@ def test_fourteen_dimensions_get_fourteen_sliders(browser, tmp_path):
     from iwsim.play.engine import Engine, PlayConfig
 
     eng = Engine(wide_world_model(tmp_path / "aloha.zarr"), PlayConfig(hz=20))
-    with running(eng) as srv:
-        page = browser.new_page(viewport={"width": 1500, "height": 1400})
-        page.goto(srv.page)
-        wait(page, "window.iwsim.stats.frames > 2")
+    with served_page(browser, eng, height=1400) as page:
         sliders = page.locator("#sliders input[type=range]")
         assert sliders.count() == 14
         np.testing.assert_allclose(target(page), actions[0], atol=1e-6)  # the episode's first command
@@ -300,4 +289,3 @@ def test_fourteen_dimensions_get_fourteen_sliders(browser, tmp_path):
         want[13] = 0.75
         np.testing.assert_allclose(target(page), want, atol=1e-3)
         np.testing.assert_allclose(page.evaluate("window.iwsim.state.header.action"), want, atol=1e-3)
-        page.close()
