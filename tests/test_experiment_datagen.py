@@ -4,6 +4,7 @@ acceptance filter (layout, first frames, resume), and a tiny end-to-end study.""
 import dataclasses
 import json
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -16,13 +17,14 @@ from iwsim.data.store import EpisodeStore
 from iwsim.envs.geometry import wrap_angle
 from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import GOAL_POSE
-from iwsim.eval.policy import rollout
+from iwsim.eval.policy import rollout, seed_sampling
 from iwsim.experiments.common import fingerprint
 from iwsim.experiments.datagen import PRESETS, DatagenConfig, command, demo_paths, plan
-from iwsim.experiments.demos import SIM_SEED, DemoRecipe, record_demos, record_with, simulator_store
+from iwsim.experiments.demos import SIM_SEED, DemoRecipe, handover_step, record_demos, record_with, simulator_store
 from iwsim.experiments.policy_eval import PolicyEvalConfig
 from iwsim.experiments.policy_eval import command as policy_eval_command
 from iwsim.play.engine import EPISODE_KEYS
+from iwsim.policies.factory import checkpoint_dir, load_policy
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.tasks import get_task
 from tests.test_dynamics import tiny_world_model
@@ -35,6 +37,15 @@ def wm_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("wm") / "tiny-wm"
     tiny_world_model().save(path)
     return path
+
+
+@pytest.fixture(scope="module")
+def learned(play_store: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny Diffusion Policy run on 64 px frames (2 training steps) for the expert to take over from."""
+    out = tmp_path_factory.mktemp("policy") / "dp"
+    assert main(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", f"{play_store}:2",
+                 "--steps", "2", "--out", str(out), "--no-progress"]) == 0
+    return out
 
 
 def record(env: str, out: Path, wm_path: Path, episodes: int = 2, **kw):
@@ -223,7 +234,7 @@ def test_tiny_study_end_to_end(wm_path, tmp_path):
     assert next(iter(r)) == "command" and r["command"] in md.split("\n")[:5] and "parity ratio" in md
     assert (work / "demos" / "sim_expert.zarr").is_dir()
     assert {k: d["episodes"] for k, d in r["demos"].items()} == {"sim": 2, "wm": 2}
-    assert r["config"]["recipe"] == dataclasses.asdict(PRESETS["tiny"].recipe)
+    assert r["config"]["recipe"] == json.loads(json.dumps(dataclasses.asdict(PRESETS["tiny"].recipe)))  # tuples: lists
     assert "reaches 0.0 and ends 4 steps after that (horizon 8 steps)" in md
     assert (r["demos"]["sim"]["first_seed"], r["demos"]["wm"]["first_seed"]) == (SIM_SEED, 300000)
     names = [run["name"] for run in r["runs"]]
@@ -435,3 +446,83 @@ def test_tiny_study_on_pile_sweeping(pile_model, tmp_path):
     assert (tmp_path / "out" / "datagen.png").stat().st_size > 0
     cached = json.loads((work / "pilesweep" / "datagen" / "eval" / "pilesweep" / "expert.json").read_text())
     assert cached["key"]["env"] == "pilesweep" and len(cached["score_per_step"][0]) == 7
+
+
+def test_takeover_stores_the_experts_part_from_the_state_the_learned_policy_left(learned, wm_path, tmp_path):
+    """HG-DAgger's takes: a learned policy drives each candidate to its handover step (drawn
+    from its seed), the expert takes over from there; only the expert's part is stored, from
+    an unsolved frame to ``tail`` steps after success, and the same command records the same store."""
+    kw = {"steps": 70, "seed": 300002, "accept_iou": 0.9, "tail": 3, "takeover": learned, "takeover_steps": (3, 12)}
+    stats = record("pusht", tmp_path / "take.zarr", wm_path, **kw)
+    store = EpisodeStore.open(tmp_path / "take.zarr")
+    seeds, handovers = [300002, 300003], store.attrs["handover_steps"]
+    assert stats.episodes == 2 and store.seeds == seeds
+    assert handovers == [handover_step(s, (3, 12)) for s in seeds] == [8, 3]  # 3 cuts the policy's first chunk of 4
+    assert (store.attrs["takeover"], store.attrs["takeover_steps"], store.attrs["takeover_sha256"]) == (
+        str(learned), [3, 12], fingerprint(checkpoint_dir(learned)))
+    policy = load_policy(learned)
+    seed_sampling(seeds)  # the learned policy alone, its noise seeded as the recording seeds it
+    alone = rollout(policy, "pusht", seeds, max(handovers), record=2, progress=False)
+    for i, h in enumerate(handovers):
+        ep = store.episode(i)
+        np.testing.assert_array_equal(ep["img"][0], alone["frames"][i, h])  # the state the policy left
+        np.testing.assert_array_equal(ep["state"][0], alone["agent_pos"][i, h])
+        assert not np.array_equal(ep["img"][0], alone["frames"][i, 0])
+        success = np.flatnonzero(ep["iou"] >= 0.9)
+        assert ep["iou"][0] < 0.9 and len(ep["iou"]) == success[0] + 3
+        expert = ScriptedBatch("expert")  # the stored actions: the expert's, started afresh at the handover
+        replayed = [expert.predict_action({"image": ep["img"][t][None, None], "agent_pos": ep["state"][t][None, None]})
+                    for t in range(len(ep["action"]))]
+        np.testing.assert_array_equal(np.concatenate(replayed)[:, 0], ep["action"])
+    record("pusht", tmp_path / "again.zarr", wm_path, **kw)
+    again = EpisodeStore.open(tmp_path / "again.zarr")
+    assert again.attrs["handover_steps"] == handovers and again.episode_ends.tolist() == store.episode_ends.tolist()
+    for i in range(2):
+        for k in store.keys:
+            np.testing.assert_array_equal(again.episode(i)[k], store.episode(i)[k])
+
+
+def test_a_take_that_starts_solved_is_discarded_in_either_env(learned, wm_path, tmp_path):
+    """accept_iou 0: every frame succeeds, so every take starts solved and shows nothing."""
+    for env in ("pusht", "world-model"):
+        stats = record(env, tmp_path / f"{env}.zarr", wm_path, episodes=1, max_attempts=2, takeover=learned,
+                       takeover_steps=(1, 3))
+        store = EpisodeStore.open(tmp_path / f"{env}.zarr")
+        assert (stats.episodes, stats.candidates, store.attrs["handover_steps"]) == (0, 2, []), env
+
+
+def test_takeover_refuses_bad_steps_another_frame_size_and_another_stores_recipe(learned, wm_path, tmp_path):
+    bad = tmp_path / "bad.zarr"
+    for steps in ((5, 3), (0, 6), (-1, 2), (1, 2, 3), (1.0, 2)):
+        with pytest.raises(ValueError, match=r"^takeover_steps must be two steps lo, hi with 0 <= lo <= hi < steps "
+                                             rf"\(6\), got {re.escape(repr(steps))}\.$"):
+            record("pusht", bad, wm_path, takeover=learned, takeover_steps=steps)
+    with pytest.raises(ValueError, match="takeover_steps must be"):
+        DemoRecipe(steps=10, takeover="run", takeover_steps=(2, 10))
+    DemoRecipe(steps=10)  # without takeover, takeover_steps is not used
+    with pytest.raises(ValueError, match=r"^takeover does not combine with dart_noise; got dart_noise=0.01, "
+                                         r"expected 0\.$"):
+        record("pusht", bad, wm_path, takeover=learned, takeover_steps=(1, 2), dart_noise=0.01)
+    with pytest.raises(ValueError, match="takeover does not combine with dart_noise"):
+        DemoRecipe(takeover="run", dart_noise=0.01)
+    with pytest.raises(ValueError, match=rf"^takeover policy {re.escape(str(learned))} was trained on 64x64 frames; "
+                                         "the store holds 96x96 ones.$"):
+        record("pusht", bad, wm_path, takeover=learned, takeover_steps=(1, 2), image_size=96)
+    assert not bad.exists()
+    # a store is extended only with its own recipe's takes
+    taken = tmp_path / "taken.zarr"
+    record("pusht", taken, wm_path, episodes=1, max_attempts=1, takeover=learned, takeover_steps=(1, 2))
+    with pytest.raises(ValueError, match=r"takeover_steps=\[1, 2\], not takeover_steps=\[1, 3\]; choose"):
+        record("pusht", taken, wm_path, takeover=learned, takeover_steps=(1, 3))
+    with pytest.raises(ValueError, match=rf"takeover='{re.escape(str(learned))}', takeover_sha256='[0-9a-f]{{16}}', "
+                                         r"takeover_steps=\[1, 2\], not takeover=None, takeover_sha256=None, "
+                                         r"takeover_steps=None; choose another store.$"):
+        record("pusht", taken, wm_path)
+    plain = tmp_path / "plain.zarr"  # and a store without takeover, one written before takeovers too, likewise
+    record("pusht", plain, wm_path, episodes=1, batch=1)
+    with pytest.raises(ValueError, match="takeover=None, takeover_sha256=None, takeover_steps=None, not takeover="):
+        record("pusht", plain, wm_path, takeover=learned, takeover_steps=(1, 2))
+    attrs = zarr.open_group(plain, mode="r+").attrs
+    for k in ("takeover", "takeover_sha256", "takeover_steps"):
+        del attrs[k]
+    assert record("pusht", plain, wm_path, episodes=2, batch=1).added == 1

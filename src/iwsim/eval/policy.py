@@ -207,6 +207,12 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
 RECORD_BATCH = 16  # episodes a learned policy records in lockstep (one batched forward pass per query)
 
 
+def seed_sampling(seeds: list[int]) -> None:
+    """Seed a learned policy's sampling noise (torch's global generator) for the batch of
+    episodes ``seeds`` from its first seed, so the same batch records the same episodes."""
+    torch.manual_seed(seeds[0])
+
+
 def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int | None = None,
              batch: int = RECORD_BATCH) -> Recorder:
     """``policy``'s episodes in MuJoCo, as :func:`iwsim.data.collect.collect` records them
@@ -222,7 +228,7 @@ def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int | Non
     def record(seeds: list[int]) -> Iterator[dict[str, np.ndarray]]:
         for i in range(0, len(seeds), batch):
             chunk = seeds[i:i + batch]
-            torch.manual_seed(chunk[0])
+            seed_sampling(chunk)
             run = rollout(policy, task, chunk, steps, image_size=image_size, record=len(chunk), progress=False,
                           keep=keep)
             for e in range(len(chunk)):

@@ -169,10 +169,11 @@ def check_study_model(world_model: str | os.PathLike | None, task: Task = STUDY)
 
 
 def fingerprint(world_model: str | os.PathLike) -> str:
-    """A short content hash of a world-model checkpoint (its weights and config) and of the
-    environment's :data:`~iwsim.world_model_env.OBSERVATION_VERSION`, so that
-    demonstrations and evaluations of a retrained model at the same path, or of an
-    environment that observes otherwise, are told apart."""
+    """A short content hash of a world-model checkpoint (its weights and config; or of a
+    policy checkpoint, the same files) and of the environment's
+    :data:`~iwsim.world_model_env.OBSERVATION_VERSION`, so that demonstrations and
+    evaluations of a retrained model at the same path, or of an environment that observes
+    otherwise, are told apart."""
     h = hashlib.sha256(f"observation {OBSERVATION_VERSION}".encode())
     for name in ("config.json", "model.safetensors"):
         path = Path(world_model) / name

@@ -30,6 +30,15 @@ episodes would be mostly that hold, and imitation learning would spend most of i
 samples on "stand still once the T is placed", a state the policy rarely reaches before
 its horizon ends. ``tail=None`` keeps whole episodes. The same rule applies in both envs.
 
+Takeover (HG-DAgger, Kelly et al. 2019, after DAgger, Ross et al. 2011): with ``takeover``
+a trained policy drives candidate i until its handover step ``h_i`` (drawn from its seed in
+``takeover_steps``), and the expert, started afresh on the state the policy left, from then
+on. Only the expert's part (steps ``h_i`` on) is stored and judged: a take is kept when its
+score is below ``accept_iou`` at ``h_i`` (a take that starts solved shows nothing) and
+reaches it later, ``tail`` counted from that success. The takes start from the states the
+learned policy reaches, which the expert's own takes never visit (Diffusion Policy carries
+the T onto the goal turned by 45-90 degrees and never finishes the turn).
+
 Per step (the layout of ``iwsim play``'s recorder and ``iwsim collect``): ``img`` (T, H,
 W, 3) uint8, the frame before action t; ``state`` (T, 4) float32, agent_pos (read from the
 pixels in the world model); ``action`` (T, 4) float32, the command; ``target`` (T, 4)
@@ -37,7 +46,9 @@ float32, the speed-limited setpoints action t executed (``info["target"]``); the
 pixel score (T,) float32, named as the world model's ``info`` names it (T-push's ``iou``,
 another task's ``score``). Attributes: the task spec (as ``iwsim collect``), the
 policy (``world-model-teleop`` or ``expert-pixels``), the demonstrator, the world-model
-checkpoint, the acceptance rule and the candidates tried with their scores.
+checkpoint, the acceptance rule and the candidates tried with their scores; with takeover,
+the policy's checkpoint, its fingerprint, ``takeover_steps`` and each kept take's
+``handover_steps``.
 
 Resuming: the store is appended to under its lock; a rerun with the same arguments (or
 more ``episodes`` / ``max_attempts``) continues from the first candidate not yet tried.
@@ -67,9 +78,11 @@ from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs import IMAGE_SIZES
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
-from iwsim.eval.policy import ENVS, MAX_SEED, WORLD_MODEL, rollout
+from iwsim.eval.policy import ENVS, MAX_SEED, WORLD_MODEL, rollout, seed_sampling
 from iwsim.experiments.common import STUDY, fingerprint
 from iwsim.play.engine import episode_keys
+from iwsim.policies.common import Policy
+from iwsim.policies.factory import checkpoint_dir, load_policy
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.tasks import ANY_EXPERTS, REGISTRY, get_task, task_of
 from iwsim.world_model import WorldModel
@@ -83,9 +96,11 @@ POLICY_NAMES = {WORLD_MODEL: "world-model-teleop", "simulator": "expert-pixels"}
 SOURCES = {WORLD_MODEL: "world_model", "simulator": "mujoco"}
 # Attributes that must agree before a run may append to an existing store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world_model_sha256", "first_seed",
-                  "accept_iou", "tail_steps", "dart_noise", "start", "demonstrator")
+                  "accept_iou", "tail_steps", "dart_noise", "start", "demonstrator", "takeover",
+                  "takeover_sha256", "takeover_steps")
 # What stores written before an attribute existed hold.
-OLDER_ATTRS = {"dart_noise": 0.0, "start": "random", "demonstrator": "expert"}
+OLDER_ATTRS = {"dart_noise": 0.0, "start": "random", "demonstrator": "expert", "takeover": None,
+               "takeover_sha256": None, "takeover_steps": None}
 # What a recipe may name, over every registered task (a recording checks its own task's).
 ANY_STARTS = tuple(dict.fromkeys(s for make in REGISTRY.values() for s in make().starts))
 EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
@@ -108,6 +123,8 @@ class DemoRecipe:
     dart_noise: float = 0.0  # std (m) of the noise added to the executed commands; the clean ones are recorded
     start: str = "random"  # MuJoCo's initial states (the task's starts): T-push's "goal-turned" records recoveries
     demonstrator: str = "expert"  # the pixel expert that records (the task's pixel_experts): T-push's "expert-wide"
+    takeover: str | None = None  # a trained policy (checkpoint or run) that drives until the expert takes over
+    takeover_steps: tuple[int, int] = (40, 200)  # the range of steps the expert takes over at (with takeover)
 
     def __post_init__(self) -> None:
         positive = {"demo_steps": self.steps, "demo_batch": self.batch}
@@ -124,6 +141,8 @@ class DemoRecipe:
         _check_noise(self.dart_noise)
         _check_choice("start", self.start, ANY_STARTS)
         _check_choice("demonstrator", self.demonstrator, ANY_EXPERTS)
+        if self.takeover is not None:
+            _check_takeover(self.takeover_steps, self.steps, self.dart_noise)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -160,15 +179,21 @@ class DemoStats:
 
 def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, seed: int, accept_iou: float,
                tail: int | None, dart_noise: float = 0.0, start: str = "random",
-               demonstrator: str = "expert", task: Task = PUSHT) -> dict[str, Any]:
+               demonstrator: str = "expert", task: Task = PUSHT, takeover: str | None = None,
+               takeover_steps: tuple[int, int] = (40, 200)) -> dict[str, Any]:
     """Root attributes of a demonstration store of ``task``: ``iwsim collect``'s (the task
-    spec, policy, steps, ...) plus the teleoperator, the source and the acceptance rule."""
+    spec, policy, steps, ...) plus the teleoperator, the source and the acceptance rule (and
+    with ``takeover`` the policy that drives first, its fingerprint and ``takeover_steps``)."""
     where = WORLD_MODEL if env == WORLD_MODEL else "simulator"
     return {**store_attrs(task.kind, POLICY_NAMES[where], steps, image_size), "source": SOURCES[where],
             "world_model": world_model, "world_model_sha256": None if world_model is None else fingerprint(world_model),
             "teleoperator": f"{demonstrator} ({task.pixel_reading} from pixels)", "demonstrator": demonstrator,
             "keys": list(episode_keys(task)), "first_seed": seed, "accept_iou": accept_iou, "tail_steps": tail,
             "dart_noise": dart_noise, "start": start,
+            "takeover": takeover,
+            "takeover_sha256": None if takeover is None else fingerprint(checkpoint_dir(takeover)),
+            "takeover_steps": None if takeover is None else list(takeover_steps),
+            **({} if takeover is None else {"handover_steps": []}),
             "candidates_tried": 0, "candidate_max_iou": [], "acceptance_rate": None, "record_seconds": 0.0}
 
 
@@ -177,6 +202,7 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                  tail: int | None = 10,
                  batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
                  dart_noise: float = 0.0, start: str = "random", demonstrator: str = "expert",
+                 takeover: str | os.PathLike | None = None, takeover_steps: tuple[int, int] = (40, 200),
                  image_size: int | None = None, progress: bool = True,
                  wait_for_lock: bool = False) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
@@ -194,11 +220,17 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     chooses MuJoCo's initial states (the task's ``starts``; T-push's "goal-turned": the
     block on the goal's position but turned, so the takes show the turn a policy that only
     carries is missing; MuJoCo only). ``demonstrator``: the pixel expert that records (the
-    task's ``pixel_experts``; a store holds one demonstrator's takes). Returns the store's
-    :class:`DemoStats`."""
+    task's ``pixel_experts``; a store holds one demonstrator's takes). ``takeover``: a
+    trained policy (checkpoint or run, of the store's frame size) drives each candidate
+    until a step drawn from its seed in ``takeover_steps`` (lo, hi; 0 <= lo <= hi < steps),
+    then the demonstrator takes over and only its part is stored (HG-DAgger, Kelly et al.
+    2019; see the module docstring): takes from the states a learned policy reaches. Returns
+    the store's :class:`DemoStats`."""
     max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
     _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, image_size)
     _check_noise(dart_noise)
+    if takeover is not None:
+        _check_takeover(takeover_steps, steps, dart_noise)
     if env == WORLD_MODEL and start != "random":
         raise InputError(f"start={start!r} chooses MuJoCo's initial states; the world model starts from random ones.")
     model = None
@@ -212,13 +244,33 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
         _check_choice("start", start, task.starts)
     _check_choice("demonstrator", demonstrator, task.pixel_experts)
     assert image_size is not None  # a task with a simulator has a frame size
+    policy = None if takeover is None else _takeover_policy(takeover, task, image_size)
     wm_name = None if world_model is None or env != WORLD_MODEL else os.fspath(world_model)
     attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise), start,
-                       demonstrator, task)
+                       demonstrator, task, None if takeover is None else os.fspath(takeover), takeover_steps)
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs, task),
                                      wait=wait_for_lock) as store:
         return _record_into(store, env, model, task, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
-                            give_up_after, float(dart_noise), start, demonstrator, progress)
+                            give_up_after, float(dart_noise), start, demonstrator, policy, takeover_steps, progress)
+
+
+def _takeover_policy(path: str | os.PathLike, task: Task, image_size: int) -> Policy:
+    """The trained policy at ``path``, which must act on ``task``'s frames of ``image_size``."""
+    policy = load_policy(Path(path))
+    if policy.task is not None and policy.task.name != task.name:
+        raise InputError(f"takeover policy {os.fspath(path)} was trained on task {policy.task.name!r}, not "
+                         f"{task.name!r}.")
+    if policy.image_size != image_size:
+        raise InputError(f"takeover policy {os.fspath(path)} was trained on {policy.image_size}x{policy.image_size} "
+                         f"frames; the store holds {image_size}x{image_size} ones.")
+    return policy
+
+
+def handover_step(seed: int, takeover_steps: tuple[int, int]) -> int:
+    """The step at which the expert takes over candidate ``seed``: uniform in
+    ``takeover_steps`` (lo, hi), drawn from the seed (so a rerun hands over where it did)."""
+    lo, hi = takeover_steps
+    return int(np.random.default_rng([seed, 44]).integers(lo, hi + 1))
 
 
 class _NoisyExecution:
@@ -242,6 +294,43 @@ class _NoisyExecution:
         return np.clip(clean + noise, self.task.action_low, self.task.action_high).astype(np.float32)
 
 
+class _Takeover:
+    """A learned ``policy`` drives candidate ``seeds[i]`` until its :func:`handover_step`
+    ``handover[i]``, the pixel ``demonstrator`` from then on, made afresh at the handover so
+    its manoeuvre starts from the state the policy left. Queried every step (one action per
+    call), it keeps the policy's chunks as :func:`~iwsim.eval.policy.rollout` would."""
+
+    n_action_steps = 1
+
+    def __init__(self, policy: Policy, seeds: list[int], takeover_steps: tuple[int, int], demonstrator: str,
+                 task: Task) -> None:
+        self.policy, self.demonstrator, self.task = policy, demonstrator, task
+        self.obs_horizon = policy.obs_horizon
+        self.handover = np.array([handover_step(s, takeover_steps) for s in seeds])
+
+    def reset(self) -> None:
+        self.policy.reset()
+        self.t = 0
+        self.queue: list[np.ndarray] = []
+        self.experts: list[ScriptedBatch | None] = [None] * len(self.handover)
+
+    def predict_action(self, obs: dict) -> np.ndarray:
+        """obs: image (B, To, H, W, 3) uint8, agent_pos (B, To, S) -> actions (B, 1, A)."""
+        action = np.zeros((len(self.handover), self.task.action_dim), np.float32)
+        if self.t < self.handover.max():  # the policy still drives some candidate
+            if not self.queue:
+                self.queue = list(self.policy.predict_action(obs).transpose(1, 0, 2))  # (B, Ta, A) -> Ta x (B, A)
+            action[:] = self.queue.pop(0)
+        for i in np.flatnonzero(self.handover <= self.t):
+            expert = self.experts[i]
+            if expert is None:
+                expert = self.experts[i] = ScriptedBatch(self.demonstrator, self.task)
+            now = {"image": obs["image"][i:i + 1, -1:], "agent_pos": obs["agent_pos"][i:i + 1, -1:]}
+            action[i] = expert.predict_action(now)[0, 0]
+        self.t += 1
+        return action[:, None]
+
+
 def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, recipe: DemoRecipe, *,
                 world_model: str | os.PathLike | None = None, image_size: int | None = None,
                 progress: bool = True) -> DemoStats:
@@ -253,7 +342,8 @@ def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, reci
                         tail=recipe.tail, batch=recipe.batch,
                         max_attempts=math.ceil(recipe.attempts_per_demo * episodes),
                         give_up_after=recipe.give_up_after, dart_noise=recipe.dart_noise, start=recipe.start,
-                        demonstrator=recipe.demonstrator, progress=progress)
+                        demonstrator=recipe.demonstrator, takeover=recipe.takeover,
+                        takeover_steps=recipe.takeover_steps, progress=progress)
 
 
 def simulator_store(work: str | os.PathLike, demonstrator: str = "expert") -> Path:
@@ -275,7 +365,8 @@ def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
 def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: Task, episodes: int, steps: int,
                  seed: int,
                  accept_iou: float, tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
-                 dart_noise: float, start: str, demonstrator: str, progress: bool) -> DemoStats:
+                 dart_noise: float, start: str, demonstrator: str, takeover: Policy | None,
+                 takeover_steps: tuple[int, int], progress: bool) -> DemoStats:
     a = store.attrs
     # the candidates tried; a run killed between an append and the attribute update below
     # re-tries the rejected candidates after the last kept one (deterministic, so harmless)
@@ -299,9 +390,16 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: 
         n = min(batch, max_attempts - tried, math.ceil((episodes - store.n_episodes) / rate))
         seeds = [seed + tried + i for i in range(n)]
         t0 = time.perf_counter()
-        scores = _Scores(task, n, accept_iou, tail)
-        expert = (_NoisyExecution(dart_noise, seeds, demonstrator, task) if dart_noise else
-                  ScriptedBatch(demonstrator, task))
+        expert: ScriptedBatch | _NoisyExecution | _Takeover
+        if takeover is not None:
+            expert = _Takeover(takeover, seeds, takeover_steps, demonstrator, task)
+            seed_sampling(seeds)  # the policy's sampling noise: a rerun records the same takes
+        elif dart_noise:
+            expert = _NoisyExecution(dart_noise, seeds, demonstrator, task)
+        else:
+            expert = ScriptedBatch(demonstrator, task)
+        handover = expert.handover if isinstance(expert, _Takeover) else np.zeros(n, int)
+        scores = _Scores(task, handover, accept_iou, tail)
         run = rollout(expert, env, seeds, steps, world_model=model,
                       image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores, start=start)
         if isinstance(expert, _NoisyExecution):  # dart_noise
@@ -309,15 +407,18 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: 
         ious = np.stack([_pixel_score(task, run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
         for i, s in enumerate(seeds):
             tried += 1
-            max_ious.append(round(float(ious[i].max()), 4))
-            if ious[i].max() >= accept_iou:
-                store.append(_episode(run, ious, i, accept_iou, tail, score_key(task)), seed=s)
+            take = ious[i, handover[i]:]  # the expert's part; a take that starts solved shows nothing
+            max_ious.append(round(float(take.max()), 4))
+            if take.max() >= accept_iou and (takeover is None or take[0] < accept_iou):
+                store.append(_episode(run, ious, i, accept_iou, tail, score_key(task), handover[i]), seed=s)
                 bar.update()
                 if store.n_episodes >= episodes:
                     break
         seconds += time.perf_counter() - t0
+        handovers = {} if takeover is None else {
+            "handover_steps": [handover_step(s, takeover_steps) for s in store.seeds if s is not None]}
         store.update_attrs({"candidates_tried": tried, "candidate_max_iou": max_ious, "record_seconds": seconds,
-                            "acceptance_rate": store.n_episodes / tried})
+                            "acceptance_rate": store.n_episodes / tried, **handovers})
         bar.set_postfix_str(f"{tried} tried, {100 * store.n_episodes / tried:.0f}% kept")
     bar.close()
     lengths = np.diff(store.episode_ends, prepend=0)
@@ -346,32 +447,34 @@ def _pixel_score(task: Task, frames: np.ndarray) -> np.ndarray:
 
 class _Scores:
     """The rollout's ``stop``: scores each step's frames (``task``'s pixel score) and ends the
-    batch once every episode has run ``tail`` steps past its first frame that reaches
-    ``accept_iou`` (no episode of the batch would record more; never with ``tail=None``)."""
+    batch once every episode has run ``tail`` steps past its first frame from its ``handover``
+    step on that reaches ``accept_iou`` (no episode of the batch would record more; never
+    with ``tail=None``)."""
 
-    def __init__(self, task: Task, n: int, accept_iou: float, tail: int | None) -> None:
-        self.task, self.accept_iou, self.tail = task, accept_iou, tail
+    def __init__(self, task: Task, handover: np.ndarray, accept_iou: float, tail: int | None) -> None:
+        self.task, self.handover, self.accept_iou, self.tail = task, handover, accept_iou, tail
         self.ious: list[np.ndarray] = []  # (n,) per step, from step 1
-        self.first = np.full(n, np.inf)  # first step whose frame reached accept_iou
+        self.first = np.full(len(handover), np.inf)  # first step from the handover whose frame reached accept_iou
 
     def __call__(self, obs: dict[str, np.ndarray]) -> bool:
         self.ious.append(np.atleast_1d(_pixel_score(self.task, obs["pixels"])))
         t = len(self.ious)
-        self.first = np.where(np.isinf(self.first) & (self.ious[-1] >= self.accept_iou), t, self.first)
+        reached = (self.ious[-1] >= self.accept_iou) & (t >= self.handover)
+        self.first = np.where(np.isinf(self.first) & reached, t, self.first)
         return self.tail is not None and bool(np.all(self.first + self.tail <= t))
 
 
 def _episode(run: dict[str, Any], ious: np.ndarray, i: int, accept_iou: float, tail: int | None,
-             key: str) -> dict[str, np.ndarray]:
+             key: str, handover: int = 0) -> dict[str, np.ndarray]:
     """Episode ``i`` of a rollout in the store's layout (its pixel scores ``ious`` under
-    ``key``), cut ``tail`` steps after its first frame scoring >= ``accept_iou`` (whole with
-    ``tail=None``)."""
-    first = int(np.argmax(ious[i] >= accept_iou))
+    ``key``) from step ``handover``, cut ``tail`` steps after its first frame from there
+    scoring >= ``accept_iou`` (to the end with ``tail=None``)."""
+    first = handover + int(np.argmax(ious[i, handover:] >= accept_iou))
     steps = run["action"].shape[1]  # the steps run (a batch stops once no episode needs more)
     t = steps if tail is None else min(first + tail, steps)
-    return {"img": run["frames"][i, :t], "state": run["agent_pos"][i, :t].astype(np.float32),
-            "action": run["action"][i, :t].astype(np.float32), "target": run["target"][i, :t].astype(np.float32),
-            key: ious[i, :t]}
+    return {"img": run["frames"][i, handover:t], "state": run["agent_pos"][i, handover:t].astype(np.float32),
+            "action": run["action"][i, handover:t].astype(np.float32),
+            "target": run["target"][i, handover:t].astype(np.float32), key: ious[i, handover:t]}
 
 
 def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any, accept_iou: float,
@@ -397,6 +500,15 @@ def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any
 def _check_noise(noise: float) -> None:
     if not (isinstance(noise, (int, float)) and math.isfinite(noise) and noise >= 0):
         raise InputError(f"dart_noise must be a finite number of metres >= 0, got {noise!r}.")
+
+
+def _check_takeover(takeover_steps: Any, steps: int, dart_noise: float) -> None:
+    lo, hi = takeover_steps if isinstance(takeover_steps, (tuple, list)) and len(takeover_steps) == 2 else (None, None)
+    if not (isinstance(lo, int) and isinstance(hi, int) and 0 <= lo <= hi < steps):
+        raise InputError(f"takeover_steps must be two steps lo, hi with 0 <= lo <= hi < steps ({steps}), "
+                         f"got {takeover_steps!r}.")
+    if dart_noise:
+        raise InputError(f"takeover does not combine with dart_noise; got dart_noise={dart_noise!r}, expected 0.")
 
 
 def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
