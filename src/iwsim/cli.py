@@ -205,7 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_bench)
 
     p = sub.add_parser("demo", help="the shipped world model next to MuJoCo under the scripted expert, as a video")
-    p.add_argument("--checkpoint", default=TASK.checkpoint, help="world model (default: %(default)s)")
+    p.add_argument("--task", default=TASK.kind, help=f"task: {', '.join(TASKS)} (default: %(default)s)")
+    p.add_argument("--checkpoint", help=f"world model of the task (default: the task's shipped one, {TASK.checkpoint} "
+                   f"for {TASK.kind})")
     p.add_argument("--seed", type=int, default=100000,
                    help="MuJoCo initial state; training data uses seeds below 100000 (default: %(default)s)")
     p.add_argument("--steps", type=int, default=192, help="steps (default: %(default)s)")

@@ -49,7 +49,6 @@ TASK_IMPORTERS = ("iwsim.envs", "iwsim.tasks")  # envs/ itself and the Task regi
 GROUND_TRUTH_TOOLING = {
     "iwsim.policies.scripted": "the tasks' scripted policies behind the policy interface, degraded as the tabletop's "
                                "(iwsim.envs.scripting.Degraded)",
-    "iwsim.eval.rollout": "against_mujoco: a scripted expert's take in MuJoCo beside the model's",
     "iwsim.eval.profiling": "the yardstick's measures of T-push's objects (block pose, pushers)",
 }
 

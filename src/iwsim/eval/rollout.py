@@ -12,12 +12,11 @@ import numpy as np
 
 from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
-from iwsim.envs.scripted import run_scripted
 from iwsim.errors import InputError
 from iwsim.eval.figures import plot_psnr
 from iwsim.eval.video import score_bar, upscale, write_video
 from iwsim.metrics import psnr, ssim
-from iwsim.tasks import get_task, task_of
+from iwsim.tasks import task_of
 from iwsim.world_model import WorldModel
 
 
@@ -79,19 +78,20 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
 
 def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert", noise_seed: int = 0,
                    progress: bool = False) -> OpenLoop:
-    """Roll ``wm`` out from the MuJoCo task's initial frame for ``seed`` under a scripted
-    policy's actions (the policy sees MuJoCo), against MuJoCo's frames of the same actions;
-    the model is conditioned on the motion MuJoCo executed (``info["target"]``)."""
+    """Roll ``wm`` out from its task's simulator's initial frame for ``seed`` under a
+    scripted policy's actions (the policy sees the simulator), against the simulator's
+    frames of the same actions; the model is conditioned on the motion the simulator
+    executed (the recorded ``target``)."""
     if steps < 1:
         raise InputError(f"steps must be >= 1, got {steps}.")
-    run = list(run_scripted(policy, seed, steps, "pusht", wm.image_size))
-    first = run[0].obs["pixels"]
-    truth_v = np.stack([tr.next_obs["pixels"] for tr in run])[None]
-    actions = np.stack([tr.next_info["target"] for tr in run])[None]
-    pred = wm.rollout(first[None], actions, seed=noise_seed, progress=progress)
-    p, s = frame_scores(truth_v, pred)
-    pusht = get_task("pusht")
-    return OpenLoop([seed], truth_v, pred, p, s, pusht.score(truth_v), pusht.score(pred))
+    task = task_of(wm)
+    if not task.has_ground_truth:
+        raise InputError(f"the world model's task {task.name!r} has no simulator to compare it with.")
+    ep = task.record_episode(policy, seed, steps + 1, wm.image_size)  # frames 0..steps and the actions between
+    truth = ep["img"][None, 1:]
+    pred = wm.rollout(ep["img"][None, 0], ep["target"][None, :steps], seed=noise_seed, progress=progress)
+    p, s = frame_scores(truth, pred)
+    return OpenLoop([seed], truth, pred, p, s, task.score(truth), task.score(pred))
 
 
 def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10.0, scale: int = 4) -> Path:
