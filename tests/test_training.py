@@ -218,7 +218,7 @@ def test_resume_falls_back_past_a_truncated_newest_checkpoint(play_store, tmp_pa
         train_autoencoder(tiny(6), play_store, b, device=cpu, progress=False)
 
 
-def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_weights(play_store, tmp_path,
+def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_weights(play_store, tmp_path, capsys,
                                                                                      one_thread):
     """``train dynamics --init``: the world model's autoencoder, action and latent
     normalisation and network are kept (even on data with other action ranges), training
@@ -246,6 +246,14 @@ def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_w
     assert_same(wm.dynamics.state_dict(), init.dynamics.state_dict(), atol=1e-6, rtol=0)
     config = json.loads((tuned / "config.json").read_text())
     assert config["init"].endswith("last") and config["stage2"]["unroll"] == [[0, 2]]
+    # --dry-run prints what the run trains: the model's own config, its window widened by --context.
+    capsys.readouterr()
+    assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--context", "4",
+                 "--out", str(tmp_path / "wide"), "--steps", "3", "--dry-run", *flags]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["dynamics"]["context"] == 4 and printed["unroll"] == [[0, 2]] and printed["train"]["steps"] == 3
+    assert printed["dynamics"]["channels"] == init.cfg.dynamics.channels
+    assert not (tmp_path / "wide").exists()
     # --context widens the window: the older latents start unheard, the rest as it was.
     assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--context", "4",
                  "--out", str(tmp_path / "wide"), "--steps", "1", "--lr", "1e-12", *flags]) == 0

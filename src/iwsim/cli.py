@@ -7,7 +7,7 @@ import logging
 import math
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from iwsim.errors import EXIT_USER_ERROR, InputError, reporting_errors
@@ -486,9 +486,10 @@ def _check_positive(args: argparse.Namespace, *names: str) -> None:
             raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
 
 
-def _resolve_preset(args: argparse.Namespace, presets: dict[str, C]) -> C | None:
+def _resolve_preset(args: argparse.Namespace, presets: dict[str, C],
+                    trained: Callable[[C], Any] | None = None) -> C | None:
     """The preset named by --preset with --steps/--batch-size/--seed (and --variant) applied; prints it
-    and returns None under --dry-run."""
+    (``trained(preset)``, the config the run trains with, when given) and returns None under --dry-run."""
     import dataclasses
     import json
 
@@ -510,7 +511,7 @@ def _resolve_preset(args: argparse.Namespace, presets: dict[str, C]) -> C | None
 
         cfg = variant(cfg, args.variant)
     if args.dry_run:
-        print(json.dumps({"preset": args.preset, **to_dict(cfg)}, indent=2))
+        print(json.dumps({"preset": args.preset, **to_dict(cfg if trained is None else trained(cfg))}, indent=2))
         return None
     _check_batch_memory(args.train_command, cfg.train.batch_size, args.data)
     return cfg
@@ -564,11 +565,17 @@ def _train_dynamics(args: argparse.Namespace) -> int:
         raise InputError("--variant applies to training from scratch; --init keeps the model's own objective "
                          "and network.")
     _check_positive(args, "context")
-    cfg = _resolve_preset(args, DYNAMICS_PRESETS)
+    from iwsim.world_model.train_dynamics import run_config, train_dynamics
+
+    def trained(cfg: Any) -> Any:  # what --init and --context make of the preset
+        from iwsim.world_model import WorldModel
+
+        return run_config(cfg, None if args.init is None else WorldModel.load(args.init), args.context)
+
+    cfg = _resolve_preset(args, DYNAMICS_PRESETS, trained)
     if cfg is None:
         return 0
     from iwsim.training.trainer import resolve_device
-    from iwsim.world_model.train_dynamics import train_dynamics
 
     _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
                                   force=args.force, progress=not args.no_progress, latent_cache=args.latent_cache,

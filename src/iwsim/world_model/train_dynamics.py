@@ -132,6 +132,19 @@ def write_rollout_strip(path: Path, truth: torch.Tensor, frames: torch.Tensor) -
     imageio.imwrite(path, np.concatenate(rows, axis=0))
 
 
+def run_config(cfg: DynamicsStageConfig, init: WorldModel | None = None,
+               context: int | None = None) -> DynamicsStageConfig:
+    """The stage-2 config a run trains with: ``cfg``; for a fine-tune of ``init``, the model's
+    own (network, objective, context noise) with ``cfg.train``, its unroll curriculum at its
+    longest; with ``context`` latents in the window when given."""
+    if init is not None:
+        longest = max(n for _, n in init.cfg.unroll) if init.cfg.unroll else 1
+        cfg = replace(init.cfg, train=cfg.train, unroll=((0, longest),))
+    if context is not None:
+        cfg = replace(cfg, dynamics=replace(cfg.dynamics, context=context))
+    return cfg
+
+
 class DynamicsTask:
     """Stage 2 for the generic training loop: the data (:class:`DynamicsData`), the loss
     module, open-loop evaluation of held-out episodes, and the world model it exports.
@@ -151,11 +164,8 @@ class DynamicsTask:
         if init is not None:
             init = resolve_checkpoint(init)  # a checkpoint, or a run's last one
             wm = WorldModel.load(init, device)
-            longest = max(n for _, n in wm.cfg.unroll) if wm.cfg.unroll else 1
-            cfg = replace(wm.cfg, train=cfg.train, unroll=((0, longest),))  # its objective, noise, ...
             ae_path = init
-        if context is not None:
-            cfg = replace(cfg, dynamics=replace(cfg.dynamics, context=context))
+        cfg = run_config(cfg, wm, context)
         if ae_path is None:
             raise InputError("a dynamics task needs a stage-1 checkpoint (ae_path) or a world model to fine-tune "
                              "(init).")
