@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from iwsim.checkpoint import load_json, resolve_checkpoint, write_json_atomic, write_text_atomic
+from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
 from iwsim.data.store import EpisodeStore
 from iwsim.envs.pilesweep_pixels import count_pieces
 from iwsim.errors import InputError, reporting_errors
@@ -223,13 +223,9 @@ def main(argv: list[str] | None = None) -> int:
     for flag in ("episodes", "horizon", "rank_episodes", "teleop_episodes", "speed_calls", "threads"):
         if getattr(args, flag) < 1:
             p.error(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
-    models = {}
-    for item in args.models:
-        name, sep, path = item.partition("=")
-        if not sep or not name:
-            p.error(f"--models takes NAME=CHECKPOINT, got {item!r}")
-        models[name] = str(resolve_checkpoint(path))
-        check_model_task(WorldModel.load(models[name]), TASK, f"--models {item}")
+    models = named_checkpoints(args.models)
+    for name, ckpt in models.items():
+        check_model_task(WorldModel.load(ckpt), TASK, f"--models {name}={ckpt}")
     play = check_store(args.data, args.episodes, args.horizon)
     expert = check_store(args.expert_data, args.episodes, args.horizon, need="n_in_tray")
     set_threads(args.threads)

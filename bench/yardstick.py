@@ -51,7 +51,7 @@ import torch
 from ablate_dynamics import Episodes, score
 from wm_studies_check import TELEOP_SEED, strip, teleop
 
-from iwsim.checkpoint import load_json, resolve_checkpoint, write_json_atomic, write_text_atomic
+from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
 from iwsim.data.store import EpisodeStore
 from iwsim.envs import pixels
 from iwsim.errors import reporting_errors
@@ -368,12 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     set_threads(args.threads)
     torch.manual_seed(0)
     work, out = Path(args.work), Path(args.out)
-    models = {}
-    for item in args.models:
-        name, sep, path = item.partition("=")
-        if not sep or not name:
-            p.error(f"--models takes NAME=CHECKPOINT, got {item!r}")
-        models[name] = str(resolve_checkpoint(path))
+    models = named_checkpoints(args.models)
     try:
         seen = parse_seen(args.trained_on, models)
     except ValueError as e:

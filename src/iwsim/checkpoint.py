@@ -30,7 +30,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from iwsim.errors import IwsimError
+from iwsim.errors import InputError, IwsimError
 from iwsim.resources import human_bytes, read_capped, require_memory
 
 # What each ``config.json`` kind holds, for messages.
@@ -163,6 +163,19 @@ def resolve_checkpoint(path: str | Path) -> Path:
                               f"nor a run directory with checkpoints{where}.")
     return last
 
+
+
+def named_checkpoints(items: list[str], flag: str = "--models") -> dict[str, str]:
+    """``NAME=CHECKPOINT`` items (a checkpoint, or a run: its last) -> {name: checkpoint
+    path}, in order, for the scripts that compare models; one line of error for an item
+    without a name."""
+    named = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name:
+            raise InputError(f"{flag} takes NAME=CHECKPOINT, got {item!r}.")
+        named[name] = str(resolve_checkpoint(path))
+    return named
 
 def optimizer_to_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """Split an optimizer's state_dict into tensors (for safetensors) and JSON metadata."""
