@@ -164,7 +164,6 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return last
 
 
-
 def named_checkpoints(items: list[str], flag: str = "--models") -> dict[str, str]:
     """``NAME=CHECKPOINT`` items (a checkpoint, or a run: its last) -> {name: checkpoint
     path}, in order, for the scripts that compare models; one line of error for an item
@@ -176,6 +175,7 @@ def named_checkpoints(items: list[str], flag: str = "--models") -> dict[str, str
             raise InputError(f"{flag} takes NAME=CHECKPOINT, got {item!r}.")
         named[name] = str(resolve_checkpoint(path))
     return named
+
 
 def optimizer_to_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """Split an optimizer's state_dict into tensors (for safetensors) and JSON metadata."""

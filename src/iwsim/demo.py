@@ -14,8 +14,9 @@ import logging
 from pathlib import Path
 
 from iwsim.errors import InputError
+from iwsim.eval.policy import check_model_task
 from iwsim.eval.rollout import against_mujoco, write_side_by_side
-from iwsim.tasks import get_task, task_of
+from iwsim.tasks import get_task
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)
@@ -29,8 +30,7 @@ def main(args: argparse.Namespace) -> int:
     if checkpoint is None:
         raise InputError(f"task {task.name!r} has no shipped world model yet; give one with --checkpoint.")
     wm = WorldModel.load(checkpoint)
-    if task_of(wm).name != task.name:
-        raise InputError(f"{checkpoint} is a world model of task {task_of(wm).name!r}, not {task.name!r}.")
+    check_model_task(wm, task, str(checkpoint))
     result = against_mujoco(wm, args.seed, args.steps, args.policy, progress=True)
     out = Path(args.out)
     video = write_side_by_side(result, out / "world_model_vs_mujoco.mp4")
