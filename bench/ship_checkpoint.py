@@ -56,6 +56,8 @@ def training_chain(old: dict, prov: dict, extends: str | None) -> dict:
     run (the same model recorded again), extended by that run with ``extends``."""
     source = Path(prov.get("source", "-"))
     run = source.parent.parent if source.parent.name == "checkpoints" else source
+    if run.is_absolute() and run.is_relative_to(Path.cwd()):  # export-model records absolute sources
+        run = run.relative_to(Path.cwd())
     if old and str(list(old.values())[-1].get("run", "")).split(" ")[0] == str(run):
         return old
     if not extends:

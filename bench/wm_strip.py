@@ -5,7 +5,7 @@ world model scores a learned policy far above MuJoCo.
 
     MUJOCO_GL=egl python bench/wm_strip.py \\
         --policy runs/experiments/policy_eval/runs/sim_expert-875c153b/dp-100demos/checkpoints/00003000 \\
-        --seed 100001 --out bench/results/experiments/policy_eval/dp_strip.png
+        --seed 100007 --steps 300 --every 30 --out bench/results/experiments/policy_eval/dp_strip.png
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The whole recipe of checkpoints/pusht-64, resumable: `make rebuild-pusht-64` (or `bash
-# checkpoints/pusht-64/recipe.sh`) from the repository's root. About 7.2 core-hours on a
+# checkpoints/pusht-64/recipe.sh`) from the repository's root. About 9 core-hours on a
 # 2-core CPU, one thread a job. Rerun it after an interruption, in this or a later session:
 # a collection appends only the episodes its store lacks, a training resumes exactly from
 # its last checkpoint, and a finished step is skipped. It ends with the rebuilt model in
@@ -16,11 +16,12 @@ PYTHON=${PYTHON:-python}
 OUT=${OUT:-runs/rebuild-pusht-64}
 DATA=${DATA:-data}
 if [ "${SCALE:-full}" = tiny ]; then
-    PLAY="--episodes 4 --steps 30" EXPERT="--episodes 3 --steps 30"
-    AE=2 DYN1=2 DYN2=4 DEC=2 FT1=2 FT2=2 FT3=2 BATCH="--batch-size 2"
+    PLAY="--episodes 4 --steps 30" EXPERT="--episodes 3 --steps 30" BROAD="--episodes 4 --steps 30"
+    HANDS="--episodes 3 --steps 30" AE=2 DYN1=2 DYN2=4 DEC=2 FT1=2 FT2=2 FT3=2 FT4=2 BATCH="--batch-size 2"
 else
     PLAY="--episodes 400 --steps 200" EXPERT="--episodes 300 --steps 150"
-    AE=1000 DYN1=5000 DYN2=10000 DEC=2000 FT1=1800 FT2=1200 FT3=1200 BATCH=""
+    BROAD="--episodes 600 --steps 200" HANDS="--episodes 300 --steps 150"
+    AE=1000 DYN1=5000 DYN2=10000 DEC=2000 FT1=1800 FT2=1200 FT3=1200 FT4=7200 BATCH=""
 fi
 mkdir -p "$OUT" "$DATA"
 step() { echo "== $(date +%H:%M:%S) $*"; }
@@ -65,9 +66,9 @@ export_once "$OUT/dyn_x8_contact" "$OUT/wm_contact_dec" --decoder "$OUT/dec_cont
 "$IWSIM" train dynamics --init "$OUT/dyn_contact_more" --data "$DATA/contact.zarr" --preset pusht-64 --steps $FT3 \
     $BATCH --lr 2e-4 --out "$OUT/dyn_contact_more2" --latent-cache "$OUT/latents_x8_contact.safetensors" --threads 1 \
     --no-progress
-step "the shipped model: the last fine-tune with rest_threshold 0.05 (issue 41)"
-export_once "$OUT/dyn_contact_more2" "$OUT/pusht-64"
-"$PYTHON" - "$OUT/pusht-64/config.json" <<'EOF'
+step "the last fine-tune with rest_threshold 0.05 (issue 41; the model shipped before this one)"
+export_once "$OUT/dyn_contact_more2" "$OUT/wm_contact_more2"
+"$PYTHON" - "$OUT/wm_contact_more2/config.json" <<'EOF'
 import json, os, sys
 path = sys.argv[1]
 config = json.load(open(path))
@@ -77,6 +78,20 @@ with open(path + ".tmp", "w") as f:
     f.write("\n")
 os.replace(path + ".tmp", path)
 EOF
+step "broad motion (issue 41): play-broad episodes (seeds 20000-20599), expert-hands (seeds 30000-30299), merged"
+"$IWSIM" collect --task pusht --policy play-broad $BROAD --image-size 64 --workers 2 --seed 20000 \
+    --out "$DATA/play_broad.zarr" --no-progress
+"$IWSIM" collect --task pusht --policy expert-hands $HANDS --image-size 64 --workers 2 --seed 30000 \
+    --out "$DATA/expert_hands.zarr" --no-progress
+if [ ! -d "$DATA/broad.zarr" ]; then
+    "$IWSIM" data merge "$DATA/contact.zarr" "$DATA/play_broad.zarr" "$DATA/expert_hands.zarr" \
+        --out "$DATA/broad.zarr" --no-progress
+fi
+step "the shipped model: a one-second window (10 latents) fine-tuned on the broad data, $FT4 steps, bf16"
+"$IWSIM" train dynamics --init "$OUT/wm_contact_more2" --context 10 --data "$DATA/broad.zarr" --preset pusht-64 \
+    --steps $FT4 $BATCH --lr 2e-4 --bf16 --out "$OUT/dyn_win10" --latent-cache "$OUT/latents_broad.safetensors" \
+    --threads 1 --no-progress
+export_once "$OUT/dyn_win10" "$OUT/pusht-64" --novelty-data "$DATA/broad.zarr"
 if [ "${YARDSTICK:-1}" != 0 ]; then
     step "its yardstick row"
     "$PYTHON" bench/yardstick.py --models rebuilt="$OUT/pusht-64" --out "$OUT/yardstick"
