@@ -77,6 +77,12 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
         64, latent_channels=8, channels=(16, 32, 64, 128), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
                                                     eval_every=250, checkpoint_every=250, ema_decay=0.995)),
+    # Issue 45: x8 cells (8 x 8 px) cannot hold a pile of 3 px pieces (bench/pile_codec.py:
+    # pieces kept within one in 0.4% of held-out play frames); x4 cells are 4 x 4 px.
+    "conv-x4-64": ConvCodecConfig(
+        64, latent_channels=8, channels=(16, 32, 64), blocks_per_level=2, foreground_weight=10.0,
+        latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
+                                                    eval_every=250, checkpoint_every=250, ema_decay=0.995)),
     "conv-x16-64": ConvCodecConfig(
         64, latent_channels=16, channels=(16, 32, 64, 128, 128), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
