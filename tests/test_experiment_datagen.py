@@ -526,3 +526,67 @@ def test_takeover_refuses_bad_steps_another_frame_size_and_another_stores_recipe
     for k in ("takeover", "takeover_sha256", "takeover_steps"):
         del attrs[k]
     assert record("pusht", plain, wm_path, episodes=2, batch=1).added == 1
+
+
+def test_the_demos_command_records_what_record_demos_does(learned, tmp_path, capsys):
+    """``iwsim demos`` is :func:`record_demos` on the command line: the same takeover takes
+    (HG-DAgger, in MuJoCo) give the same store, and a rerun resumes it (adds nothing)."""
+    kw = {"tail": 3, "batch": 2, "takeover": learned, "takeover_steps": (3, 12)}  # two kept, as above
+    lib = record_demos("pusht", tmp_path / "lib.zarr", 2, 70, 300002, accept_iou=0.9, progress=False, **kw)
+    cli = tmp_path / "cli.zarr"
+    argv = ["demos", "--task", "pusht", "--episodes", "2", "--steps", "70", "--seed", "300002", "--tail", "3",
+            "--batch", "2", "--takeover", str(learned), "--takeover-steps", "3,12", "--out", str(cli), "--no-progress"]
+    assert main(argv) == 0  # without --accept-iou: the task's success score, 0.9
+    assert capsys.readouterr().out.strip().startswith(f"{cli}: 2/2 episodes kept of {lib.candidates} candidates")
+    a, b = EpisodeStore.open(cli), EpisodeStore.open(lib.path)
+    assert a.episode_ends.tolist() == b.episode_ends.tolist() and a.n_episodes == 2
+    for i in range(2):
+        for k in ("img", "action", "state", "target", "iou"):
+            np.testing.assert_array_equal(a.episode(i)[k], b.episode(i)[k])
+    for k in ("takeover", "takeover_sha256", "takeover_steps", "handover_steps", "accept_iou", "tail_steps", "seeds",
+              "candidate_max_iou", "candidates_tried"):
+        assert a.attrs[k] == b.attrs[k], k
+    assert a.attrs["takeover_steps"] == [3, 12] and a.attrs["accept_iou"] == 0.9
+    assert main(argv) == 0
+    assert capsys.readouterr().out.strip().endswith("this run added 0 of 0 tried")
+
+
+def test_the_demos_command_refuses_bad_input_in_one_line(learned, wm_path, tmp_path, capsys):
+    """Bad flags are one line each and create no store; a store recorded otherwise (here
+    another --accept-iou) is refused and left as it was."""
+    out = tmp_path / "d.zarr"
+    base = ["demos", "--episodes", "1", "--steps", "20", "--out", str(out), "--no-progress"]
+    policy = ["--takeover", str(learned)]
+    for flags, message in (
+            ([*policy, "--takeover-steps", "5"], "--takeover-steps takes LO,HI, two steps, got '5'."),
+            ([*policy, "--takeover-steps", "a,b"], "--takeover-steps takes LO,HI, two steps, got 'a,b'."),
+            ([*policy, "--takeover-steps", "10,5"], "takeover_steps must be two steps lo, hi with 0 <= lo <= hi < "
+                                                    "steps (20), got (10, 5)."),
+            (["--takeover-steps", "1,5"], "--takeover-steps applies to --takeover"),
+            (["--takeover", str(tmp_path / "no-run"), "--takeover-steps", "1,5"], "is not a policy checkpoint"),
+            (["--world-model", str(wm_path), "--task", "pilesweep"],
+             f"--world-model {wm_path} is a world model of task 'pusht', not 'pilesweep'"),
+            (["--world-model", str(wm_path), "--image-size", "96"], "--image-size applies to MuJoCo"),
+            (["--task", "cube"], "unknown task 'cube'"),
+            (["--demonstrator", "human"], "demonstrator must be one of expert, expert-wide, got 'human'."),
+            (["--start", "upside-down"], "start must be one of random, goal-turned, got 'upside-down'."),
+            (["--give-up-after", "0"], "give_up_after must be a positive integer")):
+        assert main(base + flags) == 1, flags
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("iwsim: error: ") and message in err[0], (flags, err)
+    assert not out.exists()
+    # --tail 0 keeps whole takes; the store then takes only its own recipe's
+    assert main([*base[:4], "6", "--out", str(out), "--accept-iou", "0", "--tail", "0", "--batch", "1",
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    assert EpisodeStore.open(out).episode_ends.tolist() == [6]
+
+    def files() -> dict[str, bytes]:
+        return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
+                if p.is_file() and p.name != ".iwsim.lock"}
+
+    before = files()
+    assert main([*base[:4], "6", "--out", str(out), "--accept-iou", "0.5", "--tail", "0", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("iwsim: error: ") and "accept_iou=0.0, not accept_iou=0.5" in err[0]
+    assert files() == before and EpisodeStore.open(out).n_episodes == 1

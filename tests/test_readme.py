@@ -68,7 +68,8 @@ from readme_run import FENCE, PLACEHOLDER, Command, Snippet, readme_items  # noq
 
 README = ROOT / "README.md"
 READS = {"data", "src", "path", "sources", "checkpoint", "ae", "init", "run", "world_model", "trust_model", "decoder",
-         "novelty_data", "store", "bindings", "token_file", "demos", "models", "baselines", "zoo", "merge", "weights"}
+         "novelty_data", "store", "bindings", "token_file", "demos", "models", "baselines", "zoo", "merge", "weights",
+         "takeover"}
 WRITES = {"out", "work", "record_to", "latent_cache", "table"}
 SNIPPET_PATHS = ("data/", "runs/", "checkpoints/", "outputs/")
 

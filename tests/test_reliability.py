@@ -100,6 +100,7 @@ def test_every_command_takes_threads(store, tmp_path, capsys, monkeypatch):
      "episodes of 99999999999 steps at 64x64 with 1 worker(s)"),
     (["eval", "policy", "--checkpoint", "unused", "--steps", "10000000000", "--videos", "4"], "--steps 10000000000"),
     (["demo", "--steps", "10000000000"], "--steps 10000000000"),
+    (["demos", "--episodes", "1", "--batch", "16", "--steps", "10000000000"], "--batch 16 of --steps 10000000000"),
 ])
 def test_flags_that_size_memory_are_refused_before_allocating(store, tmp_path, capsys, argv, message):
     out = tmp_path / "out"

@@ -26,6 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     from iwsim.policies import PRESETS as POLICY_PRESETS
     from iwsim.resources import available_cores
     from iwsim.tasks import DEFAULT_TASK as TASK
+    from iwsim.tasks import REGISTRY as TASK_REGISTRY
 
     parser = argparse.ArgumentParser(prog="iwsim", description="Interactive world simulator for robot learning.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -54,6 +55,51 @@ def build_parser() -> argparse.ArgumentParser:
     _wait_for_lock_flag(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_collect)
+
+    p = sub.add_parser("demos", help="record a pixel expert's successful takes into a store, in MuJoCo or a world "
+                                     "model; with --takeover from where a trained policy hands over (HG-DAgger)")
+    p.add_argument("--task", metavar="NAME", help=f"task, the takes in its MuJoCo simulator: {', '.join(TASKS)} "
+                                                  f"(default: {TASK.kind}; with --world-model, the model's)")
+    p.add_argument("--world-model", metavar="CHECKPOINT",
+                   help="world model to record inside instead of MuJoCo (from MuJoCo's initial frames); the task is "
+                        "the model's")
+    p.add_argument("--episodes", type=int, metavar="N", required=True,
+                   help="accepted demonstrations the store should hold")
+    p.add_argument("--steps", type=int, metavar="N", default=300, help="horizon of a take (default: %(default)s)")
+    p.add_argument("--seed", type=int, metavar="N", default=0,
+                   help="candidate i starts from seed SEED + i (default: %(default)s)")
+    p.add_argument("--out", metavar="STORE", required=True,
+                   help="episode store; rerunning the command resumes it, a store recorded otherwise is refused")
+    p.add_argument("--accept-iou", "--accept-score", dest="accept_iou", type=float, metavar="X",
+                   help="keep a take once its pixel score (T-push: IoU) reaches this (default: the task's success "
+                        "score, 0.9)")
+    p.add_argument("--tail", type=int, metavar="N", default=10,
+                   help="a kept take ends this many steps after its first success; 0 keeps whole takes "
+                        "(default: %(default)s)")
+    p.add_argument("--batch", type=int, metavar="N", default=16,
+                   help="candidates recorded in lockstep (default: %(default)s)")
+    p.add_argument("--max-attempts", type=int, metavar="N", help="candidates tried at most (default: 4 x --episodes)")
+    p.add_argument("--give-up-after", type=int, metavar="N",
+                   help="stop once this many candidates were tried and none was kept (default: never)")
+    experts = "; ".join(f"{', '.join(make().pixel_experts)} ({kind})" for kind, make in TASK_REGISTRY.items())
+    p.add_argument("--demonstrator", default="expert", metavar="NAME",
+                   help=f"the task's pixel expert: {experts} (default: %(default)s)")
+    starts = "; ".join(f"{', '.join(make().starts)} ({kind})" for kind, make in TASK_REGISTRY.items())
+    p.add_argument("--start", default="random", metavar="NAME",
+                   help=f"MuJoCo's initial states: {starts} (default: %(default)s)")
+    p.add_argument("--dart-noise", type=float, default=0.0, metavar="STD",
+                   help="std (m) of noise added to the executed commands, the clean ones stored (DART) "
+                        "(default: %(default)s)")
+    p.add_argument("--takeover", metavar="POLICY", help="a trained policy (run or checkpoint) that drives each take "
+                   "until the expert takes over; only the expert's part is stored")
+    p.add_argument("--takeover-steps", metavar="LO,HI", help="with --takeover, the expert takes over at a step "
+                   "drawn from the candidate's seed in LO..HI (default: 40,200)")
+    p.add_argument("--image-size", type=int, metavar="N",
+                   help=f"frame size in MuJoCo: {', '.join(map(str, IMAGE_SIZES))} (default: the task's, "
+                        f"{TASK.image_size})")
+    _wait_for_lock_flag(p)
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.set_defaults(func=_demos)
 
     p = sub.add_parser("data", help="inspect episode stores")
     data_sub = p.add_subparsers(dest="data_command", required=True, metavar="COMMAND")
@@ -387,6 +433,42 @@ def _collect(args: argparse.Namespace) -> int:
         wait_for_lock=args.wait_for_lock,
         recorder=recorder,
     )
+    return 0
+
+
+def _demos(args: argparse.Namespace) -> int:
+    from iwsim.eval.policy import WORLD_MODEL, check_model_task
+    from iwsim.experiments.demos import record_demos
+    from iwsim.tasks import DEFAULT_TASK, get_task
+
+    handover: dict[str, Any] = {}  # --takeover-steps, else record_demos's default
+    if args.takeover_steps is not None:
+        if args.takeover is None:
+            raise InputError("--takeover-steps applies to --takeover (when the expert takes over from the policy).")
+        try:
+            lo, hi = (int(v) for v in args.takeover_steps.split(","))
+        except ValueError:
+            raise InputError(f"--takeover-steps takes LO,HI, two steps, got {args.takeover_steps!r}.") from None
+        handover["takeover_steps"] = (lo, hi)
+    if args.world_model is not None and args.image_size is not None:
+        raise InputError("--image-size applies to MuJoCo; a world model renders frames of its own size.")
+    # a batch's candidates keep every step's frame until they are judged
+    _check_frames_memory(f"--batch {args.batch} of --steps {args.steps}", args.batch * (args.steps + 1))
+    task = None if args.task is None else get_task(args.task)
+    env = (task or DEFAULT_TASK()).kind
+    if args.world_model is not None:
+        if task is not None:  # a world model of another task: one line
+            from iwsim.world_model import WorldModel
+
+            check_model_task(WorldModel.load(args.world_model), task, f"--world-model {args.world_model}")
+        env = WORLD_MODEL
+    stats = record_demos(env, args.out, args.episodes, args.steps, args.seed, world_model=args.world_model,
+                         accept_iou=args.accept_iou, tail=None if args.tail == 0 else args.tail, batch=args.batch,
+                         max_attempts=args.max_attempts, give_up_after=args.give_up_after,
+                         dart_noise=args.dart_noise, start=args.start, demonstrator=args.demonstrator,
+                         takeover=args.takeover, image_size=args.image_size, progress=not args.no_progress,
+                         wait_for_lock=args.wait_for_lock, **handover)
+    print(stats.summary())
     return 0
 
 

@@ -198,7 +198,7 @@ def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, s
 
 
 def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, seed: int, *,
-                 world_model: str | os.PathLike | None = None, accept_iou: float = PUSHT.success_score,
+                 world_model: str | os.PathLike | None = None, accept_iou: float | None = None,
                  tail: int | None = 10,
                  batch: int = 16, max_attempts: int | None = None, give_up_after: int | None = None,
                  dart_noise: float = 0.0, start: str = "random", demonstrator: str = "expert",
@@ -213,10 +213,11 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     upper bound is then 11%) instead of spending the rest of the budget. ``env``: a
     built-in task's name (its MuJoCo simulator; frames of ``image_size``, None: the task's
     own) or "world-model" (needs the checkpoint ``world_model``; the task is the model's).
-    ``dart_noise`` > 0 records as DART does (Laskey et al. 2017): every executed command
-    gets Gaussian noise of that std (metres, per coordinate, seeded by the candidate's
-    seed), and the store holds the expert's clean commands as the actions, so imitation
-    sees how the expert recovers from the small errors a learned policy makes. ``start``
+    ``accept_iou`` None: the task's ``success_score``. ``dart_noise`` > 0 records as DART
+    does (Laskey et al. 2017): every executed command gets Gaussian noise of that std
+    (metres, per coordinate, seeded by the candidate's seed), and the store holds the
+    expert's clean commands as the actions, so imitation sees how the expert recovers from
+    the small errors a learned policy makes. ``start``
     chooses MuJoCo's initial states (the task's ``starts``; T-push's "goal-turned": the
     block on the goal's position but turned, so the takes show the turn a policy that only
     carries is missing; MuJoCo only). ``demonstrator``: the pixel expert that records (the
@@ -227,7 +228,8 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     2019; see the module docstring): takes from the states a learned policy reaches. Returns
     the store's :class:`DemoStats`."""
     max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
-    _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, image_size)
+    _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, give_up_after,
+                image_size)
     _check_noise(dart_noise)
     if takeover is not None:
         _check_takeover(takeover_steps, steps, dart_noise)
@@ -243,6 +245,9 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
         image_size = image_size or task.image_size
         _check_choice("start", start, task.starts)
     _check_choice("demonstrator", demonstrator, task.pixel_experts)
+    accept_iou = task.success_score if accept_iou is None else accept_iou
+    if accept_iou is None:
+        raise InputError(f"task {task.name!r} has no success score; give accept_iou.")
     assert image_size is not None  # a task with a simulator has a frame size
     policy = None if takeover is None else _takeover_policy(takeover, task, image_size)
     wm_name = None if world_model is None or env != WORLD_MODEL else os.fspath(world_model)
@@ -477,8 +482,9 @@ def _episode(run: dict[str, Any], ious: np.ndarray, i: int, accept_iou: float, t
             "target": run["target"][i, handover:t].astype(np.float32), key: ious[i, handover:t]}
 
 
-def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any, accept_iou: float,
-                tail: int | None, batch: int, max_attempts: int, image_size: int | None) -> None:
+def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any, accept_iou: float | None,
+                tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
+                image_size: int | None) -> None:
     if env not in ENVS:
         raise InputError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
     if env == WORLD_MODEL and world_model is None:
@@ -488,7 +494,10 @@ def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any
             raise InputError(f"{name} must be a positive integer, got {value!r}.")
     if tail is not None and (not isinstance(tail, int) or tail < 1):
         raise InputError(f"tail must be a positive number of steps or None (whole episodes), got {tail!r}.")
-    if not (isinstance(accept_iou, (int, float)) and math.isfinite(accept_iou) and accept_iou >= 0):
+    if give_up_after is not None and (not isinstance(give_up_after, int) or give_up_after < 1):
+        raise InputError(f"give_up_after must be a positive integer or None (never), got {give_up_after!r}.")
+    if accept_iou is not None and not (isinstance(accept_iou, (int, float)) and math.isfinite(accept_iou)
+                                       and accept_iou >= 0):
         raise InputError(f"accept_iou must be a finite number >= 0, got {accept_iou!r}.")
     if not isinstance(seed, int) or not 0 <= seed <= MAX_SEED - max_attempts + 1:
         raise InputError(f"seed must be in 0..{MAX_SEED - max_attempts + 1} for {max_attempts} candidates, "
