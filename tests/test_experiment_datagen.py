@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import zarr
 
 from iwsim.cli import main
@@ -534,8 +535,11 @@ def test_the_demos_command_records_what_record_demos_does(learned, tmp_path, cap
     kw = {"tail": 3, "batch": 2, "takeover": learned, "takeover_steps": (3, 12)}  # two kept, as above
     lib = record_demos("pusht", tmp_path / "lib.zarr", 2, 70, 300002, accept_iou=0.9, progress=False, **kw)
     cli = tmp_path / "cli.zarr"
+    # the library call ran at the tests' one thread: the command too (the policy's float32
+    # sums differ in their last bit between thread counts on some CPUs)
     argv = ["demos", "--task", "pusht", "--episodes", "2", "--steps", "70", "--seed", "300002", "--tail", "3",
-            "--batch", "2", "--takeover", str(learned), "--takeover-steps", "3,12", "--out", str(cli), "--no-progress"]
+            "--batch", "2", "--takeover", str(learned), "--takeover-steps", "3,12", "--out", str(cli), "--no-progress",
+            "--threads", str(torch.get_num_threads())]
     assert main(argv) == 0  # without --accept-iou: the task's success score, 0.9
     assert capsys.readouterr().out.strip().startswith(f"{cli}: 2/2 episodes kept of {lib.candidates} candidates")
     a, b = EpisodeStore.open(cli), EpisodeStore.open(lib.path)
