@@ -219,7 +219,7 @@ def test_sweep_flags_are_parsed(tmp_path, capsys):
     for flag, value, kind in (("--fractions", "0,half", "floats"), ("--wm-sizes", "5,x", "ints")):
         assert main(["experiment", "datagen", "--preset", "tiny", flag, value, "--out", str(tmp_path / "o"),
                      "--work", str(tmp_path / "w"), "--no-progress"]) == 1
-        assert capsys.readouterr().err.strip() == f"iwsim: error: {flag} must be comma-separated {kind}, got {value!r}."
+        assert capsys.readouterr().err.strip() == f"iwsim: error: {flag} takes comma-separated {kind}, got {value!r}."
     assert not (tmp_path / "w").exists()
 
 

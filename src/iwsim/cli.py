@@ -445,11 +445,7 @@ def _demos(args: argparse.Namespace) -> int:
     if args.takeover_steps is not None:
         if args.takeover is None:
             raise InputError("--takeover-steps applies to --takeover (when the expert takes over from the policy).")
-        try:
-            lo, hi = (int(v) for v in args.takeover_steps.split(","))
-        except ValueError:
-            raise InputError(f"--takeover-steps takes LO,HI, two steps, got {args.takeover_steps!r}.") from None
-        handover["takeover_steps"] = (lo, hi)
+        handover["takeover_steps"] = _numbers("--takeover-steps", args.takeover_steps, int, "LO,HI, two steps", 2)
     if args.world_model is not None and args.image_size is not None:
         raise InputError("--image-size applies to MuJoCo; a world model renders frames of its own size.")
     # a batch's candidates keep every step's frame until they are judged
@@ -549,6 +545,18 @@ def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
     q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
     q.add_argument("--dry-run", action="store_true", help="print the resolved config and exit")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _numbers(flag: str, text: str, kind: type, expected: str | None = None, count: int | None = None) -> tuple:
+    """The comma-separated numbers of a flag's value (``count`` of them when given), or
+    one line: "FLAG takes EXPECTED, got TEXT." (EXPECTED: comma-separated KINDs)."""
+    try:
+        values = tuple(kind(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        values = None
+    if values is None or (count is not None and len(values) != count):
+        raise InputError(f"{flag} takes {expected or f'comma-separated {kind.__name__}s'}, got {text!r}.")
+    return values
 
 
 def _check_frames_memory(what: str, frames: int, copies: int = 1) -> None:
@@ -752,13 +760,11 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
         _check_batch_memory("decoder-finetune", args.batch_size, args.data)
     noise: tuple[float, float] | None = None
     if args.latent_noise is not None:
-        try:
-            parts = tuple(float(v) for v in args.latent_noise.split(","))
-        except ValueError:
-            parts = ()
-        if len(parts) != 2 or not all(math.isfinite(v) for v in parts) or not 0 <= parts[0] <= parts[1]:
-            raise InputError(f"--latent-noise takes LO,HI with 0 <= LO <= HI, got {args.latent_noise!r}.")
-        noise = parts
+        expected = "LO,HI with 0 <= LO <= HI"
+        lo, hi = _numbers("--latent-noise", args.latent_noise, float, expected, 2)
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
+            raise InputError(f"--latent-noise takes {expected}, got {args.latent_noise!r}.")
+        noise = (lo, hi)
     _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
                                     steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                                     latent_noise=noise, force=args.force, progress=not args.no_progress))
@@ -891,12 +897,7 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
     from iwsim.experiments.datagen import PRESETS, run_datagen
 
     def numbers(flag: str, text: str | None, kind: type) -> tuple | None:
-        if text is None:
-            return None
-        try:
-            return tuple(kind(n) for n in text.split(",") if n.strip())
-        except ValueError:
-            raise InputError(f"{flag} must be comma-separated {kind.__name__}s, got {text!r}.") from None
+        return None if text is None else _numbers(flag, text, kind)
 
     base = PRESETS[args.preset]
     recipe = {"accept_iou": args.accept_iou, "steps": args.demo_steps, "demonstrator": args.demonstrator}
