@@ -100,3 +100,16 @@ def test_a_study_on_another_task_has_its_horizon_its_directories_and_its_policie
     assert [e["seed"] for e in result["episodes"]] == [5, 6] and len(result["score_per_step"][0]) == 4
     assert result["mean_max_score"] == pytest.approx(np.mean(np.max(result["score_per_step"], 1)), abs=1e-4)
     assert (tmp_path / "pilesweep" / "expert.json").is_file()
+
+
+def test_jobs_run_on_one_thread_in_this_process_too():
+    """A study's job gets one torch thread whether it runs in a pool or here (``jobs`` 1, or
+    a lone job): its result must not depend on how many jobs ran beside it."""
+    import torch
+
+    from iwsim.experiments.common import _in_parallel
+
+    torch.set_num_threads(2)  # the one_thread fixture restores the caller's count after the test
+    assert _in_parallel(torch.get_num_threads, [(), ()], 1, "threads", False) == [1, 1]
+    assert _in_parallel(torch.get_num_threads, [()], 2, "threads", False) == [1]
+    assert torch.get_num_threads() == 2

@@ -13,10 +13,12 @@ line instead of the OOM killer.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import stat
 import sys
+from collections.abc import Iterator
 
 from iwsim.errors import InputError, IwsimError
 
@@ -90,6 +92,19 @@ def set_threads(requested: int | None = None) -> int:
     else:
         torch.set_num_threads(n)
     return n
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op thread count set to ``n`` inside the block, restored after it."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def available_memory() -> int | None:

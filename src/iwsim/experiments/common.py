@@ -40,6 +40,7 @@ from iwsim.policies import PRESETS, PolicyStageConfig, config_class
 from iwsim.policies.data import Source
 from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
+from iwsim.resources import torch_threads
 from iwsim.tasks import DEFAULT_TASK, get_task, task_from_config, task_of
 from iwsim.training.policy import train_policy
 from iwsim.world_model import WorldModel
@@ -229,15 +230,17 @@ def _one_thread() -> None:
 
 def _in_parallel(fn: Callable, calls: list[tuple], jobs: int, desc: str, progress: bool) -> list[Any]:
     """``fn(*args)`` for every args of ``calls``, up to ``jobs`` at a time in spawned
-    processes with one torch thread each (``jobs`` <= 1: here, one after the other).
-    Results in the order of ``calls``."""
+    processes with one torch thread each (``jobs`` <= 1: here, one after the other, also on
+    one thread: a job's result must not depend on how many ran beside it, and float sums
+    differ in their last bits between thread counts). Results in the order of ``calls``."""
     bar = tqdm(total=len(calls), desc=desc, unit="job", disable=not progress)
     results: list[Any] = [None] * len(calls)
     try:
         if jobs <= 1 or len(calls) <= 1:
-            for i, args in enumerate(calls):
-                results[i] = fn(*args)
-                bar.update()
+            with torch_threads(1):
+                for i, args in enumerate(calls):
+                    results[i] = fn(*args)
+                    bar.update()
             return results
         with mp.get_context("spawn").Pool(min(jobs, len(calls)), initializer=_one_thread) as pool:
             pending = [pool.apply_async(fn, args) for args in calls]

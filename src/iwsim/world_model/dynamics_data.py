@@ -29,7 +29,7 @@ from iwsim.diffusion.consistency import sample_levels
 from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
 from iwsim.normalize import scale, widen
-from iwsim.resources import available_cores
+from iwsim.resources import available_cores, torch_threads
 from iwsim.world_model.codec import Codec
 from iwsim.world_model.codecs import load_codec
 from iwsim.world_model.model import WorldModel
@@ -194,9 +194,7 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
     weights = encoder_key(codec) + ("|bf16" if bf16 else "")
     cached, old = _read_cache(cache, weights, store, img.shape[0], chunk)
     out, hashes = [], []
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads or available_cores())
-    try:
+    with torch_threads(threads or available_cores()):
         for k, i in enumerate(tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress)):
             frames = np.ascontiguousarray(img[i:i + chunk])
             hashes.append(hashlib.blake2b(frames.tobytes(), digest_size=12).hexdigest())
@@ -205,8 +203,6 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
                 continue
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 out.append(codec.encode(to_model(frames).to(device)).float().cpu().half())
-    finally:
-        torch.set_num_threads(before)
     latents = torch.cat(out)
     if cache is not None and hashes != old:
         cache.parent.mkdir(parents=True, exist_ok=True)
