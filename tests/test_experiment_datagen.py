@@ -535,7 +535,7 @@ def test_the_demos_command_records_what_record_demos_does(learned, tmp_path, cap
     kw = {"tail": 3, "batch": 2, "takeover": learned, "takeover_steps": (3, 12)}  # two kept, as above
     lib = record_demos("pusht", tmp_path / "lib.zarr", 2, 70, 300002, accept_iou=0.9, progress=False, **kw)
     cli = tmp_path / "cli.zarr"
-    # the library call ran at the tests' one thread: the command too (the policy's float32
+    # the command at the library call's thread count (the policy's float32
     # sums differ in their last bit between thread counts on some CPUs)
     argv = ["demos", "--task", "pusht", "--episodes", "2", "--steps", "70", "--seed", "300002", "--tail", "3",
             "--batch", "2", "--takeover", str(learned), "--takeover-steps", "3,12", "--out", str(cli), "--no-progress",
