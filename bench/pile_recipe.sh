@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Issue 45's pile-sweeping data and codec, resumable: `bash bench/pile_recipe.sh` from the
 # repository's root (rerun it after an interruption: a collection appends only the episodes
-# its store lacks, a training resumes from its last checkpoint). One thread a job.
+# its store lacks, a training resumes from its last checkpoint). One thread a job; WORKERS=1
+# collects on one core (default 2) to leave the other to another job.
 #   data/pile_contact.zarr      400 play (seeds 0-399) + 300 noisy-expert (seeds 1000-1299) episodes x 200 steps
 #   data/pile_play_eval.zarr    20 held-out play episodes (seeds 500000-500019)
 #   data/pile_expert_eval.zarr  20 held-out expert episodes (seeds 510000-510019)
@@ -24,7 +25,7 @@ fi
 mkdir -p "$OUT" "$DATA"
 step() { echo "== $(date +%H:%M:%S) $*"; }
 collect() {  # collect POLICY SEED STORE FLAGS...
-    "$IWSIM" collect --task pilesweep --policy "$1" --seed "$2" --out "$DATA/$3" --workers 2 --no-progress "${@:4}"
+    "$IWSIM" collect --task pilesweep --policy "$1" --seed "$2" --out "$DATA/$3" --workers "${WORKERS:-2}" --no-progress "${@:4}"
 }
 step "play (seeds 0-399) and noisy-expert (seeds 1000-1299) episodes, merged"
 collect play 0 pile_play.zarr $PLAY

@@ -10,7 +10,8 @@ value is JSON, bare words are strings); ``--exec FIELD=VALUE`` changes only how 
 policy runs (the policy's registered ``execution`` fields, e.g. ``n_action_steps=4`` or ACT's
 ``temporal_ensemble=null``). Runs go to ``runs/pol/NAME`` and resume exactly; evaluations
 are cached beside them, one file per checkpoint, seeds and execution.
-Validation seeds (200000+) choose; ``--test`` scores on the test seeds (100000+) instead.
+Validation seeds (200000+) choose; ``--test`` scores on the test seeds (100000+) instead,
+``--on-train`` from the training takes' own first states (can the policy replay them?).
 One line per scored checkpoint is printed and appended to ``runs/pol/NAME/scores.jsonl``.
 """
 
@@ -27,6 +28,7 @@ import torch
 
 from iwsim.checkpoint import load_json, write_json_atomic
 from iwsim.config import from_dict, to_dict
+from iwsim.data.store import EpisodeStore
 from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout, summarize
 from iwsim.experiments.common import checkpoints
@@ -79,6 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--eval-steps", type=int, default=600)
     p.add_argument("--test", action="store_true", help="score on the test seeds (100000+), not validation")
+    p.add_argument("--on-train", action="store_true",
+                   help="score from the first states of the training takes themselves (the first store's seeds, "
+                        "up to --episodes): the memorisation test")
     p.add_argument("--root", default="runs/pol")
     args = p.parse_args(argv)
 
@@ -92,9 +97,13 @@ def main(argv: list[str] | None = None) -> int:
     missing = [s for s in wanted if s not in ckpts]
     if missing:
         raise SystemExit(f"no checkpoint at steps {missing}; the run has {sorted(ckpts)}.")
-    first = TEST_SEED if args.test else VAL_SEED
-    split = "test" if args.test else "val"
-    seeds = list(range(first, first + args.episodes))
+    if args.on_train:
+        split = "train"
+        seeds = [int(s) for s in EpisodeStore.open(parse_mixture(args.data)[0].path).attrs["seeds"][:args.episodes]]
+    else:
+        first = TEST_SEED if args.test else VAL_SEED
+        split = "test" if args.test else "val"
+        seeds = list(range(first, first + args.episodes))
     execution = {k: _value(v) for k, _, v in (e.partition("=") for e in args.execution)}
     tag = "".join(f"-{k}{v}" for k, v in sorted(execution.items()))
     with open(run / "scores.jsonl", "a") as f:

@@ -39,8 +39,9 @@ def make_batch(b: int = 4, tp: int = 6, seed: int = 0) -> PolicyBatch:
                        torch.rand(b, tp, 4, generator=g) * 2 - 1, pad)
 
 
-def test_overfits_a_handful_of_transitions():
-    policy = make_policy()
+@pytest.mark.parametrize("tokens", ["cells", "keypoints"])
+def test_overfits_a_handful_of_transitions(tokens):
+    policy = make_policy(dataclasses.replace(TINY, image_tokens=tokens, keypoints=8))
     batch = make_batch()
     opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
     losses, l1s = [], []
@@ -176,3 +177,5 @@ def test_bad_input_is_a_clear_error():
         dataclasses.replace(TINY, n_action_steps=2)
     with pytest.raises(ValueError, match="obs_horizon must be 1"):
         dataclasses.replace(TINY, obs_horizon=2)
+    with pytest.raises(ValueError, match="image_tokens must be 'cells' or 'keypoints', got 'pixels'"):
+        dataclasses.replace(TINY, image_tokens="pixels")

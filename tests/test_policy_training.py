@@ -207,6 +207,23 @@ def test_train_resume_save_load_and_checkpoints_kept(play_store, tmp_path, capsy
         load_policy(tmp_path / "act", n_action_steps=4)
 
 
+def test_a_run_started_before_a_new_model_field_resumes(play_store, tmp_path, capsys):
+    out = tmp_path / "act"
+    args = ["train", "policy", "--policy", "act", "--preset", "tiny-act", "--data", f"{play_store}:2",
+            "--out", str(out), "--no-progress"]
+    assert main([*args, "--steps", "4"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    del config["model"]["image_tokens"], config["model"]["keypoints"]  # as a run started before they existed
+    (out / "config.json").write_text(json.dumps(config))
+    assert main([*args, "--steps", "8"]) == 0  # resumes: their defaults are what the old run trained with
+    assert sorted(p.name for p in (out / "checkpoints").iterdir())[-2:] == ["00000008", "last"]
+    config["model"]["dim"] = 64  # a field that did change is still refused
+    (out / "config.json").write_text(json.dumps(config))
+    capsys.readouterr()
+    assert main([*args, "--steps", "12"]) == 1
+    assert "differs in model.dim" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("preset", ["tiny-dp", "tiny-act"])
 def test_the_same_command_trains_bit_identical_weights_resumed_or_not(play_store, tmp_path, preset):
     """Issue 25: two runs of one command give the same weights, and a run stopped and

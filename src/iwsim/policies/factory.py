@@ -30,6 +30,14 @@ def describe(policy: Policy) -> dict[str, Any]:
             "action_dim": policy.action_dim, "state_dim": policy.state_dim}
 
 
+def complete_config(config: dict[str, Any]) -> dict[str, Any]:
+    """A stored run's config with its model's fields added to iwsim since filled with their
+    defaults, as :func:`load_policy` reads it (a run started before a new field resumes)."""
+    if config.get("policy") not in POLICIES or not isinstance(config.get("model"), dict):
+        return config
+    return {**config, "model": to_dict(from_dict(config_class(config["policy"]), config["model"]))}
+
+
 def checkpoint_dir(path: str | Path) -> Path:
     """The checkpoint directory of a policy run (its last checkpoint) or of a checkpoint
     (a shipped one, ``checkpoints/NAME``, from any working directory: :func:`locate`)."""

@@ -15,7 +15,7 @@ from iwsim.errors import InputError
 from iwsim.policies import PolicyStageConfig, config_class
 from iwsim.policies.common import Policy, random_shift
 from iwsim.policies.data import PolicyData, Source
-from iwsim.policies.factory import describe, make_policy
+from iwsim.policies.factory import complete_config, describe, make_policy
 from iwsim.tasks import REGISTRY, task_from_store
 from iwsim.training import trainer
 
@@ -91,4 +91,5 @@ def train_policy(cfg: PolicyStageConfig, sources: list[Source], out: str | Path,
                  force: bool = False, progress: bool = True) -> dict[str, float]:
     """Train (or resume) a policy into the run directory ``out``."""
     task = PolicyTask(cfg, sources)
-    return trainer.train(task, cfg.train, Path(out), task.config(), device=device, force=force, progress=progress)
+    return trainer.train(task, cfg.train, Path(out), task.config(), device=device, force=force, progress=progress,
+                         complete=complete_config)

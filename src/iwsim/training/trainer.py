@@ -22,6 +22,7 @@ import math
 import os
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
@@ -85,14 +86,19 @@ def step_generator(seed: int, step: int) -> torch.Generator:
 ADDED_DESCRIPTIONS = ("task",)
 
 
-def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False) -> None:
+def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False,
+                    complete: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> None:
     """Create ``run_dir`` with ``config.json``, or check that an existing one holds the
     same config (so rerunning the same command resumes). ``train.steps`` may differ:
-    training longer is a resume. ``force`` overwrites a different config."""
+    training longer is a resume. ``force`` overwrites a different config. ``complete``
+    fills a stored config with the defaults of fields added to iwsim since (as loading the
+    run reads it), so that a run started before a new field resumes."""
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / "config.json"
     if path.exists():
         old = load_json(path)
+        if complete is not None:
+            old = json.loads(json.dumps(complete(old)))
         config = json.loads(json.dumps(config))  # tuples -> lists, as read back
 
         def comparable(c: Any) -> Any:  # the config without any train.steps
@@ -165,8 +171,10 @@ def _setup_logging(run_dir: Path) -> logging.Handler:
 
 
 def train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str, Any], *,
-          device: torch.device = torch.device("cpu"), force: bool = False, progress: bool = True) -> dict[str, float]:
-    """Train ``task`` to ``cfg.steps`` in ``run_dir``, resuming from its last checkpoint.
+          device: torch.device = torch.device("cpu"), force: bool = False, progress: bool = True,
+          complete: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> dict[str, float]:
+    """Train ``task`` to ``cfg.steps`` in ``run_dir``, resuming from its last checkpoint
+    (``complete``: as :func:`prepare_run_dir`'s).
 
     Returns the last evaluation's metrics (rank 0; empty elsewhere).
     """
@@ -184,7 +192,7 @@ def train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str,
         lock = lock_run_dir(run_dir)  # one writer per run: held until training ends
     try:
         if d.main:
-            prepare_run_dir(run_dir, config, force)
+            prepare_run_dir(run_dir, config, force, complete)
         distributed.barrier(d)
         handler = _setup_logging(run_dir) if d.main else None
         try:

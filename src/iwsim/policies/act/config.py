@@ -27,6 +27,8 @@ class ACTConfig:
     n_action_steps: int = 1  # actions executed per query (1 with temporal ensembling)
     temporal_ensemble: float | None = 0.01  # m in w_i = exp(-m * i); None: execute n_action_steps per chunk
     encoder_channels: tuple[int, ...] = (32, 64, 64, 64)  # CNN trunk; levels after the first halve H and W
+    image_tokens: str = "cells"  # "cells": a token per feature-map cell (the paper's); "keypoints": one per
+    keypoints: int = 32  # spatial-softmax keypoint of the trunk (Diffusion Policy's pooling), its (x, y) as input
     dim: int = 128
     heads: int = 4
     enc_layers: int = 2
@@ -55,5 +57,7 @@ class ACTConfig:
         if self.dim % 4 or self.dim % self.heads:
             raise InputError(f"dim must be divisible by 4 (2D sine embedding) and by heads ({self.heads}), "
                              f"got {self.dim}.")
+        if self.image_tokens not in ("cells", "keypoints"):
+            raise InputError(f"image_tokens must be 'cells' or 'keypoints', got {self.image_tokens!r}.")
         if not self.encoder_channels or any(c % 8 for c in self.encoder_channels):
             raise InputError(f"encoder_channels must be multiples of 8 (GroupNorm(8)), got {self.encoder_channels}.")

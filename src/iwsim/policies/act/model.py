@@ -2,8 +2,10 @@
 Bimanual Manipulation with Low-Cost Hardware"), small enough to train on a CPU.
 
 The current image goes through a CNN trained from scratch; every cell of its feature map
-is a token, with DETR's 2D sine position embedding (the paper uses ResNet-18 cells). A
-transformer encoder reads ``[z, agent_pos, image cells]``; a decoder with ``chunk_size``
+is a token, with DETR's 2D sine position embedding (the paper uses ResNet-18 cells); or,
+with ``image_tokens="keypoints"``, every spatial-softmax keypoint of the map is a token made
+from its (x, y) by its own linear map (Diffusion Policy's pooling, which reads positions
+finer than a cell). A transformer encoder reads ``[z, agent_pos, image tokens]``; a decoder with ``chunk_size``
 learned queries cross-attends to it and regresses the next ``k`` actions at once.
 
 Training is a CVAE (the paper's Sec. IV-A, Fig. 4): a small transformer over
@@ -32,6 +34,7 @@ from iwsim.policies.common import (
     Normalizer,
     Policy,
     PolicyBatch,
+    SpatialSoftmax,
     prepare_obs,
 )
 
@@ -144,8 +147,15 @@ class ACTPolicy(Policy):
     def __init__(self, cfg: ACTConfig, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__(cfg, action_norm, state_norm)
         d, k = cfg.dim, cfg.chunk_size
-        # Observation side. The trunk's last 1x1 conv maps to d channels: ACT's input_proj.
-        self.backbone = ImageEncoder(channels=cfg.encoder_channels, keypoints=d).net  # (N, 3, H, W) -> (N, d, h, w)
+        # Observation side. Cells: the trunk's last 1x1 conv maps to d channels (ACT's input_proj).
+        # Keypoints: it maps to K maps, each pooled to its expected (x, y), a token by its own linear map.
+        keypoints = cfg.image_tokens == "keypoints"
+        self.backbone = ImageEncoder(channels=cfg.encoder_channels, keypoints=cfg.keypoints if keypoints else d).net
+        if keypoints:
+            self.pool = SpatialSoftmax()
+            self.keypoint_weight = nn.Parameter(torch.randn(cfg.keypoints, 2, d) / math.sqrt(2))
+            self.keypoint_bias = nn.Parameter(torch.randn(cfg.keypoints, d) * 0.02)  # also tells the keypoints apart
+            self.keypoint_pos = nn.Embedding(cfg.keypoints, d)
         self.state_proj = nn.Linear(self.state_dim, d)
         self.latent_proj = nn.Linear(cfg.latent_dim, d)
         self.token_pos = nn.Embedding(2, d)  # learned positions of the [z, agent_pos] tokens
@@ -186,11 +196,17 @@ class ACTPolicy(Policy):
         normalised action chunk (B, k, A)."""
         if not self.cfg.observe_state:
             agent_pos = torch.zeros_like(agent_pos)  # the token stays, carrying no information
-        feat = self.backbone(image)  # (B, D, h, w)
-        b, d, h, w = feat.shape
-        tokens = torch.cat([self.latent_proj(z)[:, None], self.state_proj(agent_pos)[:, None],
-                            feat.flatten(2).transpose(1, 2)], 1)  # (B, 2 + h*w, D)
-        pos = torch.cat([self.token_pos.weight, sine_2d(h, w, d, feat.device)])[None]  # (1, 2 + h*w, D)
+        feat = self.backbone(image)  # (B, D or K, h, w)
+        b, d = feat.shape[0], self.cfg.dim
+        if self.cfg.image_tokens == "keypoints":
+            xy = self.pool(feat).view(b, 2, -1).transpose(1, 2)  # (B, K, 2)
+            cells = torch.einsum("bkc,kcd->bkd", xy, self.keypoint_weight) + self.keypoint_bias
+            cell_pos = self.keypoint_pos.weight
+        else:
+            h, w = feat.shape[2:]
+            cells, cell_pos = feat.flatten(2).transpose(1, 2), sine_2d(h, w, d, feat.device)
+        tokens = torch.cat([self.latent_proj(z)[:, None], self.state_proj(agent_pos)[:, None], cells], 1)
+        pos = torch.cat([self.token_pos.weight, cell_pos])[None]  # (1, 2 + cells, D)
         for layer in self.encoder:
             tokens = layer(tokens, pos)
         x = tokens.new_zeros(b, self.cfg.chunk_size, d)
