@@ -27,8 +27,10 @@ class ACTConfig:
     n_action_steps: int = 1  # actions executed per query (1 with temporal ensembling)
     temporal_ensemble: float | None = 0.01  # m in w_i = exp(-m * i); None: execute n_action_steps per chunk
     encoder_channels: tuple[int, ...] = (32, 64, 64, 64)  # CNN trunk; levels after the first halve H and W
-    image_tokens: str = "cells"  # "cells": a token per feature-map cell (the paper's); "keypoints": one per
-    keypoints: int = 32  # spatial-softmax keypoint of the trunk (Diffusion Policy's pooling), its (x, y) as input
+    # "cells": a token per cell of the trunk's feature map (the paper's); "keypoints": a token per
+    # spatial-softmax keypoint of it, made from its (x, y) (Diffusion Policy's pooling)
+    image_tokens: str = "cells"
+    keypoints: int = 32  # how many, with image_tokens="keypoints"
     dim: int = 128
     heads: int = 4
     enc_layers: int = 2

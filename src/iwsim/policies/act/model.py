@@ -5,8 +5,9 @@ The current image goes through a CNN trained from scratch; every cell of its fea
 is a token, with DETR's 2D sine position embedding (the paper uses ResNet-18 cells); or,
 with ``image_tokens="keypoints"``, every spatial-softmax keypoint of the map is a token made
 from its (x, y) by its own linear map (Diffusion Policy's pooling, which reads positions
-finer than a cell). A transformer encoder reads ``[z, agent_pos, image tokens]``; a decoder with ``chunk_size``
-learned queries cross-attends to it and regresses the next ``k`` actions at once.
+finer than a cell). A transformer encoder reads ``[z, agent_pos, image tokens]``; a
+decoder with ``chunk_size`` learned queries cross-attends to it and regresses the next
+``k`` actions at once.
 
 Training is a CVAE (the paper's Sec. IV-A, Fig. 4): a small transformer over
 ``[CLS, agent_pos, action chunk]`` gives q(z | actions, agent_pos), z is drawn by
