@@ -8,7 +8,7 @@ from typing import Any
 import torch
 
 from iwsim.checkpoint import CheckpointError, build_within_memory, load_json, load_model_dir, locate
-from iwsim.config import from_dict, to_dict
+from iwsim.config import TrainConfig, from_dict, to_dict
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.policies.common import Normalizer, Policy
@@ -31,11 +31,14 @@ def describe(policy: Policy) -> dict[str, Any]:
 
 
 def complete_config(config: dict[str, Any]) -> dict[str, Any]:
-    """A stored run's config with its model's fields added to iwsim since filled with their
-    defaults, as :func:`load_policy` reads it (a run started before a new field resumes)."""
+    """A stored run's config with the model and training fields added to iwsim since filled
+    with their defaults, as they are read back (a run started before a new field resumes)."""
     if config.get("policy") not in POLICIES or not isinstance(config.get("model"), dict):
         return config
-    return {**config, "model": to_dict(from_dict(config_class(config["policy"]), config["model"]))}
+    config = {**config, "model": to_dict(from_dict(config_class(config["policy"]), config["model"]))}
+    if isinstance(config.get("train"), dict):
+        config["train"] = to_dict(from_dict(TrainConfig, config["train"]))
+    return config
 
 
 def checkpoint_dir(path: str | Path) -> Path:
