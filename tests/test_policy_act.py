@@ -39,9 +39,9 @@ def make_batch(b: int = 4, tp: int = 6, seed: int = 0) -> PolicyBatch:
                        torch.rand(b, tp, 4, generator=g) * 2 - 1, pad)
 
 
-@pytest.mark.parametrize("tokens", ["cells", "keypoints"])
-def test_overfits_a_handful_of_transitions(tokens):
-    policy = make_policy(dataclasses.replace(TINY, image_tokens=tokens, keypoints=8))
+@pytest.mark.parametrize("tokens, stride", [("cells", 1), ("keypoints", 1), ("cells", 2)])
+def test_overfits_a_handful_of_transitions(tokens, stride):
+    policy = make_policy(dataclasses.replace(TINY, image_tokens=tokens, keypoints=8, encoder_stride=stride))
     batch = make_batch()
     opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
     losses, l1s = [], []
@@ -179,3 +179,5 @@ def test_bad_input_is_a_clear_error():
         dataclasses.replace(TINY, obs_horizon=2)
     with pytest.raises(ValueError, match="image_tokens must be 'cells' or 'keypoints', got 'pixels'"):
         dataclasses.replace(TINY, image_tokens="pixels")
+    with pytest.raises(ValueError, match="encoder_stride must be 1 or 2, got 4"):
+        dataclasses.replace(TINY, encoder_stride=4)

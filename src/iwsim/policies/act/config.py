@@ -27,6 +27,7 @@ class ACTConfig:
     n_action_steps: int = 1  # actions executed per query (1 with temporal ensembling)
     temporal_ensemble: float | None = 0.01  # m in w_i = exp(-m * i); None: execute n_action_steps per chunk
     encoder_channels: tuple[int, ...] = (32, 64, 64, 64)  # CNN trunk; levels after the first halve H and W
+    encoder_stride: int = 1  # of the first conv; 2 with one level fewer gives the same cells at ~1/4 the cost
     # "cells": a token per cell of the trunk's feature map (the paper's); "keypoints": a token per
     # spatial-softmax keypoint of it, made from its (x, y) (Diffusion Policy's pooling)
     image_tokens: str = "cells"
@@ -61,5 +62,7 @@ class ACTConfig:
                              f"got {self.dim}.")
         if self.image_tokens not in ("cells", "keypoints"):
             raise InputError(f"image_tokens must be 'cells' or 'keypoints', got {self.image_tokens!r}.")
+        if self.encoder_stride not in (1, 2):
+            raise InputError(f"encoder_stride must be 1 or 2, got {self.encoder_stride}.")
         if not self.encoder_channels or any(c % 8 for c in self.encoder_channels):
             raise InputError(f"encoder_channels must be multiples of 8 (GroupNorm(8)), got {self.encoder_channels}.")

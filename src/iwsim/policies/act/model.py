@@ -151,7 +151,8 @@ class ACTPolicy(Policy):
         # Observation side. Cells: the trunk's last 1x1 conv maps to d channels (ACT's input_proj).
         # Keypoints: it maps to K maps, each pooled to its expected (x, y), a token by its own linear map.
         keypoints = cfg.image_tokens == "keypoints"
-        self.backbone = ImageEncoder(channels=cfg.encoder_channels, keypoints=cfg.keypoints if keypoints else d).net
+        self.backbone = ImageEncoder(channels=cfg.encoder_channels, keypoints=cfg.keypoints if keypoints else d,
+                                     first_stride=cfg.encoder_stride).net
         if keypoints:
             self.pool = SpatialSoftmax()
             self.keypoint_weight = nn.Parameter(torch.randn(cfg.keypoints, 2, d) / math.sqrt(2))
