@@ -356,3 +356,34 @@ def test_the_latent_cache_serves_a_store_that_extends_its_own(play_store, tmp_pa
     save_file({"latents": base.contiguous()}, cache, metadata={"key": old_key})
     assert torch.equal(encode_store(codec, EpisodeStore.open(play_store), cpu, False, cache, chunk=16), base)
     assert not calls  # a cache from before the chunk hashes still serves its own store
+
+
+def test_a_world_model_run_started_before_a_new_config_field_resumes(play_store, tmp_path, one_thread):
+    """A stage's config that gains a field resumes the runs started before it (their
+    defaults are what they trained with); a field that really changed is still refused."""
+    from iwsim.checkpoint import load_json, write_json_atomic
+    from iwsim.errors import InputError
+    from iwsim.world_model.model import complete_run_config
+    from iwsim.world_model.presets import DYNAMICS_PRESETS
+
+    run = tmp_path / "codec"
+    cfg = dataclasses.replace(AE_PRESETS["tiny-conv"], train=dataclasses.replace(AE_PRESETS["tiny-conv"].train,
+                                                                                 steps=3, checkpoint_every=3))
+    train_autoencoder(cfg, play_store, run, device=torch.device("cpu"), progress=False)
+    config = load_json(run / "config.json")
+    del config["model"]["latent_noise_scale"], config["model"]["train"]["lr_decay"]  # as before they existed
+    write_json_atomic(run / "config.json", config)
+    longer = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=6))
+    train_autoencoder(longer, play_store, run, device=torch.device("cpu"), progress=False)
+    assert last_checkpoint(run / "checkpoints").name == "00000006"
+    config["model"]["latent_channels"] = 8  # a real difference
+    write_json_atomic(run / "config.json", config)
+    with pytest.raises(InputError, match="differs in model.latent_channels"):
+        train_autoencoder(longer, play_store, run, device=torch.device("cpu"), progress=False)
+    # A dynamics or decoder fine-tune run's config: its stage-2 and codec parts are completed.
+    stored = {"kind": "world_model", "codec": {"kind": "conv-ae", "config": to_dict(cfg)},
+              "stage2": to_dict(DYNAMICS_PRESETS["tiny"]), "data": "x"}
+    old = json.loads(json.dumps(stored))
+    del old["stage2"]["rest_threshold"], old["codec"]["config"]["foreground_weight"]
+    assert json.loads(json.dumps(complete_run_config(old))) == json.loads(json.dumps(stored))
+    assert complete_run_config({"stage2": {"no_such_field": 1}}) == {"stage2": {"no_such_field": 1}}

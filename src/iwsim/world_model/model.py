@@ -68,7 +68,7 @@ from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.normalize import scale
 from iwsim.tasks import task_from_config
-from iwsim.world_model.codec import Codec
+from iwsim.world_model.codec import DEFAULT_KIND, Codec
 from iwsim.world_model.codecs import WM_KIND, build_codec, codec_class, world_model_codec
 from iwsim.world_model.denoiser import ACTION_STILL, Denoiser
 from iwsim.world_model.dynamics import Dynamics
@@ -537,6 +537,27 @@ class WorldModel(nn.Module):
             raise CheckpointError(f"{path / 'config.json'}: its task {wm.task.name!r} takes {wm.task.action_dim}-D "
                                   f"actions but the model {wm.action_dim}-D ones.")
         return wm.to(device).eval()
+
+
+def complete_run_config(config: dict[str, Any]) -> dict[str, Any]:
+    """A stored world-model run's config (a codec run's, a dynamics or decoder fine-tune
+    run's) with the codec and stage-2 fields added to iwsim since filled with their
+    defaults, as loading reads them, so that a run started before a new field resumes. A
+    config it cannot read is returned as it is (the comparison then says what differs)."""
+    try:
+        if isinstance(config.get("model"), dict):  # stage 1: {"codec": kind, "model": its config}
+            cls = codec_class(config.get("codec", DEFAULT_KIND)).config_class
+            return {**config, "model": to_dict(from_dict(cls, config["model"]))}
+        done = dict(config)
+        if isinstance(config.get("stage2"), dict):
+            done["stage2"] = to_dict(from_dict(DynamicsStageConfig, config["stage2"]))
+        _, kind, codec_cfg = world_model_codec(config)
+        if isinstance(config.get("codec"), dict) and isinstance(codec_cfg, dict):
+            done["codec"] = {**config["codec"], "config": to_dict(from_dict(codec_class(kind).config_class,
+                                                                             codec_cfg))}
+        return done
+    except (InputError, TypeError, ValueError):
+        return config
 
 
 def export_model(run: str | Path, out: str | Path, force: bool = False, decoder: str | Path | None = None,

@@ -24,7 +24,7 @@ from iwsim.metrics import psnr, ssim
 from iwsim.training import trainer
 from iwsim.world_model.codec import KIND, Codec, reconstruct
 from iwsim.world_model.codecs import build_codec, kind_of
-from iwsim.world_model.model import WorldModel
+from iwsim.world_model.model import WorldModel, complete_run_config
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +142,8 @@ def train_autoencoder(cfg, data: str | Path, out: str | Path, *, device: torch.d
     ``AE_PRESETS`` entry), into the run directory ``out``."""
     task = AETask(cfg, data)
     config = {"kind": KIND, "codec": task.kind, "model": to_dict(cfg), "data": str(data), "split": task.split()}
-    return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress)
+    return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress,
+                         complete=complete_run_config)
 
 
 class DecoderFinetuneTask(AETask):
@@ -184,4 +185,5 @@ def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path,
     task = DecoderFinetuneTask(wm, cfg, data)
     config = {**task.world_model(task.module.codec).describe(), "data": str(data), "finetuned_from": str(src),
               "split": task.split()}
-    return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress)
+    return trainer.train(task, cfg.train, Path(out), config, device=device, force=force, progress=progress,
+                         complete=complete_run_config)

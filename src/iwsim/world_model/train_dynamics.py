@@ -42,7 +42,7 @@ from iwsim.training import trainer
 from iwsim.world_model.denoiser import Denoiser
 from iwsim.world_model.dynamics import Dynamics, widen_window
 from iwsim.world_model.dynamics_data import DynamicsData, DynBatch
-from iwsim.world_model.model import KIND, WorldModel
+from iwsim.world_model.model import KIND, WorldModel, complete_run_config
 from iwsim.world_model.objectives import Levels
 from iwsim.world_model.presets import OBJECTIVES, DynamicsStageConfig
 
@@ -227,4 +227,5 @@ def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | 
     task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache, init=init, context=context)
     config = task.config(data)
     assert config["kind"] == KIND
-    return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress)
+    return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress,
+                         complete=complete_run_config)
