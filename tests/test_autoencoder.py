@@ -81,3 +81,12 @@ def test_frozen_inference_matches_eager():
         torch.testing.assert_close(ae.encode(frames), z, rtol=1e-4, atol=1e-4)
         frozen = ae.decode(z, jumps=2, generator=torch.Generator().manual_seed(1))
     assert (to_uint8(frozen).astype(int) - to_uint8(eager).astype(int)).__abs__().max() <= 1
+
+
+def test_train_ae_help_names_every_preset(capsys):
+    from iwsim.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["train", "ae", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert all(name in text for name in AE_PRESETS), [n for n in AE_PRESETS if n not in text]

@@ -137,7 +137,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train a stage of the world model")
     train_sub = p.add_subparsers(dest="train_command", required=True, metavar="STAGE")
     q = train_sub.add_parser("ae", help="stage 1: a codec (the preset says which: consistency-ae or conv-ae)")
-    _train_flags(q, "tiny, pusht-64, pusht-128, tiny-conv, conv-x2-64, conv-x8-64, conv-x16-64")
+    _train_flags(q, "tiny, pusht-64, pusht-128, tiny-conv, conv-x2-64, conv-x8-64, conv-x4-64, conv-x8c32-64, "
+                    "conv-x16-64")
     q.set_defaults(func=_train_ae)
     q = train_sub.add_parser("dynamics", help="stage 2: latent consistency dynamics on a frozen stage 1")
     init = q.add_mutually_exclusive_group(required=True)

@@ -83,6 +83,12 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
         64, latent_channels=8, channels=(16, 32, 64), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
                                                     eval_every=250, checkpoint_every=250, ema_decay=0.995)),
+    # Issue 45: x4's latent size (2048 numbers) in x8's 8 x 8 cells, 32 channels each, so that
+    # the dynamics keeps x8's cost (its convolutions and attention run on the cells).
+    "conv-x8c32-64": ConvCodecConfig(
+        64, latent_channels=32, channels=(16, 32, 64, 128), blocks_per_level=2, foreground_weight=10.0,
+        latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
+                                                    eval_every=250, checkpoint_every=250, ema_decay=0.995)),
     "conv-x16-64": ConvCodecConfig(
         64, latent_channels=16, channels=(16, 32, 64, 128, 128), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
