@@ -1,5 +1,6 @@
 """Times N training steps of the `act` preset on the expert's 100 takes, fp32 or bf16
-autocast, one thread, into a fresh OUT (issue 44's bf16 check; pair two calls with farm-bench):
+autocast, one thread, into a fresh OUT (issue 44's bf16 check, recorded with the preset's trunk of
+then: four convs, the first at full resolution; pair two calls with farm-bench):
 
     farm-bench -n 4 --vs "python bench/probes/act_step_time.py fp32 40 /tmp/a" -- \
         python bench/probes/act_step_time.py bf16 40 /tmp/b
