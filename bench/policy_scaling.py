@@ -32,7 +32,7 @@ from iwsim.eval.figures import pyplot, save_figure  # noqa: E402
 DATA = "runs/experiments/demos/sim_expert.zarr"
 SIZES = (25, 50, 100, 200)
 # The recipe of each policy: steps and the checkpoints scored on validation seeds.
-RECIPES = {"dp": (6000, (2000, 3000, 4000, 5000, 6000)), "act": (10000, (4000, 6000, 8000, 10000))}
+RECIPES = {"dp": (6000, (2000, 3000, 4000, 5000, 6000)), "act": (10000, (6000, 8000, 10000))}
 EXPERT = 0.989  # the state expert's mean max IoU on the 50 test seeds x 600 steps (results.md)
 
 
@@ -49,7 +49,8 @@ def one(policy: str, n: int, data: str, root: Path, budget: float, test_episodes
     """Train and score one size (or, with ``train`` False, read what is cached)."""
     name, (steps, evals) = run_name(policy, n), RECIPES[policy]
     run = root / name
-    common = ["--name", name, "--policy", policy, "--data", f"{data}:{n}", "--steps", str(steps), "--root", str(root)]
+    stores = ",".join(f"{store}:{n}" for store in data.split(","))
+    common = ["--name", name, "--policy", policy, "--data", stores, "--steps", str(steps), "--root", str(root)]
     if train:
         policy_runs.main([*common, "--eval-at", ",".join(map(str, evals))])
     if not (run / "metrics.jsonl").is_file():
@@ -70,7 +71,7 @@ def one(policy: str, n: int, data: str, root: Path, budget: float, test_episodes
 def report(rows: dict[str, list[dict]], out: Path, test_episodes: int) -> None:
     lines = ["# Imitation policies: the scaling curve over demonstrations", "",
              "`MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_scaling.py --policies dp,act --report` (the runs: "
-             "see its docstring). Demonstrations: the first N of the store each run's config.json names. "
+             "see its docstring). Demonstrations: the first N of each store its run's config.json names. "
              f"Score: mean max IoU over {test_episodes} test seeds (100000 + i) x 600 steps, the checkpoint chosen "
              "on 20 validation seeds (200000 + i) among those saved within the budget; success: IoU >= 0.9, "
              f"95% Beta-posterior interval. The expert: {EXPERT:.3f}.", "",
@@ -111,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--policies", default="dp,act")
     p.add_argument("--sizes", default=",".join(map(str, SIZES)))
-    p.add_argument("--data", default=DATA, help="the demonstration store (its first N takes for size N)")
+    p.add_argument("--data", default=DATA, help="the demonstration store (its first N takes for size N), or several "
+                   "separated by commas (the first N of each)")
     p.add_argument("--budget-min", type=float, default=60.0)
     p.add_argument("--test-episodes", type=int, default=50)
     p.add_argument("--root", default="runs/pol")

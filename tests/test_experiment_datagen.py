@@ -569,7 +569,7 @@ def test_the_demos_command_refuses_bad_input_in_one_line(learned, wm_path, tmp_p
             (["--takeover-steps", "1,5"], "--takeover-steps applies to --takeover"),
             (["--takeover", str(tmp_path / "no-run"), "--takeover-steps", "1,5"], "is not a policy checkpoint"),
             (["--world-model", str(wm_path), "--task", "pilesweep"],
-             f"--world-model {wm_path} is a world model of task 'pusht', not 'pilesweep'"),
+             f"world model {wm_path} is a world model of task 'pusht', not 'pilesweep'"),
             (["--world-model", str(wm_path), "--image-size", "96"], "--image-size applies to MuJoCo"),
             (["--task", "cube"], "unknown task 'cube'"),
             (["--demonstrator", "human"], "demonstrator must be one of expert, expert-wide, got 'human'."),

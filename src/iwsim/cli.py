@@ -438,7 +438,7 @@ def _collect(args: argparse.Namespace) -> int:
 
 
 def _demos(args: argparse.Namespace) -> int:
-    from iwsim.eval.policy import WORLD_MODEL, check_model_task
+    from iwsim.eval.policy import WORLD_MODEL
     from iwsim.experiments.demos import record_demos
     from iwsim.tasks import DEFAULT_TASK, get_task
 
@@ -454,17 +454,13 @@ def _demos(args: argparse.Namespace) -> int:
     task = None if args.task is None else get_task(args.task)
     env = (task or DEFAULT_TASK()).kind
     if args.world_model is not None:
-        if task is not None:  # a world model of another task: one line
-            from iwsim.world_model import WorldModel
-
-            check_model_task(WorldModel.load(args.world_model), task, f"--world-model {args.world_model}")
         env = WORLD_MODEL
     stats = record_demos(env, args.out, args.episodes, args.steps, args.seed, world_model=args.world_model,
                          accept_iou=args.accept_iou, tail=None if args.tail == 0 else args.tail, batch=args.batch,
                          max_attempts=args.max_attempts, give_up_after=args.give_up_after,
                          dart_noise=args.dart_noise, start=args.start, demonstrator=args.demonstrator,
                          takeover=args.takeover, image_size=args.image_size, progress=not args.no_progress,
-                         wait_for_lock=args.wait_for_lock, **handover)
+                         wait_for_lock=args.wait_for_lock, model_task=task, **handover)
     print(stats.summary())
     return 0
 

@@ -78,13 +78,13 @@ from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs import IMAGE_SIZES
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
-from iwsim.eval.policy import ENVS, MAX_SEED, WORLD_MODEL, rollout, seed_sampling
+from iwsim.eval.policy import ENVS, MAX_SEED, WORLD_MODEL, check_model_task, rollout, seed_sampling
 from iwsim.experiments.common import STUDY, fingerprint
 from iwsim.play.engine import episode_keys
 from iwsim.policies.common import Policy
 from iwsim.policies.factory import checkpoint_dir, load_policy
 from iwsim.policies.scripted import ScriptedBatch
-from iwsim.tasks import ANY_EXPERTS, REGISTRY, get_task, task_of
+from iwsim.tasks import ANY_EXPERTS, REGISTRY, get_task
 from iwsim.world_model import WorldModel
 from iwsim.world_model_env import score_key
 
@@ -204,7 +204,7 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                  dart_noise: float = 0.0, start: str = "random", demonstrator: str = "expert",
                  takeover: str | os.PathLike | None = None, takeover_steps: tuple[int, int] = (40, 200),
                  image_size: int | None = None, progress: bool = True,
-                 wait_for_lock: bool = False) -> DemoStats:
+                 wait_for_lock: bool = False, model_task: Task | None = None) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
     accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried
     (see the module docstring), or, with ``give_up_after``, until the store holds nothing
@@ -212,8 +212,9 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     that the task cannot be done in this model (the acceptance rate's 95% Clopper-Pearson
     upper bound is then 11%) instead of spending the rest of the budget. ``env``: a
     built-in task's name (its MuJoCo simulator; frames of ``image_size``, None: the task's
-    own) or "world-model" (needs the checkpoint ``world_model``; the task is the model's).
-    ``accept_iou`` None: the task's ``success_score``. ``dart_noise`` > 0 records as DART
+    own) or "world-model" (needs the checkpoint ``world_model``; the task is the model's,
+    which must be ``model_task`` when that is given). ``accept_iou`` None: the task's
+    ``success_score``. ``dart_noise`` > 0 records as DART
     does (Laskey et al. 2017): every executed command gets Gaussian noise of that std
     (metres, per coordinate, seeded by the candidate's seed), and the store holds the
     expert's clean commands as the actions, so imitation sees how the expert recovers from
@@ -239,7 +240,7 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     if env == WORLD_MODEL:
         assert world_model is not None  # _check_args checks it
         model = WorldModel.load(world_model)
-        task, image_size = task_of(model), model.image_size
+        task, image_size = check_model_task(model, model_task, f"world model {world_model}"), model.image_size
     else:
         task = get_task(env)
         image_size = image_size or task.image_size
