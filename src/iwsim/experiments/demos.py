@@ -214,8 +214,8 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     built-in task's name (its MuJoCo simulator; frames of ``image_size``, None: the task's
     own) or "world-model" (needs the checkpoint ``world_model``; the task is the model's,
     which must be ``model_task`` when that is given). ``accept_iou`` None: the task's
-    ``success_score``. ``dart_noise`` > 0 records as DART
-    does (Laskey et al. 2017): every executed command gets Gaussian noise of that std
+    ``success_score``. ``dart_noise`` > 0 records as DART does (Laskey et al. 2017):
+    every executed command gets Gaussian noise of that std
     (metres, per coordinate, seeded by the candidate's seed), and the store holds the
     expert's clean commands as the actions, so imitation sees how the expert recovers from
     the small errors a learned policy makes. ``start``
