@@ -12,7 +12,9 @@ policy runs (the policy's registered ``execution`` fields, e.g. ``n_action_steps
 are cached beside them, one file per checkpoint, seeds and execution.
 Validation seeds (200000+) choose; ``--test`` scores on the test seeds (100000+) instead,
 ``--on-train`` from the training takes' own first states (can the policy replay them?).
-One line per scored checkpoint is printed and appended to ``runs/pol/NAME/scores.jsonl``.
+``--score-only`` scores checkpoints a run has already saved without training it further
+(e.g. while it trains, or a longer run's earlier steps). One line per scored checkpoint is
+printed and appended to ``runs/pol/NAME/scores.jsonl``.
 """
 
 from __future__ import annotations
@@ -85,14 +87,19 @@ def main(argv: list[str] | None = None) -> int:
                    help="score from the first states of the training takes themselves (the first store's seeds, "
                         "up to --episodes): the memorisation test")
     p.add_argument("--root", default="runs/pol")
+    p.add_argument("--score-only", action="store_true",
+                   help="score the run's saved checkpoints without training it (--steps is then ignored)")
     args = p.parse_args(argv)
 
     cfg = stage_config(args.preset or args.policy, args.steps, args.set, args.bf16, args.seed)
     run = Path(args.root) / args.name
     t0 = time.perf_counter()
-    train_policy(cfg, parse_mixture(args.data), run, device=torch.device("cpu"), progress=sys.stderr.isatty())
+    if not args.score_only:
+        train_policy(cfg, parse_mixture(args.data), run, device=torch.device("cpu"), progress=sys.stderr.isatty())
     train_seconds = time.perf_counter() - t0
     ckpts = checkpoints(run)
+    if not ckpts:
+        raise SystemExit(f"{run} has no checkpoint to score.")
     wanted = [int(s) for s in args.eval_at.split(",") if s] or [max(ckpts)]
     missing = [s for s in wanted if s not in ckpts]
     if missing:

@@ -28,6 +28,7 @@ from bench_policies import training_minutes  # noqa: E402
 from iwsim.checkpoint import load_json, write_text_atomic  # noqa: E402
 from iwsim.errors import reporting_errors  # noqa: E402
 from iwsim.eval.figures import pyplot, save_figure  # noqa: E402
+from iwsim.eval.records import command_line  # noqa: E402
 
 DATA = "runs/experiments/demos/sim_expert.zarr"
 SIZES = (25, 50, 100, 200)
@@ -68,9 +69,10 @@ def one(policy: str, n: int, data: str, root: Path, budget: float, test_episodes
             "test": test}
 
 
-def report(rows: dict[str, list[dict]], out: Path, test_episodes: int) -> None:
+def report(rows: dict[str, list[dict]], out: Path, test_episodes: int, command: str) -> None:
+    """Write scaling.md (headed by ``command``, which rewrites it from the cached runs) and scaling.png."""
     lines = ["# Imitation policies: the scaling curve over demonstrations", "",
-             "`MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_scaling.py --policies dp,act --report` (the runs: "
+             f"`MUJOCO_GL=egl OMP_NUM_THREADS=1 {command}` (the runs: "
              "see its docstring). Demonstrations: the first N of each store its run's config.json names. "
              f"Score: mean max IoU over {test_episodes} test seeds (100000 + i) x 600 steps, the checkpoint chosen "
              "on 20 validation seeds (200000 + i) among those saved within the budget; success: IoU >= 0.9, "
@@ -134,7 +136,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.report or all(len(r) == len(sizes) for r in rows.values()):
         # The report is shared by both policies: a process training one keeps the other's cached rows.
         every = {policy: rows[policy] if policy in rows else rows_of(policy, False) for policy in RECIPES}
-        report({policy: r for policy, r in every.items() if r}, Path(args.out), args.test_episodes)
+        done = {policy: r for policy, r in every.items() if r}
+        command = command_line(__file__, ["--policies", ",".join(done), "--sizes", args.sizes, "--data", args.data,
+                                          "--root", args.root, "--out", args.out, "--report"])
+        report(done, Path(args.out), args.test_episodes, command)
     return 0
 
 
