@@ -73,8 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--name", required=True)
     p.add_argument("--policy", choices=tuple(POLICIES), required=True)
     p.add_argument("--preset", help="default: the policy's name")
-    p.add_argument("--data", required=True)
-    p.add_argument("--steps", type=int, required=True)
+    p.add_argument("--data", help="the demonstration stores (STORE:N,...); not needed with --score-only")
+    p.add_argument("--steps", type=int, help="training steps (not needed with --score-only)")
     p.add_argument("--eval-at", default="", help="comma-separated checkpoint steps to score (default: the last)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
     p.add_argument("--exec", action="append", default=[], metavar="FIELD=VALUE", dest="execution")
@@ -90,8 +90,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--score-only", action="store_true",
                    help="score the run's saved checkpoints without training it (--steps is then ignored)")
     args = p.parse_args(argv)
-
-    cfg = stage_config(args.preset or args.policy, args.steps, args.set, args.bf16, args.seed)
+    if args.data is None and not (args.score_only and not args.on_train):
+        p.error("--data is required (except with --score-only, without --on-train)")
+    if args.steps is None and not args.score_only:
+        p.error("--steps is required (except with --score-only)")
+    preset = args.preset or args.policy
+    steps = PRESETS[preset].train.steps if args.steps is None else args.steps
+    cfg = stage_config(preset, steps, args.set, args.bf16, args.seed)
     run = Path(args.root) / args.name
     t0 = time.perf_counter()
     if not args.score_only:

@@ -1,12 +1,12 @@
 """Issue 44: does averaging the weights of a run's checkpoints (stochastic weight averaging,
-Izmailov et al. 2018, over checkpoints saved at a constant learning rate) narrow ACT's
-run-to-run spread? Writes the uniform average of the checkpoints' inference weights (each
+Izmailov et al. 2018, over checkpoints saved at a constant learning rate) lift an ACT run
+above its noisy best checkpoint? Writes the uniform average of the checkpoints' inference weights (each
 already an EMA) as a one-checkpoint run that ``bench/policy_runs.py --score-only`` scores:
 
     python bench/probes/average_checkpoints.py --run runs/pol/act-s2-lr3 --steps 10000,11000,12000,13000,14000 \
         --out runs/pol/act-lr3-swa
     MUJOCO_GL=egl OMP_NUM_THREADS=1 python bench/policy_runs.py --score-only --name act-lr3-swa --policy act \
-        --data unused --steps 1 --eval-at 14000
+        --eval-at 14000
 
 The average is stored at the last step averaged (``OUT/checkpoints/<step>``). Floating-point
 tensors are averaged; any other tensor must agree across the checkpoints and is kept.
