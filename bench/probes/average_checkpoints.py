@@ -1,7 +1,8 @@
 """Issue 44: does averaging the weights of a run's checkpoints (stochastic weight averaging,
 Izmailov et al. 2018, over checkpoints saved at a constant learning rate) lift an ACT run
-above its noisy best checkpoint? Writes the uniform average of the checkpoints' inference weights (each
-already an EMA) as a one-checkpoint run that ``bench/policy_runs.py --score-only`` scores:
+above its noisy best checkpoint? Writes the uniform average of the checkpoints' inference
+weights (each already an EMA) as a one-checkpoint run that ``bench/policy_runs.py
+--score-only`` scores:
 
     python bench/probes/average_checkpoints.py --run runs/pol/act-s2-lr3 --steps 10000,11000,12000,13000,14000 \
         --out runs/pol/act-lr3-swa
