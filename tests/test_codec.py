@@ -55,6 +55,26 @@ def test_the_foreground_weight_counts_what_differs_from_the_background():
     assert plain.background.abs().max() == 0
 
 
+def test_a_symmetric_foreground_weight_costs_a_painted_dot_as_much_as_a_missed_one():
+    """Weighting the target's foreground alone makes the decoder paint foreground where it
+    is unsure (a missed dot costs 11x a painted one); ``foreground_symmetric`` weights both."""
+    import dataclasses
+
+    loss = {}
+    for symmetric in (False, True):
+        cfg = dataclasses.replace(AE_PRESETS["tiny-conv"], foreground_weight=10.0, foreground_symmetric=symmetric)
+        codec = build_codec("conv-ae", to_dict(cfg))
+        floor, dot = torch.full((1, 3, 64, 64), 0.8), torch.full((1, 3, 64, 64), 0.8)
+        dot[:, :, 10:13, 10:13] = -0.5
+        codec.prepare(torch.cat([floor, floor, dot]))  # the background: the floor
+        z = codec.encode(floor)
+        for case, (target, painted) in {"missed": (dot, floor), "painted": (floor, dot)}.items():
+            codec.decoder.forward = lambda _z, t=painted: t  # the decoder's output, fixed
+            loss[symmetric, case] = codec.loss(target, z, {})[0].item()
+    assert loss[False, "missed"] > 5 * loss[False, "painted"]
+    assert loss[True, "missed"] == pytest.approx(loss[True, "painted"])
+
+
 def test_a_codec_and_a_dynamics_of_other_latents_are_refused():
     wm = tiny_world_model()
     conv = build_codec("conv-ae", to_dict(AE_PRESETS["tiny-conv"]))  # 32 x 32 latents, the dynamics 16 x 16

@@ -176,6 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--latent-noise", metavar="LO,HI",
                    help="std range of the noise on the latents the decoder learns to render, in the dynamics' "
                         "standardised units (default: the model's stage-2 context noise)")
+    q.add_argument("--symmetric-foreground", action="store_true",
+                   help="weight the foreground the decoder paints as the target's (a conv codec's loss weights "
+                        "only the target's, so small things grow where the decoder is unsure)")
     q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
     q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -764,7 +767,8 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
         noise = (lo, hi)
     _print_metrics(finetune_decoder(args.world_model, args.data, args.out, device=resolve_device(args.device),
                                     steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-                                    latent_noise=noise, force=args.force, progress=not args.no_progress))
+                                    latent_noise=noise, symmetric_foreground=args.symmetric_foreground,
+                                    force=args.force, progress=not args.no_progress))
     return 0
 
 

@@ -165,13 +165,15 @@ class DecoderFinetuneTask(AETask):
 
 def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path, *, device: torch.device,
                      steps: int = 500, batch_size: int | None = None, lr: float = 1e-4,
-                     latent_noise: tuple[float, float] | None = None, seed: int | None = None, force: bool = False,
-                     progress: bool = True) -> dict[str, float]:
+                     latent_noise: tuple[float, float] | None = None, seed: int | None = None,
+                     symmetric_foreground: bool = False, force: bool = False, progress: bool = True
+                     ) -> dict[str, float]:
     """Stage 3: fine-tune a world model's decoder on noised latents (``iwsim train
     decoder-finetune``), at a lower learning rate, with the encoder frozen. The noise is
     the stage-2 context noise (``context_sigma`` stds in the dynamics' standardised units,
     unless ``latent_noise`` says otherwise), so the decoder learns to render latents as
-    imperfect as predicted ones."""
+    imperfect as predicted ones. ``symmetric_foreground`` weights the foreground the decoder
+    paints as the target's (a conv codec's ``foreground_symmetric``)."""
     src = resolve_checkpoint(world_model)
     wm = WorldModel.load(src, device)
     base = wm.codec.cfg
@@ -182,6 +184,11 @@ def finetune_decoder(world_model: str | Path, data: str | Path, out: str | Path,
     noise = wm.cfg.context_sigma if latent_noise is None else latent_noise  # stds, standardised units
     cfg = dataclasses.replace(base, train=train, freeze_encoder=True, latent_noise=tuple(noise),
                               latent_noise_scale=wm.latent_scale)
+    if symmetric_foreground:
+        if not getattr(base, "foreground_weight", 0) > 0:
+            raise InputError(f"{src}: --symmetric-foreground needs a codec whose loss weights the foreground "
+                             f"(a conv codec with foreground_weight > 0).")
+        cfg = dataclasses.replace(cfg, foreground_symmetric=True)
     task = DecoderFinetuneTask(wm, cfg, data)
     config = {**task.world_model(task.module.codec).describe(), "data": str(data), "finetuned_from": str(src),
               "split": task.split()}
