@@ -36,7 +36,9 @@ from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.policy_eval import mean_interval
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
+from iwsim.tasks import get_task
 from iwsim.world_model import WorldModel
+from iwsim.world_model_env import score_key
 
 SEED = 700000  # first states of the families: MuJoCo seeds SEED, SEED + 1, ...
 LEARNED = "learned"
@@ -98,18 +100,20 @@ def zoo_sources(zoo: list[str]) -> list[str]:
 
 
 def family_scores(model: str | None, work: Path, families: list[str], seeds: int, steps: int,
-                  zoo: list[str], jobs: int = 1) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
-    """Per family, the max IoU of each episode (``seeds`` of them) in MuJoCo (``model``
-    None) or in the world model ``model``, and (for a model with a trust signal) each
-    episode's novelty; cached under ``work`` by
+                  zoo: list[str], jobs: int = 1, task: str = "pusht"
+                  ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+    """Per family, the max score (T-push's IoU, ``task``'s score) of each episode (``seeds``
+    of them) in ``task``'s MuJoCo (``model`` None) or in the world model ``model``, and (for
+    a model with a trust signal) each episode's novelty; cached under ``work`` by
     :func:`iwsim.experiments.common.evaluate_policies`, up to ``jobs`` families at a time."""
-    env = "pusht" if model is None else "world-model"
+    env = task if model is None else "world-model"
+    best = f"max_{score_key(get_task(task))}"
     all_seeds = [SEED + i for i in range(seeds)]
     work = work / "families" / ("mujoco" if model is None else fingerprint(model))  # a cache per model
     sources: dict[str, Any] = {f: FAMILIES[f][0] for f in families if f != LEARNED}
     results = evaluate_policies(sources, env, seeds=all_seeds, steps=steps, world_model=model, out=work,
                                 jobs=jobs, progress=False)
-    out = {f: [e["max_iou"] for e in r["episodes"]] for f, r in results.items()}
+    out = {f: [e[best] for e in r["episodes"]] for f, r in results.items()}
     novelty = {f: r["novelty"]["per_episode"] for f, r in results.items() if "novelty" in r}
     if LEARNED in families:
         policies = zoo_sources(zoo)
@@ -123,7 +127,7 @@ def family_scores(model: str | None, work: Path, families: list[str], seeds: int
             name = f"{LEARNED}-{Path(path).parent.parent.name}-{Path(path).name}"
             r = evaluate_policies({name: path}, env, seeds=mine, steps=steps, world_model=model, out=work,
                                   progress=False)[name]
-            scores[k::len(policies)] = [e["max_iou"] for e in r["episodes"]]
+            scores[k::len(policies)] = [e[best] for e in r["episodes"]]
             if "novelty" in r:
                 nov[k::len(policies)] = r["novelty"]["per_episode"]
         out[LEARNED] = scores.tolist()

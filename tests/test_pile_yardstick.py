@@ -52,3 +52,38 @@ def test_pile_yardstick_runs_on_a_tiny_model(pile_model, tmp_path):
                             (run(f"tiny={pile_model['checkpoint']}", horizon=9), "use --horizon 7")):
         lines = refused.stderr.strip().splitlines()
         assert refused.returncode != 0 and len(lines) == 1 and needle in lines[0], refused.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_pile_families_runs_on_a_tiny_model(pile_model, tmp_path):
+    """bench/pile_families.py: every family, the pile at rest and a long rollout, each
+    measure in range; seen and unseen families split by --trained-on; a bad one refused."""
+    out = tmp_path / "out"
+
+    def run(*extra: str) -> subprocess.CompletedProcess:
+        cmd = [sys.executable, str(ROOT / "bench" / "pile_families.py"), "--models",
+               f"tiny={pile_model['checkpoint']}", "--seeds", "2", "--steps", "4", "--idle-episodes", "1",
+               "--long-episodes", "1", "--long-steps", "6", "--work", str(tmp_path / "work"), "--out", str(out), *extra]
+        return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
+
+    done = run()
+    assert done.returncode == 0, done.stderr[-2000:]
+    r = json.loads((out / "results.json").read_text())
+    assert next(iter(r)) == "command"
+    m = r["models"]["tiny"]
+    rows = m["families"]["families"]
+    assert "learned" not in rows and "miss" not in rows and {"expert", "person", "still", "play"} <= set(rows)
+    assert {f for f, row in rows.items() if row["seen"]} == {"expert", "jitter", "play"}
+    for row in rows.values():
+        assert 0 <= row["mujoco"] <= 1 and 0 <= row["model"] <= 1 and row["episodes"] == 2
+        assert row["offset"] == pytest.approx(row["model"] - row["mujoco"])
+    assert set(m["families"]["pooled"]) == {"all", "unseen"}
+    idle, long = m["idle"], m["long"]
+    assert 0 <= idle["kept"] <= idle["count_kept"] <= 1 and 0 <= idle["mask_iou"] <= 1 and idle["psnr"] > 0
+    assert len(idle["kept_per_step"]) == 50 and set(idle["psnr_at"]) == {"1", "10", "50"}
+    assert 0 <= long["kept"] <= 1 and len(long["kept_per_stretch"]) == 1
+    md = (out / "results.md").read_text()
+    assert "| person | no |" in md and "At rest" in md and "Long rollouts" in md
+    refused = run("--trained-on", "nobody")
+    lines = refused.stderr.strip().splitlines()
+    assert refused.returncode != 0 and len(lines) == 1 and "unknown training policies" in lines[0], refused.stderr
