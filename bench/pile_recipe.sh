@@ -16,7 +16,7 @@ PYTHON=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-runs}
 DATA=${DATA:-data}
 if [ "${SCALE:-full}" = tiny ]; then
-    PLAY="--episodes 3 --steps 20" EXPERT="--episodes 2 --steps 20" EVAL="--episodes 2 --steps 20" AE=${AE:-2}
+    PLAY="--episodes 3 --steps 30" EXPERT="--episodes 2 --steps 30" EVAL="--episodes 2 --steps 20" AE=${AE:-2}
     BATCH="--batch-size 2"
 else
     PLAY="--episodes 400 --steps 200" EXPERT="--episodes 300 --steps 200" EVAL="--episodes 20 --steps 200"

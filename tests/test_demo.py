@@ -3,6 +3,7 @@ import json
 import imageio.v2 as imageio
 
 from iwsim.cli import main
+from iwsim.envs.pilesweep_task import PileSweepTask
 from tests.test_shipped_checkpoint import SHIPPED
 
 
@@ -21,7 +22,7 @@ def test_demo_writes_a_side_by_side_video_and_scores(tmp_path, capsys):
     assert "not a checkpoint directory" in capsys.readouterr().err
 
 
-def test_demo_of_another_task_pairs_its_model_with_its_simulator(pile_model, tmp_path, capsys):
+def test_demo_of_another_task_pairs_its_model_with_its_simulator(pile_model, tmp_path, capsys, monkeypatch):
     """Issue 45: `iwsim demo --task pilesweep` runs the pile's scripted expert in its MuJoCo
     task beside the model, scored by the pile's pixel scorer; a model of another task, or a
     task without a shipped model and no --checkpoint, is one line."""
@@ -33,6 +34,7 @@ def test_demo_of_another_task_pairs_its_model_with_its_simulator(pile_model, tmp
     scores = json.loads((out / "world_model_vs_mujoco.json").read_text())
     truth = scores["iou_true"]  # the pile's score: the share of the pieces in the tray
     assert len(truth) == 4 and all(0.0 <= v <= 1.0 for v in truth) and len(scores["iou_pred"]) == 4
+    monkeypatch.setattr(PileSweepTask, "checkpoint", None)  # a task without a shipped model
     assert main(["demo", "--task", "pilesweep", "--out", str(out)]) == 1
     assert "task 'pilesweep' has no shipped world model yet; give one with --checkpoint" in capsys.readouterr().err
     assert main(["demo", "--checkpoint", ckpt, "--out", str(out)]) == 1  # the default task is T-push

@@ -14,6 +14,7 @@ import pytest
 from iwsim.cli import main
 from iwsim.data.collect import collect
 from iwsim.data.store import EpisodeStore
+from iwsim.envs.pilesweep_task import PileSweepTask
 from iwsim.eval.policy import make_vector_env
 from iwsim.eval.ranking import mmrv, pearson, spearman
 from iwsim.experiments.policy_eval import PRESETS, PolicyEvalConfig, _demos, mean_interval
@@ -200,7 +201,9 @@ def test_tiny_study_on_pile_sweeping(pile_model, tmp_path, capsys):
     (["--world-model", "WM"], "is a world model of task 'pusht'; the study compares with MuJoCo's 'pilesweep'"),
     (["--world-model", "PILE", "--demos", "DEMOS"], "holds episodes of task 'pusht'; the study runs on 'pilesweep'"),
 ])
-def test_a_study_on_pile_sweeping_refuses_another_tasks_inputs(inputs, pile_model, tmp_path, capsys, extra, match):
+def test_a_study_on_pile_sweeping_refuses_another_tasks_inputs(inputs, pile_model, tmp_path, capsys, extra, match,
+                                                                monkeypatch):
+    monkeypatch.setattr(PileSweepTask, "checkpoint", None)  # a task without a shipped model needs --world-model
     paths = {"WM": str(inputs["wm"]), "PILE": str(pile_model["checkpoint"]), "DEMOS": str(inputs["demos"])}
     assert main(["experiment", "policy-eval", "--preset", "tiny", "--task", "pilesweep", "--out", str(tmp_path / "out"),
                  "--work", str(tmp_path / "work"), "--no-progress", *(paths.get(x, x) for x in extra)]) == 1

@@ -43,6 +43,7 @@ class PileSweepTask(TabletopTask):
     pixel_policies = pilesweep_scripted.PIXEL_POLICIES
     pixel_experts = ("expert",)
     pixel_reading = "pieces"
+    checkpoint = "checkpoints/pilesweep-64"  # the shipped world model
 
     def score(self, frames: np.ndarray) -> np.ndarray:
         return np.asarray(tray_share(frames), np.float64)
