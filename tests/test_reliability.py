@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from iwsim.checkpoint import load_json
 from iwsim.cli import main
 from iwsim.resources import choose_threads
 
@@ -141,6 +142,26 @@ def test_export_model_force_replaces_only_a_checkpoint_iwsim_wrote(tmp_path, cap
     assert main(["export-model", "--run", str(src), "--out", str(ckpt), "--force"]) == 0
     assert (ckpt / "model.safetensors").read_bytes() == (src / "model.safetensors").read_bytes()
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_export_model_sets_inference_settings_and_refuses_negative_ones(tmp_path, capsys):
+    """The rest rule and the deadband act only at inference: a checkpoint carries its own
+    values (recorded beside the run's in its provenance), the weights unchanged."""
+    from iwsim.world_model import WorldModel
+    from tests.test_dynamics import tiny_world_model
+
+    src = tiny_world_model().save(tmp_path / "wm")
+    out = tmp_path / "rest"
+    assert main(["export-model", "--run", str(src), "--out", str(out), "--rest-threshold", "0.05",
+                 "--delta-deadband", "0.06"]) == 0
+    wm = WorldModel.load(out)
+    assert (wm.cfg.rest_threshold, wm.cfg.delta_deadband) == (0.05, 0.06)
+    assert WorldModel.load(src).cfg.rest_threshold == 0.0
+    assert (out / "model.safetensors").read_bytes() == (src / "model.safetensors").read_bytes()
+    assert load_json(out / "config.json")["provenance"]["inference"]["rest_threshold"] == [0.0, 0.05]
+    assert main(["export-model", "--run", str(src), "--out", str(tmp_path / "bad"), "--rest-threshold", "-1"]) == 1
+    assert "rest_threshold must be >= 0, got -1.0" in error_line(capsys)
+    assert not (tmp_path / "bad").exists()
 
 
 @pytest.mark.parametrize("part,size,says", [("codec", 10**5, "of memory"), ("codec", 10**9, "can be built"),

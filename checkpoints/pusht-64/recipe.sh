@@ -67,17 +67,7 @@ export_once "$OUT/dyn_x8_contact" "$OUT/wm_contact_dec" --decoder "$OUT/dec_cont
     $BATCH --lr 2e-4 --out "$OUT/dyn_contact_more2" --latent-cache "$OUT/latents_x8_contact.safetensors" --threads 1 \
     --no-progress
 step "the last fine-tune with rest_threshold 0.05 (issue 41; the model shipped before this one)"
-export_once "$OUT/dyn_contact_more2" "$OUT/wm_contact_more2"
-"$PYTHON" - "$OUT/wm_contact_more2/config.json" <<'EOF'
-import json, os, sys
-path = sys.argv[1]
-config = json.load(open(path))
-config["stage2"]["rest_threshold"] = 0.05
-with open(path + ".tmp", "w") as f:
-    json.dump(config, f, indent=2, sort_keys=True)
-    f.write("\n")
-os.replace(path + ".tmp", path)
-EOF
+export_once "$OUT/dyn_contact_more2" "$OUT/wm_contact_more2" --rest-threshold 0.05
 step "broad motion (issue 41): play-broad episodes (seeds 20000-20599), expert-hands (seeds 30000-30299), merged"
 "$IWSIM" collect --task pusht --policy play-broad $BROAD --image-size 64 --workers 2 --seed 20000 \
     --out "$DATA/play_broad.zarr" --no-progress

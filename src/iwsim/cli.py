@@ -219,6 +219,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "checkpoint; its encoder must be --run's)")
     p.add_argument("--novelty-data", metavar="STORE", help="the model's training data: fit the trust signal "
                    "(how unlike this data a step's inputs are) into the checkpoint")
+    p.add_argument("--rest-threshold", type=float, help="inference: a scene whose setpoint holds still and whose "
+                   "newest latent changed by less than this stays at rest (0: off; default: the run's)")
+    p.add_argument("--delta-deadband", type=float, help="inference: a predicted change of a latent cell under this "
+                   "is no change (0: off; default: the run's)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_export_model)
 
@@ -775,14 +779,17 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
 def _export_model(args: argparse.Namespace) -> int:
     from iwsim.checkpoint import resolve_checkpoint
     from iwsim.world_model import WorldModel, export_model
+    from iwsim.world_model.model import INFERENCE_SETTINGS, check_inference
 
+    inference = check_inference({k: v for k in INFERENCE_SETTINGS if (v := getattr(args, k)) is not None})
     novelty = None
     if args.novelty_data is not None:
         from iwsim.world_model.dynamics_data import fit_store_novelty
 
         novelty = fit_store_novelty(WorldModel.load(resolve_checkpoint(args.run)), args.novelty_data,
                                     progress=not args.no_progress)
-    path = export_model(args.run, args.out, force=args.force, decoder=args.decoder, novelty=novelty)
+    path = export_model(args.run, args.out, force=args.force, decoder=args.decoder, novelty=novelty,
+                        inference=inference)
     print(path)
     return 0
 

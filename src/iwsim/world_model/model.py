@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal, overload
 
@@ -560,8 +560,22 @@ def complete_run_config(config: dict[str, Any]) -> dict[str, Any]:
         return config
 
 
+# Stage-2 settings that act only at inference: a checkpoint can carry other values than its run's.
+INFERENCE_SETTINGS = ("rest_threshold", "delta_deadband")
+
+
+def check_inference(settings: dict[str, float]) -> dict[str, float]:
+    """``settings`` if each is an inference setting (:data:`INFERENCE_SETTINGS`) >= 0, else InputError."""
+    for k, v in settings.items():
+        if k not in INFERENCE_SETTINGS:
+            raise InputError(f"{k!r} is not an inference setting; expected one of {', '.join(INFERENCE_SETTINGS)}.")
+        if not v >= 0:
+            raise InputError(f"{k} must be >= 0, got {v}.")
+    return settings
+
+
 def export_model(run: str | Path, out: str | Path, force: bool = False, decoder: str | Path | None = None,
-                 novelty: Novelty | None = None) -> Path:
+                 novelty: Novelty | None = None, inference: dict[str, float] | None = None) -> Path:
     """A standalone world-model checkpoint (``model.safetensors`` + ``config.json``) from a
     run of ``train dynamics`` or ``train decoder-finetune`` (its last checkpoint) or from
     one of its checkpoints (``iwsim export-model``).
@@ -570,7 +584,9 @@ def export_model(run: str | Path, out: str | Path, force: bool = False, decoder:
     ``train decoder-finetune`` run), the checkpoint takes that model's codec: its latents
     are the ones the dynamics was trained on, only their rendering differs. With ``novelty``
     (:func:`iwsim.world_model.dynamics_data.fit_store_novelty` of the training data) the
-    checkpoint carries that trust signal instead of the run's."""
+    checkpoint carries that trust signal instead of the run's. ``inference`` sets stage-2
+    settings that act only at inference (:data:`INFERENCE_SETTINGS`, each >= 0)."""
+    inference = check_inference(inference or {})
     src = resolve_checkpoint(run)
     config = load_json(src / "config.json")
     provenance: dict[str, Any] = {k: config[k] for k in ("data", "ae_checkpoint", "finetuned_from") if k in config}
@@ -590,4 +606,7 @@ def export_model(run: str | Path, out: str | Path, force: bool = False, decoder:
         provenance["decoder"] = str(dec_src)
     if novelty is not None:
         wm.novelty = novelty
+    if inference:
+        provenance["inference"] = {k: [getattr(wm.cfg, k), v] for k, v in inference.items()}  # [the run's, now]
+        wm.cfg = replace(wm.cfg, **inference)
     return wm.save(out, {"provenance": {"source": str(src), **provenance}}, force)
