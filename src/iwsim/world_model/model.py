@@ -608,5 +608,6 @@ def export_model(run: str | Path, out: str | Path, force: bool = False, decoder:
         wm.novelty = novelty
     if inference:
         provenance["inference"] = {k: [getattr(wm.cfg, k), v] for k, v in inference.items()}  # [the run's, now]
-        wm.cfg = replace(wm.cfg, **inference)
+        changes: dict[str, Any] = dict(inference)
+        wm.cfg = replace(wm.cfg, **changes)
     return wm.save(out, {"provenance": {"source": str(src), **provenance}}, force)
