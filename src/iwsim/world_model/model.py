@@ -590,6 +590,8 @@ def export_model(run: str | Path, out: str | Path, force: bool = False, decoder:
     src = resolve_checkpoint(run)
     config = load_json(src / "config.json")
     provenance: dict[str, Any] = {k: config[k] for k in ("data", "ae_checkpoint", "finetuned_from") if k in config}
+    if "provenance" in config:  # a checkpoint exported before: its own record is kept
+        provenance["exported_from"] = config["provenance"]
     wm = WorldModel.load(src)
     if decoder is not None:
         dec_src = resolve_checkpoint(decoder)
