@@ -40,7 +40,7 @@ test-fast: $(STAMP)
 rebuild-pusht-64: $(STAMP)
 	IWSIM=$(VENV)/bin/iwsim PYTHON=$(PY) bash checkpoints/pusht-64/recipe.sh
 
-# The shipped pile-sweeping world model's whole recipe (about 5.5 core-hours), resumable the same way.
+# The shipped pile-sweeping world model's whole recipe (about 7.5 core-hours), resumable the same way.
 rebuild-pilesweep-64: $(STAMP)
 	IWSIM=$(VENV)/bin/iwsim PYTHON=$(PY) bash checkpoints/pilesweep-64/recipe.sh
 

@@ -85,6 +85,8 @@ def main() -> None:
     wm = WorldModel.load(args.checkpoint)
     config = json.loads((args.checkpoint / "config.json").read_text())
     prov = config.get("provenance", {})
+    while "exported_from" in prov:  # exported from an exported checkpoint: the run is the first export's
+        prov = prov["exported_from"]
     metrics = {"mujoco_rollout": mujoco_rollout(wm), "training": training_chain(old_chain, prov, args.extends)}
     if args.bench:
         r = json.loads(args.bench.read_text())

@@ -127,9 +127,10 @@ def test_the_pile_recipe_rebuilds_a_model_and_resumes(tmp_path):
     first = run()
     assert first.returncode == 0, first.stderr[-2000:]
     model = WorldModel.load(tmp_path / "out" / "pilesweep-64")
-    assert model.image_size == 64 and model.task.name == "pilesweep" and model.cfg.dynamics.context == 3
+    assert model.image_size == 64 and model.task.name == "pilesweep" and model.cfg.dynamics.context == 10
+    assert (model.cfg.rest_threshold, model.cfg.delta_deadband) == (0.05, 0.06)
     episodes = EpisodeStore.open(tmp_path / "data" / "pile_contact.zarr").n_episodes
     again = run()
     assert again.returncode == 0, again.stderr[-2000:]
-    assert again.stderr.count("resuming from") == 3  # the codec, the dynamics, the decoder
+    assert again.stderr.count("resuming from") == 4  # the codec, the dynamics, the decoder, the wider window
     assert EpisodeStore.open(tmp_path / "data" / "pile_contact.zarr").n_episodes == episodes

@@ -14,11 +14,34 @@ import numpy as np
 import torch
 
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.pilesweep_pixels import count_pieces
+from iwsim.envs.palette import pixel_centers
+from iwsim.envs.pilesweep_pixels import count_pieces, piece_fraction
 from iwsim.eval.rollout import open_loop
 from iwsim.world_model import WorldModel
 
 STORE, EPISODES, STEPS, EVERY = "data/pile_play_eval.zarr", list(range(20)), 199, 20
+STILL = 0.002  # m: a piece that moves less over the episode is untouched
+
+
+def untouched_drawn(store: EpisodeStore, pred: np.ndarray, steps: tuple[int, ...]) -> tuple[int, int, list[float]]:
+    """Pieces in view over the episodes, those untouched, and the share of the untouched
+    ones the model still draws at each of ``steps`` (indices into ``pred``'s steps)."""
+    size = pred.shape[-2]
+    centres = pixel_centers(size).reshape(-1, 2)
+    fraction = piece_fraction(pred)  # (E, T, H, W)
+    total, drawn = 0, np.zeros(len(steps))
+    pieces = 0
+    for i, e in enumerate(EPISODES):
+        xy = store.episode(e)["pieces"][1:STEPS + 1]  # (T, P, 2), aligned with pred
+        seen = np.isfinite(xy[0, :, 0]) & (np.abs(xy[0]).max(1) < 0.3)  # padded and parked pieces are out
+        pieces += int(seen.sum())
+        still = seen & (np.linalg.norm(xy - xy[:1], axis=-1).max(0) < STILL)
+        for j in np.flatnonzero(still):
+            y, x = divmod(int(np.argmin(((centres - xy[0, j]) ** 2).sum(1))), size)
+            near = fraction[i, list(steps), max(y - 1, 0):y + 2, max(x - 1, 0):x + 2]
+            drawn += near.reshape(len(steps), -1).max(1) > 0.3
+            total += 1
+    return pieces, total, (drawn / max(total, 1)).tolist()
 
 
 def main(*models: str) -> None:
@@ -33,6 +56,9 @@ def main(*models: str) -> None:
               f"{np.mean(off > 1):.1%}), PSNR {r.psnr.mean():.2f}")
         print("  seen, model ", " ".join(f"{v:5.1f}" for v in seen.mean(0)[::EVERY]))
         print("  seen, MuJoCo", " ".join(f"{v:5.1f}" for v in truth.mean(0)[::EVERY]))
+        pieces, still, drawn = untouched_drawn(store, r.pred, (99, STEPS - 1))
+        print(f"  {still} of {pieces} pieces untouched; drawn at steps 100 / {STEPS}: "
+              + " / ".join(f"{d:.0%}" for d in drawn))
 
 
 if __name__ == "__main__":

@@ -16,11 +16,14 @@ PYTHON=${PYTHON:-python}
 OUT=${OUT:-runs/rebuild-pilesweep-64}
 DATA=${DATA:-data}
 if [ "${SCALE:-full}" = tiny ]; then
-    AE=2 DYN=4 FIRST=4 DEC=2 BATCH="--batch-size 2"
+    AE=2 DYN=4 FIRST=4 DEC=2 WIN=2 BATCH="--batch-size 2"
 else
-    AE=8000 DYN=3000 FIRST=250 DEC=1000 BATCH=""
+    AE=8000 DYN=3000 FIRST=250 DEC=1000 WIN=1500 BATCH=""
 fi
 step() { echo "== $(date +%H:%M:%S) $*"; }
+export_once() {  # export-model RUN -> DIR, unless DIR is already a model
+    if [ ! -f "$2/model.safetensors" ]; then "$IWSIM" export-model --run "$1" --out "$2" "${@:3}"; fi
+}
 
 step "the pile stores and the conv-x4-64 codec, $AE steps (bench/pile_recipe.sh)"
 OUT="$OUT" DATA="$DATA" AE=$AE IWSIM="$IWSIM" PYTHON="$PYTHON" bash bench/pile_recipe.sh
@@ -32,11 +35,15 @@ step "stage 3: the decoder, symmetric foreground weight, $DEC steps (from the dy
 "$IWSIM" train decoder-finetune --world-model "$OUT/pile_dyn/checkpoints/$(printf %08d $FIRST)" \
     --data "$DATA/pile_contact.zarr" --out "$OUT/pile_dec_sym" --steps $DEC --lr 2e-4 --latent-noise 0,0.1 \
     --symmetric-foreground $BATCH --threads 1 --no-progress
-if [ ! -f "$OUT/pilesweep-64/model.safetensors" ]; then
-    "$IWSIM" export-model --run "$OUT/pile_dyn/checkpoints/$(printf %08d $DYN)" \
-        --decoder "$OUT/pile_dec_sym/checkpoints/$(printf %08d $DEC)" --out "$OUT/pilesweep-64" \
-        --novelty-data "$DATA/pile_contact.zarr" --no-progress
-fi
+export_once "$OUT/pile_dyn/checkpoints/$(printf %08d $DYN)" "$OUT/pile_wm_$DYN" \
+    --decoder "$OUT/pile_dec_sym/checkpoints/$(printf %08d $DEC)"
+step "stage 2 again: a one-second window (10 latents) fine-tuned from that model, $WIN steps"
+"$IWSIM" train dynamics --init "$OUT/pile_wm_$DYN" --context 10 --data "$DATA/pile_contact.zarr" \
+    --preset pusht-64 --bf16 --lr 2e-4 --steps $WIN $BATCH --out "$OUT/pile_dyn_win10" \
+    --latent-cache "$OUT/latents_pile_x4_bf16.safetensors" --threads 1 --no-progress
+step "the model: the trust signal of its data, a scene at rest stays at rest, changes under 0.06 are none"
+export_once "$OUT/pile_dyn_win10/checkpoints/$(printf %08d $WIN)" "$OUT/pilesweep-64" \
+    --novelty-data "$DATA/pile_contact.zarr" --rest-threshold 0.05 --delta-deadband 0.06 --no-progress
 if [ "${YARDSTICK:-1}" != 0 ]; then
     step "the yardstick"
     "$PYTHON" bench/pile_yardstick.py --models "rebuilt=$OUT/pilesweep-64" --horizon 199 \
