@@ -28,7 +28,7 @@ def untouched_drawn(store: EpisodeStore, pred: np.ndarray, steps: tuple[int, ...
     ones the model still draws at each of ``steps`` (indices into ``pred``'s steps)."""
     size = pred.shape[-2]
     centres = pixel_centers(size).reshape(-1, 2)
-    fraction = piece_fraction(pred)  # (E, T, H, W)
+    fraction = piece_fraction(pred[:, list(steps)])  # (E, len(steps), H, W): only the steps asked for
     total, drawn = 0, np.zeros(len(steps))
     pieces = 0
     for i, e in enumerate(EPISODES):
@@ -38,7 +38,7 @@ def untouched_drawn(store: EpisodeStore, pred: np.ndarray, steps: tuple[int, ...
         still = seen & (np.linalg.norm(xy - xy[:1], axis=-1).max(0) < STILL)
         for j in np.flatnonzero(still):
             y, x = divmod(int(np.argmin(((centres - xy[0, j]) ** 2).sum(1))), size)
-            near = fraction[i, list(steps), max(y - 1, 0):y + 2, max(x - 1, 0):x + 2]
+            near = fraction[i, :, max(y - 1, 0):y + 2, max(x - 1, 0):x + 2]
             drawn += near.reshape(len(steps), -1).max(1) > 0.3
             total += 1
     return pieces, total, (drawn / max(total, 1)).tolist()
