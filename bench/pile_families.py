@@ -39,7 +39,7 @@ import torch
 
 from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
 from iwsim.envs.pilesweep_pixels import count_pieces, piece_fraction
-from iwsim.errors import InputError, reporting_errors
+from iwsim.errors import InputError, check_positive, reporting_errors
 from iwsim.eval.policy import check_model_task, rollout
 from iwsim.eval.records import command_line, with_command
 from iwsim.eval.rollout import frame_scores
@@ -164,9 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default="runs/pile_families", help="cache (default: %(default)s)")
     p.add_argument("--out", default="bench/results/pilesweep/families", help="report directory (default: %(default)s)")
     args = p.parse_args(argv)
-    for flag in ("seeds", "steps", "idle_episodes", "long_episodes", "long_steps", "jobs"):
-        if getattr(args, flag) < 1:
-            p.error(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    check_positive(args, "seeds", "steps", "idle_episodes", "long_episodes", "long_steps", "jobs")
     try:
         seen = fam.seen_families(args.trained_on)
     except ValueError as e:

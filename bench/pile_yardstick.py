@@ -38,7 +38,7 @@ import torch
 from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
 from iwsim.data.store import EpisodeStore
 from iwsim.envs.pilesweep_pixels import count_pieces
-from iwsim.errors import InputError, reporting_errors
+from iwsim.errors import InputError, check_positive, reporting_errors
 from iwsim.eval.policy import WORLD_MODEL, check_model_task
 from iwsim.eval.profiling import speed
 from iwsim.eval.ranking import agreement
@@ -227,9 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default="runs/pile_yardstick", help="cache (default: %(default)s)")
     p.add_argument("--out", default="bench/results/pilesweep/yardstick", help="report directory (default: %(default)s)")
     args = p.parse_args(argv)
-    for flag in ("episodes", "horizon", "rank_episodes", "teleop_episodes", "speed_calls", "threads"):
-        if getattr(args, flag) < 1:
-            p.error(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    check_positive(args, "episodes", "horizon", "rank_episodes", "teleop_episodes", "speed_calls", "threads")
     models = named_checkpoints(args.models)
     for name, ckpt in models.items():
         check_model_task(WorldModel.load(ckpt), TASK, f"--models {name}={ckpt}")

@@ -49,7 +49,8 @@ def test_pile_yardstick_runs_on_a_tiny_model(pile_model, tmp_path):
 
     pusht = tiny_world_model().save(tmp_path / "pusht", {})  # 4-D actions, no task recorded: T-push
     for refused, needle in ((run(f"t={pusht}"), "world model of task 'pusht'"),
-                            (run(f"tiny={pile_model['checkpoint']}", horizon=9), "use --horizon 7")):
+                            (run(f"tiny={pile_model['checkpoint']}", horizon=9), "use --horizon 7"),
+                            (run(f"tiny={pile_model['checkpoint']}", horizon=0), "--horizon must be a positive")):
         lines = refused.stderr.strip().splitlines()
         assert refused.returncode != 0 and len(lines) == 1 and needle in lines[0], refused.stderr[-2000:]
 

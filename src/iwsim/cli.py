@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from iwsim.errors import EXIT_USER_ERROR, InputError, reporting_errors
+from iwsim.errors import EXIT_USER_ERROR, InputError, check_positive, reporting_errors
 from iwsim.resources import human_bytes, set_threads
 
 if TYPE_CHECKING:
@@ -310,13 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--accept-iou", "--accept-score", dest="accept_iou", type=float,
                    help="keep takes whose max pixel score (T-push: IoU) reaches this (default: the preset's, 0.9)")
     q.add_argument("--demo-steps", type=int, help="horizon of a demonstration take (default: the preset's)")
-    q.add_argument("--jobs", type=int, default=min(2, available_cores()),
-                   help="trainings/evaluations at once, one thread each (default: %(default)s)")
-    q.add_argument("--out", help="report directory (default: bench/results/experiments/datagen, or datagen-act "
-                                 "for --preset act; another task's under bench/results/experiments/TASK)")
-    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations; another task's under "
-                                                               "WORK/TASK (default: %(default)s)")
-    q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    _study_run_flags(q, "datagen, or datagen-act for --preset act")
     q.set_defaults(func=_experiment_datagen)
     q = exp_sub.add_parser("policy-eval", help="does the world model rank policies like MuJoCo? (r, rho, MMRV)")
     q.add_argument("--preset", default="default", choices=("default", "tiny"), help="scale (default: %(default)s)")
@@ -330,13 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "missing)")
     q.add_argument("--demo-episodes", type=int, help="demonstrations of the full-data runs (default: 100)")
     q.add_argument("--small-demos", type=int, help="demonstrations of the small-data run (default: 25)")
-    q.add_argument("--jobs", type=int, default=min(2, available_cores()),
-                   help="trainings/evaluations at once, one thread each (default: %(default)s)")
-    q.add_argument("--out", help="report directory (default: bench/results/experiments/policy_eval; another task's "
-                                 "under bench/results/experiments/TASK)")
-    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations; another task's under "
-                                                               "WORK/TASK (default: %(default)s)")
-    q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    _study_run_flags(q, "policy_eval")
     q.set_defaults(func=_experiment_policy_eval)
     for q in _leaf_parsers(parser):
         q.add_argument("--threads", type=int,
@@ -357,6 +345,20 @@ def _study_task_flags(q: argparse.ArgumentParser, default: Any) -> None:
     q.add_argument("--demonstrator", choices=ANY_EXPERTS,
                    help="the task's pixel expert that records the demonstrations, e.g. T-push's expert-wide (wider "
                         "margins, easier to imitate); its takes get their own stores (default: expert)")
+
+
+def _study_run_flags(q: argparse.ArgumentParser, report: str) -> None:
+    """A study's --jobs, --out (``report``: its default under bench/results/experiments),
+    --work and --no-progress."""
+    from iwsim.resources import available_cores
+
+    q.add_argument("--jobs", type=int, default=min(2, available_cores()),
+                   help="trainings/evaluations at once, one thread each (default: %(default)s)")
+    q.add_argument("--out", help=f"report directory (default: bench/results/experiments/{report}; another task's "
+                                 "under bench/results/experiments/TASK)")
+    q.add_argument("--work", default="runs/experiments", help="demos, runs, evaluations; another task's under "
+                                                               "WORK/TASK (default: %(default)s)")
+    q.add_argument("--no-progress", action="store_true", help="hide the progress bars")
 
 
 def _study_config(args: argparse.Namespace, presets: dict[str, C], report: str, **overrides: Any) -> tuple[C, Path]:
@@ -499,7 +501,7 @@ def _data_info(args: argparse.Namespace) -> int:
 def _data_export(args: argparse.Namespace) -> int:
     from iwsim.data.formats import export
 
-    _check_positive(args, "fps")
+    check_positive(args, "fps")
     print(export(args.format, args.src, args.out, fps=args.fps, task=args.task, progress=not args.no_progress))
     return 0
 
@@ -572,14 +574,6 @@ def _check_frames_memory(what: str, frames: int, copies: int = 1) -> None:
     require_memory(frames * copies * SMALLEST_FRAME_BYTES, f"{what} (at least {frames * copies} frames in memory)")
 
 
-def _check_positive(args: argparse.Namespace, *names: str) -> None:
-    """Each named integer flag, when given, must be >= 1."""
-    for name in names:
-        v = getattr(args, name)
-        if v is not None and v < 1:
-            raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
-
-
 def _resolve_preset(args: argparse.Namespace, presets: dict[str, C],
                     trained: Callable[[C], Any] | None = None) -> C | None:
     """The preset named by --preset with --steps/--batch-size/--seed (and --variant) applied; prints it
@@ -596,7 +590,7 @@ def _resolve_preset(args: argparse.Namespace, presets: dict[str, C],
                                    ("lr", args.lr)) if v is not None}
     if getattr(args, "bf16", False):
         overrides["cpu_bf16"] = True
-    _check_positive(args, "steps", "batch_size")
+    check_positive(args, "steps", "batch_size")
     if args.lr is not None and not (math.isfinite(args.lr) and args.lr > 0):
         raise InputError(f"--lr must be a positive number, got {args.lr}.")
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **overrides))
@@ -658,7 +652,7 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     if args.init is not None and args.variant != "ours":
         raise InputError("--variant applies to training from scratch; --init keeps the model's own objective "
                          "and network.")
-    _check_positive(args, "context")
+    check_positive(args, "context")
     from iwsim.world_model.train_dynamics import run_config, train_dynamics
 
     def trained(cfg: Any) -> Any:  # what --init and --context make of the preset
@@ -757,7 +751,7 @@ def _train_decoder_finetune(args: argparse.Namespace) -> int:
     from iwsim.training.trainer import resolve_device
     from iwsim.world_model.train_codec import finetune_decoder
 
-    _check_positive(args, "steps", "batch_size")
+    check_positive(args, "steps", "batch_size")
     if not args.lr > 0:
         raise InputError(f"--lr must be positive, got {args.lr}.")
     if args.batch_size is not None:
@@ -802,7 +796,7 @@ def _rollout(args: argparse.Namespace) -> int:
 
     if not str(args.out).endswith(".mp4"):
         raise InputError(f"--out must be an .mp4 path, got {args.out!r}.")
-    _check_positive(args, "steps", "context")
+    check_positive(args, "steps", "context")
     store = EpisodeStore.open(args.data, "r")
     if not 0 <= args.episode < store.n_episodes:  # (a negative index would silently count from the end)
         raise InputError(f"--episode must be in 0..{store.n_episodes - 1} ({args.data} holds {store.n_episodes} "
@@ -832,7 +826,7 @@ def _bench(args: argparse.Namespace) -> int:
         if name in models:
             raise InputError(f"model name {name!r} is given twice.")
         models[name] = path
-    _check_positive(args, "episodes", "steps", "stability_every", "speed_batch", "speed_calls")
+    check_positive(args, "episodes", "steps", "stability_every", "speed_batch", "speed_calls")
     if args.stability_steps < 0:
         raise InputError(f"--stability-steps must be >= 0, got {args.stability_steps}.")
     # the recorded episodes and every model's rollout of them
@@ -855,7 +849,7 @@ def _play(args: argparse.Namespace) -> int:
     # taken port fails at once.
     token, source = resolve_token(args.token, args.token_file)
     bindings = None if args.bindings is None else _read_json(args.bindings, "--bindings")
-    _check_positive(args, "max_sessions")
+    check_positive(args, "max_sessions")
     check_sessions_memory(args.max_sessions)
     check_bind(args.host, token)
     sock = bind(args.host, args.port)

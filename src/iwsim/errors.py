@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable
+from typing import Any
 
 EXIT_USER_ERROR = 1  # bad values the library rejected (argparse's own usage errors exit 2)
 
@@ -18,6 +19,14 @@ class IwsimError(Exception):
 class InputError(IwsimError, ValueError):
     """Bad input from a user (a file, flag, message or action), named in one sentence with
     what was expected. A ValueError too, as these always were."""
+
+
+def check_positive(args: Any, *names: str) -> None:
+    """Each named integer flag of the parsed ``args``, when given, must be >= 1."""
+    for name in names:
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
 
 
 def reporting_errors(prog: str, body: Callable[[], int | None]) -> int:
