@@ -33,9 +33,10 @@ ENVS = ("pilesweep", "world-model")
 
 
 def scripted(spec: str) -> ScriptedConfig | None:
-    kind, _, args = spec.partition(":")
+    """The scripted policy ``KIND[:k=v,...]``, or None for a checkpoint's path."""
     if "/" in spec:
         return None
+    kind, _, args = spec.partition(":")
     kw = {k: (int(v) if k == "latency" else float(v)) for k, v in (a.split("=") for a in args.split(",") if a)}
     return ScriptedConfig(kind, **kw)
 
