@@ -17,6 +17,7 @@ can fill it with other policies); the table covers every policy cached there.
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -41,9 +42,10 @@ def scripted(spec: str) -> ScriptedConfig | None:
     return ScriptedConfig(kind, **kw)
 
 
-def shares(frames: np.ndarray) -> dict[str, list[float]]:
+def shares(frames: np.ndarray) -> dict[str, Any]:
     """Per episode, the max over steps of the pieces in the tray over those seen in the
-    frame (``seen``) and over those seen in the first frame (``first``, at most 1)."""
+    frame (``seen``) and over those seen in the first frame (``first``, at most 1); and
+    the mean pieces seen in the first and the last frame."""
     inside, seen = count_pieces(frames)
     now = inside / np.maximum(seen, 1)
     first = np.minimum(inside / np.maximum(seen[:, :1], 1), 1.0)
