@@ -14,6 +14,7 @@ from iwsim.cli import main
 from iwsim.config import TrainConfig, to_dict
 from iwsim.data.collect import collect
 from iwsim.data.store import StoreError
+from iwsim.precision import bf16_available
 from iwsim.training import trainer
 from iwsim.world_model.codecs import load_codec
 from iwsim.world_model.presets import AE_PRESETS
@@ -281,9 +282,11 @@ def test_dynamics_takes_either_an_autoencoder_or_a_model_to_fine_tune(play_store
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not bf16_available(torch.device("cpu")), reason="this CPU has neither AMX nor AVX-512-BF16")
 def test_bf16_autocast_on_the_cpu_trains_reproducibly(play_store, tmp_path, one_thread):
-    """``--bf16``: the config records it, the loss stays finite, the same command gives the
-    same weights, and they differ from the float32 run's (the autocast is in effect)."""
+    """``--bf16``: the config records it, every training row names the path, the loss stays
+    finite, the same command gives the same weights, and they differ from the float32 run's
+    (the autocast is in effect); the checkpoint loads in the plain (float32) path."""
     flags = ["--preset", "tiny", "--no-progress"]
     assert main(["train", "ae", "--data", str(play_store), "--out", str(tmp_path / "ae"), *flags]) == 0
     for out, bf16 in (("a", ["--bf16"]), ("b", ["--bf16"]), ("fp32", [])):
@@ -292,7 +295,12 @@ def test_bf16_autocast_on_the_cpu_trains_reproducibly(play_store, tmp_path, one_
     config = json.loads((tmp_path / "a" / "config.json").read_text())
     assert config["stage2"]["train"]["cpu_bf16"] is True
     rows = [json.loads(line) for line in (tmp_path / "a" / "metrics.jsonl").read_text().splitlines()]
-    assert all(math.isfinite(r["loss"]) for r in rows if "loss" in r)
+    assert all(math.isfinite(r["loss"]) and r["path"] == "bf16" for r in rows if "loss" in r)
+    fp32_rows = [json.loads(line) for line in (tmp_path / "fp32" / "metrics.jsonl").read_text().splitlines()]
+    assert {r["path"] for r in fp32_rows if "loss" in r} == {"fp32"}
+    from iwsim.world_model import WorldModel
+
+    WorldModel.load(tmp_path / "a" / "checkpoints" / "last")
     a = load_file(tmp_path / "a" / "checkpoints" / "last" / "model.safetensors")
     b = load_file(tmp_path / "b" / "checkpoints" / "last" / "model.safetensors")
     assert_same(a, b)

@@ -12,9 +12,10 @@ one.
 
 LAYERS: list[tuple[str, ...]] = [
     # 1. foundations: network blocks, noise and samplers, checkpoint I/O, metrics, errors,
-    #    configs, the one-writer lock (of stores and run directories), the generic training loop
-    ("iwsim.errors", "iwsim.resources", "iwsim.models", "iwsim.diffusion", "iwsim.checkpoint", "iwsim.metrics",
-     "iwsim.normalize", "iwsim.config", "iwsim.layers", "iwsim.data.lock", "iwsim.training.trainer",
+    #    configs, the numeric path (bf16 where the CPU has it), the one-writer lock (of stores
+    #    and run directories), the generic training loop
+    ("iwsim.errors", "iwsim.resources", "iwsim.precision", "iwsim.models", "iwsim.diffusion", "iwsim.checkpoint",
+     "iwsim.metrics", "iwsim.normalize", "iwsim.config", "iwsim.layers", "iwsim.data.lock", "iwsim.training.trainer",
      "iwsim.training.distributed"),
     # 2. the ground truth: MuJoCo tasks, their scripted policies, pixel scorers
     ("iwsim.envs",),

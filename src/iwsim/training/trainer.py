@@ -3,8 +3,10 @@
 A stage supplies a :class:`TrainTask`: a module whose ``forward(batch)`` returns the loss,
 a way to build this rank's share of step k's batch, an evaluation and an export. The loop
 does the rest: AdamW with linear warm-up, gradient clipping, EMA weights, bf16 autocast on
-CUDA (and on the CPU with ``cpu_bf16``), DDP under torchrun, periodic evaluation and atomic checkpoints, logging to
-``log.txt`` and ``metrics.jsonl``, and exact resumption.
+CUDA (and on the CPU with ``cpu_bf16``, where the CPU has the instructions:
+:func:`training_precision`), optionally ``torch.compile`` of the module's networks, DDP
+under torchrun, periodic evaluation and atomic checkpoints, logging to ``log.txt`` and
+``metrics.jsonl`` (each training row names the numeric path it took), and exact resumption.
 
 Exact resumption without saving RNG states: everything random at step k (which samples,
 which noise) is drawn from a generator seeded by (seed, k) for the *global* batch, of
@@ -45,6 +47,7 @@ from iwsim.checkpoint import (
 from iwsim.config import TrainConfig
 from iwsim.data.lock import DirLock, LockedError
 from iwsim.errors import InputError, IwsimError
+from iwsim.precision import Precision, bf16_available, cpu_info
 from iwsim.resources import MiB, human_bytes, require_memory
 from iwsim.training import distributed
 
@@ -170,11 +173,35 @@ def _setup_logging(run_dir: Path) -> logging.Handler:
     return handler
 
 
+def training_precision(device: torch.device, bf16: bool) -> Precision:
+    """The numeric path of a training step: bf16 autocast on CUDA always; on the CPU when
+    the config asks for it (``cpu_bf16``) and the CPU has the instructions, else float32
+    with a warning (a run started on a machine with AMX resumes on one without)."""
+    if device.type == "cuda":
+        return Precision(bf16=True)
+    if bf16 and not bf16_available(device):
+        log.warning("train.cpu_bf16 is set but this CPU (%s) has neither AMX nor AVX-512-BF16: training in float32",
+                    cpu_info().model)
+        bf16 = False
+    return Precision(bf16=bf16)
+
+
+def compile_networks(module: nn.Module) -> None:
+    """``torch.compile`` the networks of a training module in place (their weights' names
+    stay), those it lists in ``compile_targets()`` or else the module itself."""
+    targets = getattr(module, "compile_targets", None)
+    for net in (targets() if targets is not None else (module,)):
+        net.compile()
+
+
 def train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str, Any], *,
           device: torch.device = torch.device("cpu"), force: bool = False, progress: bool = True,
-          complete: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> dict[str, float]:
+          complete: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+          compile: bool = False) -> dict[str, float]:
     """Train ``task`` to ``cfg.steps`` in ``run_dir``, resuming from its last checkpoint
-    (``complete``: as :func:`prepare_run_dir`'s).
+    (``complete``: as :func:`prepare_run_dir`'s). ``compile``: ``torch.compile`` the
+    module's networks (:func:`compile_networks`; a speed setting only, so not part of the
+    config: a run may resume with or without it).
 
     Returns the last evaluation's metrics (rank 0; empty elsewhere).
     """
@@ -196,7 +223,7 @@ def train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str,
         distributed.barrier(d)
         handler = _setup_logging(run_dir) if d.main else None
         try:
-            return _train(task, cfg, run_dir, config, device, d, progress)
+            return _train(task, cfg, run_dir, config, device, d, progress, compile)
         finally:
             if handler is not None:
                 logging.getLogger("iwsim").removeHandler(handler)
@@ -217,8 +244,9 @@ def lock_run_dir(run_dir: Path) -> DirLock:
 
 
 def _train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str, Any], device: torch.device,
-           d: distributed.Dist, progress: bool) -> dict[str, float]:
+           d: distributed.Dist, progress: bool, compile: bool = False) -> dict[str, float]:
     module = task.module.to(device)
+    precision = training_precision(device, cfg.cpu_bf16)
     ema = copy.deepcopy(module).requires_grad_(False).eval()
     opt = torch.optim.AdamW(module.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     ckpt_root = run_dir / "checkpoints"
@@ -233,13 +261,16 @@ def _train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str
         log.info("%s is already trained to step %d (>= %d)", run_dir, start, cfg.steps)
         return {}
 
+    path = ("bf16" if precision.bf16 else "fp32") + ("+compile" if compile else "")
+    log.info("training path: %s on %s (%s; bf16 instructions: %s)", path, device.type, cpu_info().model,
+             cpu_info().bf16)
+    if compile:
+        compile_networks(module)
     net: nn.Module = module
     if d.world > 1:
         net = DistributedDataParallel(module, device_ids=[device] if device.type == "cuda" else None)
     per_rank = cfg.batch_size // d.world
     part = slice(d.rank * per_rank, (d.rank + 1) * per_rank)
-    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(
-        "cpu", dtype=torch.bfloat16, enabled=cfg.cpu_bf16)
     metrics_file = (run_dir / "metrics.jsonl").open("a") if d.main else None
     last_eval: dict[str, float] = {}
 
@@ -265,7 +296,7 @@ def _train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str
             for group in opt.param_groups:
                 group["lr"] = _lr(cfg, step)
             batch = task.batch(step, step_generator(cfg.seed, step), part, device)
-            with autocast:
+            with precision.autocast(device):
                 loss, parts = net(batch)
             loss_all = distributed.mean(loss.detach(), d)
             if not torch.isfinite(loss_all):
@@ -287,7 +318,7 @@ def _train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str
                 rate = images / (time.perf_counter() - t_mark)
                 t_mark, images = time.perf_counter(), 0
                 row = {"step": done, "loss": loss_all.item(), **parts, "grad_norm": grad_norm.item(),
-                       "lr": _lr(cfg, step), "images_per_s": rate, "elapsed_s": elapsed}
+                       "lr": _lr(cfg, step), "images_per_s": rate, "elapsed_s": elapsed, "path": path}
                 record(row)
                 bar.set_postfix(loss=f"{row['loss']:.4f}", img_s=f"{rate:.0f}")
             if d.main and (done % cfg.eval_every == 0 or done == cfg.steps):

@@ -67,6 +67,7 @@ from iwsim.diffusion.schedule import gaussian
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.normalize import scale
+from iwsim.precision import Precision, bf16_available, require_bf16
 from iwsim.tasks import task_from_config
 from iwsim.world_model.codec import DEFAULT_KIND, Codec
 from iwsim.world_model.codecs import WM_KIND, build_codec, codec_class, world_model_codec
@@ -76,6 +77,14 @@ from iwsim.world_model.novelty import Novelty
 from iwsim.world_model.presets import OBJECTIVES, DynamicsStageConfig
 
 KIND = WM_KIND
+
+
+def inference_precision(device: torch.device) -> Precision:
+    """The path of ``WorldModel.bf16`` on ``device``: bf16 autocast (the weights stay
+    float32) where the hardware has it. The dynamics keeps the standard layout and the
+    codec channels-last activations (as in float32): what measured fastest here
+    (``bench/results/speed``)."""
+    return Precision(bf16=bf16_available(device))
 
 
 @dataclass
@@ -166,6 +175,9 @@ class WorldModel(nn.Module):
         # labelled with (standardised latent units).
         self.jumps, self.euler_steps, self.context_label = cfg.jumps, cfg.euler_steps, cfg.context_label
         self.reencode = False
+        # float32 unless bf16 is asked for (the config's inference_bf16, or the bf16 setting)
+        # and the hardware has it (a checkpoint that asks for it runs in float32 elsewhere)
+        self._precision = inference_precision(self.action_low.device) if cfg.inference_bf16 else Precision()
         # The trust signal (iwsim.world_model.novelty): the Gaussian of the training data's
         # step inputs, when the checkpoint carries one (iwsim export-model --novelty-data).
         self.novelty: Novelty | None = None
@@ -173,6 +185,21 @@ class WorldModel(nn.Module):
         # The robot task (iwsim.envs.task.Task) the checkpoint records, set by load; None
         # for a model built in code (its callers then take iwsim.tasks.task_of's default).
         self.task: Task | None = None
+
+    @property
+    def bf16(self) -> bool:
+        """Whether inference runs under bf16 autocast (:func:`inference_precision`): about
+        twice the frames per second of a batch of 64 on a CPU with AMX, no faster for one
+        stream, frames within a few grey levels of float32's (``bench/results/speed``). Off
+        unless the checkpoint asks for it (``iwsim export-model --bf16``); setting it on is
+        refused on a device without bf16 instructions."""
+        return self._precision.bf16
+
+    @bf16.setter
+    def bf16(self, value: bool) -> None:
+        if value:
+            require_bf16(self.device, "WorldModel.bf16")
+        self._precision = inference_precision(self.device) if value else Precision()
 
     @property
     def context_label(self) -> float:
@@ -254,7 +281,8 @@ class WorldModel(nn.Module):
     def encode(self, frames: np.ndarray | torch.Tensor) -> torch.Tensor:
         """uint8 frames (B, H, W, 3) -> latents (B, *latent_shape)."""
         x = self.check_frames(frames, 4)
-        return self.codec.encode(to_model(x).to(self.device))
+        with self._precision.autocast(self.device):
+            return self.codec.encode(to_model(x).to(self.device)).float()
 
     @torch.inference_mode()
     def decode(self, latents: np.ndarray | torch.Tensor, seed: int = 0) -> np.ndarray:
@@ -265,7 +293,8 @@ class WorldModel(nn.Module):
             raise InputError(f"expected latents (B, {', '.join(map(str, self.latent_shape))}), "
                              f"got shape {tuple(z.shape)}.")
         g = torch.Generator(self.device).manual_seed(seed)
-        return to_uint8(self.codec.decode(z, None, 1, g))
+        with self._precision.autocast(self.device):
+            return to_uint8(self.codec.decode(z, None, 1, g).float())
 
     # -- the dynamics' latent units -----------------------------------------------------------
     def standardize(self, z: torch.Tensor) -> torch.Tensor:
@@ -397,7 +426,9 @@ class WorldModel(nn.Module):
         change (``predict_delta``). ``still`` (B,): whether the setpoint holds still
         (:meth:`Denoiser.sample`; default: the two actions are the same)."""
         sigma = torch.full((context.shape[0],), self.context_label, device=context.device)
-        return self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps, still)
+        with self._precision.autocast(self.device):
+            new = self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps, still)
+        return new.float()
 
     @torch.inference_mode()
     def novelty_of(self, state: StreamState, actions: np.ndarray | torch.Tensor) -> np.ndarray | None:
@@ -423,8 +454,9 @@ class WorldModel(nn.Module):
             noise = self._noise(gens, (*lead, *shape)).flatten(0, len(lead))
             noise = noise.contiguous(memory_format=torch.channels_last)
         # channels-last activations: ~25% faster decoder convolutions on CPU (measured at batch 4)
-        images = self.codec.decode(z.flatten(0, len(lead)).contiguous(memory_format=torch.channels_last), noise)
-        return images.contiguous().view(*z.shape[:-3], *shape)
+        with self._precision.autocast(self.device):
+            images = self.codec.decode(z.flatten(0, len(lead)).contiguous(memory_format=torch.channels_last), noise)
+        return images.float().contiguous().view(*z.shape[:-3], *shape)
 
     def rollout(self, context_frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor,
                 context_actions: np.ndarray | torch.Tensor | None = None, seed: int | Sequence[int] = 0,
@@ -561,15 +593,19 @@ def complete_run_config(config: dict[str, Any]) -> dict[str, Any]:
 
 
 # Stage-2 settings that act only at inference: a checkpoint can carry other values than its run's.
-INFERENCE_SETTINGS = ("rest_threshold", "delta_deadband")
+INFERENCE_SETTINGS = ("rest_threshold", "delta_deadband", "inference_bf16")
 
 
 def check_inference(settings: dict[str, float]) -> dict[str, float]:
-    """``settings`` if each is an inference setting (:data:`INFERENCE_SETTINGS`) >= 0, else InputError."""
+    """``settings`` if each is an inference setting (:data:`INFERENCE_SETTINGS`): the
+    thresholds >= 0, inference_bf16 a bool; else InputError."""
     for k, v in settings.items():
         if k not in INFERENCE_SETTINGS:
             raise InputError(f"{k!r} is not an inference setting; expected one of {', '.join(INFERENCE_SETTINGS)}.")
-        if not v >= 0:
+        if k == "inference_bf16":
+            if not isinstance(v, bool):
+                raise InputError(f"inference_bf16 must be true or false, got {v!r}.")
+        elif not v >= 0:
             raise InputError(f"{k} must be >= 0, got {v}.")
     return settings
 

@@ -64,6 +64,11 @@ class DynamicsTrainModule(nn.Module):
         one_jump = cfg.jumps == 1 and cfg.top_fraction == 1 and cfg.zero_fraction == 1
         self.feeds_estimate = cfg.objective == "regression" or (cfg.objective == "consistency" and one_jump)
 
+    def compile_targets(self) -> tuple[nn.Module, ...]:
+        """What ``--compile`` compiles: the network, called once per unrolled prediction (the
+        unroll loop itself would be traced into one graph per unroll length)."""
+        return (self.dynamics,)
+
     def forward(self, batch: DynBatch) -> tuple[torch.Tensor, dict[str, float]]:
         per = self.unroll(batch)  # (B, n)
         return per.mean(), {"loss_first": per[:, 0].mean().item(), "loss_last": per[:, -1].mean().item(),
@@ -214,13 +219,13 @@ class DynamicsTask:
 def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | None, out: str | Path, *,
                    device: torch.device, force: bool = False, progress: bool = True,
                    latent_cache: str | Path | None = None, init: str | Path | None = None,
-                   context: int | None = None) -> dict[str, float]:
+                   context: int | None = None, compile: bool = False) -> dict[str, float]:
     """Train (or resume) stage 2 into the run directory ``out``, from scratch on the
     stage-1 checkpoint ``ae`` or, with ``init``, fine-tuning that world model, with a
     window of ``context`` latents if given (see :class:`DynamicsTask`). The frozen
     encoder's latents are cached in ``latent_cache`` (default: the run directory), which
     runs on the same store and encoder can share; a cache of other frames or weights is
-    rewritten."""
+    rewritten. ``compile``: ``torch.compile`` the dynamics network (a speed setting only)."""
     if (ae is None) == (init is None):
         raise InputError("train dynamics takes either --ae (train from scratch) or --init (fine-tune), not both.")
     cache = Path(latent_cache) if latent_cache is not None else Path(out) / "latents.safetensors"
@@ -228,4 +233,4 @@ def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | 
     config = task.config(data)
     assert config["kind"] == KIND
     return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress,
-                         complete=complete_run_config)
+                         complete=complete_run_config, compile=compile)
