@@ -553,8 +553,8 @@ def _train_flags(q: argparse.ArgumentParser, presets: str) -> None:
     q.add_argument("--batch-size", type=int, help="override the preset's global batch size")
     q.add_argument("--lr", type=float, help="override the preset's peak learning rate")
     q.add_argument("--seed", type=int, help="override the preset's seed")
-    q.add_argument("--bf16", action="store_true", help="bf16 autocast on the CPU too (always on with CUDA); refused "
-                                                       "on a CPU without AMX or AVX-512-BF16")
+    q.add_argument("--bf16", action="store_true", help="bf16 autocast on the CPU too (always on with CUDA); a CPU "
+                                                       "without AMX or AVX-512-BF16 trains in float32, with a warning")
     q.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: %(default)s)")
     q.add_argument("--force", action="store_true", help="train a run directory that holds a different config")
     q.add_argument("--dry-run", action="store_true", help="print the resolved config and exit")
@@ -597,10 +597,6 @@ def _resolve_preset(args: argparse.Namespace, presets: dict[str, C],
     overrides = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed),
                                    ("lr", args.lr)) if v is not None}
     if getattr(args, "bf16", False):
-        from iwsim.precision import require_bf16
-        from iwsim.training.trainer import resolve_device
-
-        require_bf16(resolve_device(args.device), "--bf16")
         overrides["cpu_bf16"] = True
     check_positive(args, "steps", "batch_size")
     if args.lr is not None and not (math.isfinite(args.lr) and args.lr > 0):

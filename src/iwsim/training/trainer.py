@@ -176,12 +176,13 @@ def _setup_logging(run_dir: Path) -> logging.Handler:
 def training_precision(device: torch.device, bf16: bool) -> Precision:
     """The numeric path of a training step: bf16 autocast on CUDA always; on the CPU when
     the config asks for it (``cpu_bf16``) and the CPU has the instructions, else float32
-    with a warning (a run started on a machine with AMX resumes on one without)."""
+    with a warning (so a recipe that asks for bf16 runs on any machine, and a run started on
+    one with AMX resumes on one without)."""
     if device.type == "cuda":
         return Precision(bf16=True)
     if bf16 and not bf16_available(device):
-        log.warning("train.cpu_bf16 is set but this CPU (%s) has neither AMX nor AVX-512-BF16: training in float32",
-                    cpu_info().model)
+        log.warning("bf16 asked for (train.cpu_bf16) but this CPU (%s) has neither AMX nor AVX-512-BF16, where bf16 "
+                    "is emulated and many times slower: training in float32", cpu_info().model)
         bf16 = False
     return Precision(bf16=bf16)
 
