@@ -157,8 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
                                           "a store that extends the cached one (a merge of it and more) encodes "
                                           "only its new frames (default: in the run directory)")
     q.add_argument("--compile", action="store_true",
-                   help="torch.compile the dynamics network: a minute or two of compiling first, then faster steps "
-                        "(bench/results/speed); a speed setting only: a run resumes with or without it")
+                   help="torch.compile the dynamics network: about a minute of compiling first, then ~1.1-1.2x faster "
+                        "steps (bench/results/speed); a speed setting only: a run resumes with or without it")
     _train_flags(q, "tiny, pusht-64")
     q.set_defaults(func=_train_dynamics)
     q = train_sub.add_parser("policy", help="an imitation policy (Diffusion Policy or ACT) on a mixture of stores")

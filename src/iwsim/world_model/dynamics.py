@@ -73,7 +73,8 @@ class SpatialAttention(nn.Module):
         n, c, h, w = x.shape
         q, k, v = self.qkv(self.norm(x)).view(n, 3, self.heads, c // self.heads, h * w).transpose(-1, -2).unbind(1)
         # softmax(q k^T / sqrt(d)) v written out: what F.scaled_dot_product_attention computes,
-        # but its CPU flash kernel's backward is many times slower at these sizes (hw <= 1024).
+        # whose CPU flash kernel's backward is far slower on latent grids this small
+        # (bench/results/speed).
         weights = torch.softmax((q * q.shape[-1] ** -0.5) @ k.transpose(-1, -2), dim=-1)
         o = weights @ v  # (n, heads, hw, d)
         return x + self.out(o.transpose(-1, -2).reshape(n, c, h, w))

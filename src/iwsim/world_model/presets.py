@@ -135,8 +135,8 @@ class DynamicsStageConfig:
     # all; without it, a still scene creeps (the idle drift, issue 41). 0: off.
     rest_threshold: float = 0.0
     # Inference: bf16 autocast (WorldModel.bf16) where the hardware has it, else float32.
-    # Several times the frames per second of a large batch on a CPU with AMX; frames within
-    # a few grey levels of float32's (bench/results/speed).
+    # About twice the frames per second of a batch of 64 on a CPU with AMX, no faster for
+    # one stream; frames within a few grey levels of float32's (bench/results/speed).
     inference_bf16: bool = False
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
     holdout_every: int = 20
