@@ -160,8 +160,20 @@ def test_export_model_sets_inference_settings_and_refuses_negative_ones(tmp_path
     assert (out / "model.safetensors").read_bytes() == (src / "model.safetensors").read_bytes()
     assert load_json(out / "config.json")["provenance"]["inference"]["rest_threshold"] == [0.0, 0.05]
     assert main(["export-model", "--run", str(src), "--out", str(tmp_path / "bad"), "--rest-threshold", "-1"]) == 1
-    assert "rest_threshold must be >= 0, got -1.0" in error_line(capsys)
+    assert "rest_threshold must be a finite number >= 0, got -1.0" in error_line(capsys)
     assert not (tmp_path / "bad").exists()
+    # issue 65 row 8: an infinite deadband would freeze every frame
+    assert main(["export-model", "--run", str(src), "--out", str(tmp_path / "bad"), "--delta-deadband", "inf"]) == 1
+    assert "delta_deadband must be a finite number >= 0, got inf" in error_line(capsys)
+    assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize("task", ["pusht", "pilesweep"])
+def test_demo_refuses_a_negative_seed_in_one_line(task, tmp_path, capsys):
+    """Issue 65 row 7: a negative MuJoCo seed is one line, before anything runs."""
+    assert main(["demo", "--task", task, "--seed", "-3", "--out", str(tmp_path / "demo")]) == 1
+    assert "--seed must be a non-negative integer, got -3" in error_line(capsys)
+    assert not (tmp_path / "demo").exists()
 
 
 @pytest.mark.parametrize("part,size,says", [("codec", 10**5, "of memory"), ("codec", 10**9, "can be built"),

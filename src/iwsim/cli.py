@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from iwsim.errors import EXIT_USER_ERROR, InputError, check_positive, reporting_errors
+from iwsim.errors import EXIT_USER_ERROR, InputError, check_positive, check_seed, reporting_errors
 from iwsim.resources import human_bytes, set_threads
 
 if TYPE_CHECKING:
@@ -941,6 +941,7 @@ def _experiment_policy_eval(args: argparse.Namespace) -> int:
 def _demo(args: argparse.Namespace) -> int:
     from iwsim import demo
 
+    check_seed(args, "seed")
     _check_frames_memory(f"--steps {args.steps}", args.steps + 1, 2)  # MuJoCo's frames and the model's
 
     return demo.main(args)

@@ -29,6 +29,15 @@ def check_positive(args: Any, *names: str) -> None:
             raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {v}.")
 
 
+def check_seed(args: Any, *names: str) -> None:
+    """Each named seed flag of the parsed ``args``, when given, must be >= 0 (MuJoCo's and
+    NumPy's generators take no negative seeds)."""
+    for name in names:
+        v = getattr(args, name)
+        if v is not None and v < 0:
+            raise InputError(f"--{name.replace('_', '-')} must be a non-negative integer, got {v}.")
+
+
 def reporting_errors(prog: str, body: Callable[[], int | None]) -> int:
     """Run a command's ``body`` and return its exit status: a user's error (an
     :class:`IwsimError` or an OSError) is one line ``prog: error: ...`` on stderr, an

@@ -42,6 +42,7 @@ separates them again, so each rollout keeps its own state between batched steps.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -598,15 +599,15 @@ INFERENCE_SETTINGS = ("rest_threshold", "delta_deadband", "inference_bf16")
 
 def check_inference(settings: dict[str, float]) -> dict[str, float]:
     """``settings`` if each is an inference setting (:data:`INFERENCE_SETTINGS`): the
-    thresholds >= 0, inference_bf16 a bool; else InputError."""
+    thresholds finite and >= 0, inference_bf16 a bool; else InputError."""
     for k, v in settings.items():
         if k not in INFERENCE_SETTINGS:
             raise InputError(f"{k!r} is not an inference setting; expected one of {', '.join(INFERENCE_SETTINGS)}.")
         if k == "inference_bf16":
             if not isinstance(v, bool):
                 raise InputError(f"inference_bf16 must be true or false, got {v!r}.")
-        elif not v >= 0:
-            raise InputError(f"{k} must be >= 0, got {v}.")
+        elif not (math.isfinite(v) and v >= 0):  # inf would freeze every frame (no change passes)
+            raise InputError(f"{k} must be a finite number >= 0, got {v}.")
     return settings
 
 
