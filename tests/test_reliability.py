@@ -4,14 +4,17 @@ a store named twice, sizes the machine cannot hold; and thread counts are chosen
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
+import torch
 
 from iwsim.checkpoint import load_json
 from iwsim.cli import main
 from iwsim.resources import choose_threads
 
+ROOT = Path(__file__).resolve().parents[1]
 TINY_COLLECT = ["--task", "pusht", "--policy", "play", "--steps", "3", "--no-progress", "--workers", "1"]
 
 
@@ -856,3 +859,32 @@ def test_the_batch_memory_check_reads_the_frames_a_store_holds(tmp_path, capsys)
     assert main(["train", "ae", "--preset", "tiny", "--batch-size", "100000", "--data", str(path),
                  "--out", str(tmp_path / "out")]) == 1
     assert "--batch-size 100000 (about 80.0 MiB per sample)" in error_line(capsys)
+
+
+def test_a_model_with_non_finite_weights_is_refused_in_one_line(tmp_path, capsys):
+    """Issue 65 row 2: NaN weights used to run as a working model (black frames, NaN
+    scores); every command that loads a model now names the broken tensor."""
+    from safetensors.torch import load_file, save_file
+
+    from iwsim.checkpoint import CheckpointError
+    from iwsim.policies.factory import load_policy
+    from iwsim.world_model import WorldModel
+    from tests.test_dynamics import tiny_world_model
+
+    src = tiny_world_model().save(tmp_path / "wm")
+    tensors = load_file(src / "model.safetensors")
+    name = next(k for k in tensors if k.startswith("dynamics.") and k.endswith("weight"))
+    tensors[name] = torch.full_like(tensors[name], float("nan"))
+    save_file(tensors, src / "model.safetensors")
+    with pytest.raises(CheckpointError, match=f"tensor '{name}' holds NaN"):
+        WorldModel.load(src)
+    assert main(["export-model", "--run", str(src), "--out", str(tmp_path / "copy")]) == 1
+    assert name in error_line(capsys) and not (tmp_path / "copy").exists()
+    policy = tmp_path / "dp"
+    shutil.copytree(ROOT / "checkpoints" / "dp-pusht-64", policy)
+    tensors = load_file(policy / "model.safetensors")
+    name = next(k for k in tensors if tensors[k].is_floating_point())
+    tensors[name][0] = float("inf")
+    save_file(tensors, policy / "model.safetensors")
+    with pytest.raises(CheckpointError, match="infinite"):
+        load_policy(policy)

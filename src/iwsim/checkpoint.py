@@ -147,7 +147,18 @@ def load_model_dir(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[st
     found = config["kind"]
     if found != kind:
         raise CheckpointError(f"{path} is a {found!r} checkpoint, not {KINDS.get(kind, repr(kind))}.")
-    return config, load_tensors(path / "model.safetensors")
+    tensors = load_tensors(path / "model.safetensors")
+    check_finite(tensors, path / "model.safetensors")
+    return config, tensors
+
+
+def check_finite(tensors: dict[str, torch.Tensor], where: Path) -> None:
+    """Refuse weights that hold NaN or infinite values (a run that diverged, a damaged
+    file): a model made of them runs, but everything it computes is garbage."""
+    for name, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise CheckpointError(f"{where}: tensor {name!r} holds NaN or infinite values; the checkpoint is broken "
+                                  "(e.g. saved from a run whose weights diverged) and is not used.")
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
