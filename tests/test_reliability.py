@@ -888,3 +888,30 @@ def test_a_model_with_non_finite_weights_is_refused_in_one_line(tmp_path, capsys
     save_file(tensors, policy / "model.safetensors")
     with pytest.raises(CheckpointError, match="infinite"):
         load_policy(policy)
+
+
+def test_export_model_force_never_replaces_another_kind_nor_deletes_what_it_did_not_write(tmp_path, capsys):
+    """Issue 65 row 1: ``--force`` over a policy checkpoint replaced it with a world model
+    and deleted its README.md and metrics.json; a self-export deleted them too."""
+    from tests.test_dynamics import tiny_world_model
+
+    src = tiny_world_model().save(tmp_path / "wm")
+    policy = tmp_path / "dp"
+    shutil.copytree(ROOT / "checkpoints" / "dp-pusht-64", policy)
+    before = {p.name: p.read_bytes() for p in policy.iterdir()}
+    assert main(["export-model", "--run", str(src), "--out", str(policy), "--force"]) == 1
+    assert "is a policy, not a world model" in error_line(capsys)
+    assert {p.name: p.read_bytes() for p in policy.iterdir()} == before
+    # a world model's README.md and metrics.json (a person's, a ship script's) stay when its weights are replaced
+    ckpt = tiny_world_model(seed=1).save(tmp_path / "ckpt")
+    (ckpt / "README.md").write_text("how it was made")
+    (ckpt / "metrics.json").write_text('{"psnr": 30}')
+    assert main(["export-model", "--run", str(src), "--out", str(ckpt), "--force"]) == 0
+    assert (ckpt / "model.safetensors").read_bytes() == (src / "model.safetensors").read_bytes()
+    assert (ckpt / "README.md").read_text() == "how it was made"
+    assert (ckpt / "metrics.json").read_text() == '{"psnr": 30}'
+    # and a checkpoint exported onto itself keeps them too
+    assert main(["export-model", "--run", str(ckpt), "--out", str(ckpt), "--force", "--rest-threshold", "0.05"]) == 0
+    assert (ckpt / "README.md").read_text() == "how it was made" and (ckpt / "metrics.json").exists()
+    assert load_json(ckpt / "config.json")["stage2"]["rest_threshold"] == 0.05
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []

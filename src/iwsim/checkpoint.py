@@ -250,9 +250,10 @@ def save_checkpoint(root: Path, step: int, model: dict[str, torch.Tensor], confi
 MODEL_DIR_EXTRAS = ("README.md", "metrics.json")  # what iwsim writes beside a checkpoint's model and config
 
 
-def _check_replaceable(path: Path, ours: set[str]) -> None:
-    """Refuse to replace ``path`` unless it is a checkpoint directory iwsim wrote: a
-    ``config.json`` of a known kind and nothing but the files a checkpoint holds."""
+def _check_replaceable(path: Path, ours: set[str], kind: Any) -> None:
+    """Refuse to replace ``path`` unless it is a checkpoint directory iwsim wrote of the
+    same ``kind`` as the new one (a world model never replaces a policy): a ``config.json``
+    of that kind and nothing but the files a checkpoint holds."""
     def refuse(why: str) -> None:
         raise FileExistsError(f"{path} {why}; --force replaces only a checkpoint directory iwsim wrote, "
                               "choose another --out.")
@@ -265,6 +266,8 @@ def _check_replaceable(path: Path, ours: set[str]) -> None:
         config = None
     if not isinstance(config, dict) or config.get("kind") not in KINDS:
         refuse("is not an iwsim checkpoint (no config.json of a known kind)")
+    if config["kind"] != kind:
+        refuse(f"is {KINDS[config['kind']]}, not {KINDS.get(kind, repr(kind))}")
     others = sorted(e.name for e in path.iterdir() if e.name not in ours or not e.is_file() or e.is_symlink())
     if others:
         refuse(f"holds what a checkpoint does not ({', '.join(others[:3])}{', ...' if len(others) > 3 else ''})")
@@ -274,13 +277,15 @@ def save_model_dir(path: Path, tensors: dict[str, torch.Tensor], config: dict[st
                    json_files: dict[str, Any] | None = None) -> Path:
     """Write a standalone checkpoint directory (``model.safetensors`` + ``config.json``
     and any ``json_files``) atomically. An existing directory is replaced only with
-    ``force``, only if it is a checkpoint directory iwsim wrote (nothing else in it), and
-    only once the new one is complete."""
+    ``force``, only if it is a checkpoint directory iwsim wrote of the same kind (nothing
+    else in it), and only once the new one is complete; what this call does not write (a
+    ``README.md``, a ``metrics.json`` beside the weights) is kept, not deleted."""
     path = Path(path)
     if path.exists() and not force:
         raise FileExistsError(f"{path} already exists; choose another --out or pass --force to replace it.")
     if path.exists():
-        _check_replaceable(path, {"model.safetensors", "config.json", *MODEL_DIR_EXTRAS, *(json_files or {})})
+        _check_replaceable(path, {"model.safetensors", "config.json", *MODEL_DIR_EXTRAS, *(json_files or {})},
+                           config.get("kind"))
     path.parent.mkdir(parents=True, exist_ok=True)
     full = path.resolve()  # a name to put the temporary directories beside (also for ".")
     tmp = full.with_name(f".{full.name}.tmp")
@@ -295,6 +300,9 @@ def save_model_dir(path: Path, tensors: dict[str, torch.Tensor], config: dict[st
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     if path.exists():
+        for name in MODEL_DIR_EXTRAS:  # written by someone else (a person, a ship script): carried over
+            if (path / name).is_file() and not (tmp / name).exists():
+                shutil.copy2(path / name, tmp / name)
         old = full.with_name(f".{full.name}.old")
         shutil.rmtree(old, ignore_errors=True)
         os.replace(path, old)
