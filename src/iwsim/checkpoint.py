@@ -24,7 +24,7 @@ import shutil
 from collections.abc import Callable, Iterator
 from itertools import chain
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, NoReturn, Protocol, TypeVar
 
 import torch
 from safetensors import SafetensorError
@@ -254,7 +254,7 @@ def _check_replaceable(path: Path, ours: set[str], kind: Any) -> None:
     """Refuse to replace ``path`` unless it is a checkpoint directory iwsim wrote of the
     same ``kind`` as the new one (a world model never replaces a policy): a ``config.json``
     of that kind and nothing but the files a checkpoint holds."""
-    def refuse(why: str) -> None:
+    def refuse(why: str) -> NoReturn:
         raise FileExistsError(f"{path} {why}; --force replaces only a checkpoint directory iwsim wrote, "
                               "choose another --out.")
 
