@@ -426,3 +426,43 @@ def test_validate_finds_frames_of_another_shape_than_info_declares(exports, tmp_
     (root / "meta/info.json").write_text(json.dumps(info))
     _, problems = validate(root)
     assert any(f"info.json says {(h * 2, w, c)}" in p and f"{(h, w, c)}" in p for p in problems), problems
+
+
+def _png(array: np.ndarray) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("bad, message", [
+    ("huge", "is 5000 x 5000 pixels, more than a camera frame"),      # issue 65 row 3 (9.3 GB before)
+    ("sizes", "frame 1 is 16 x 16 pixels, the first is 32 x 32"),     # row 4 (a ValueError traceback)
+    ("bomb", "frame 0 declares more pixels than a camera frame"),     # row 5 (PIL's DecompressionBombError)
+    ("16bit", "has 'I;16' pixels; expected 8 bits a channel"),         # row 6 (stored as 255, silently)
+])
+def test_image_cells_are_bounded_before_decoding(tmp_path, bad, message):
+    """Every image a LeRobot import decodes is bounded by its declared size first, of one
+    size and 8 bits a channel; a bad one is one line naming the frame, nothing written."""
+    src = tmp_path / "ds"
+    handwritten_v3(src, image_dtype="image")
+    data = src / "data/chunk-000/file-000.parquet"
+    table = pq.read_table(data)
+    key = "observation.images.wrist"
+    cells = table.column(key).to_pylist()
+    if bad == "huge":
+        cells[0] = {"bytes": _png(np.zeros((5000, 5000, 3), np.uint8)), "path": None}
+    elif bad == "sizes":
+        cells[1] = {"bytes": _png(np.zeros((16, 16, 3), np.uint8)), "path": None}
+    elif bad == "bomb":
+        cells[0] = {"bytes": _png(np.zeros((15000, 15000), np.uint8)), "path": None}
+    else:
+        cells = [{"bytes": _png(np.full((32, 32), 40000, np.uint16)), "path": None} for _ in cells]
+    table = table.set_column(table.column_names.index(key), key, pa.array(cells))
+    pq.write_table(table, data)
+    with pytest.raises(FormatError, match=message):
+        import_("lerobot-v3", src, tmp_path / "s.zarr", camera="wrist", image_size=64, progress=False)
+    assert not (tmp_path / "s.zarr").exists()

@@ -8,10 +8,11 @@ An episode, between a format and the store, is ``{"img": (T, H, W, 3) uint8, "st
 from __future__ import annotations
 
 import contextlib
+import io
 import math
 import os
 import shutil
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,52 @@ REQUIRED = ("img", "state", "action")
 
 class FormatError(InputError):
     """A file that does not follow its format; the message names the file, key and episode."""
+
+
+# A camera frame larger than this is not one (robot cameras give a few megapixels; imports
+# resize to the model's 64-128 px): a frame's declared size is checked before it is decoded.
+MAX_IMAGE_PIXELS = 4096 * 4096
+EIGHT_BIT_MODES = ("1", "L", "LA", "P", "PA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr")  # Pillow's 8-bit modes
+
+
+def decode_images(cells: Sequence[bytes], at: str, formats: tuple[str, ...] | None = None,
+                  ids: Sequence[int] | None = None) -> np.ndarray:
+    """Encoded frames (PNG, JPEG, ...; ``formats`` limits which) -> (T, H, W, 3) uint8 RGB.
+    Each frame's declared size is bounded (:data:`MAX_IMAGE_PIXELS`) and the T frames' decoded
+    bytes checked against the memory available before anything is decoded; frames must be
+    of one size and 8 bits a channel (16-bit ones would be clipped to 255). A FormatError
+    names the frame (``ids[k]``, else k) otherwise."""
+    from PIL import Image
+
+    frames: list[np.ndarray] = []
+    for k, data in enumerate(cells):
+        t = k if ids is None else ids[k]
+        try:
+            with Image.open(io.BytesIO(data), formats=formats) as im:
+                (w, h), mode = im.size, im.mode
+                if w * h > MAX_IMAGE_PIXELS:
+                    raise FormatError(f"{at}: frame {t} is {w} x {h} pixels, more than a camera frame iwsim imports "
+                                      f"({MAX_IMAGE_PIXELS} pixels).")
+                if frames and (h, w) != frames[0].shape[:2]:
+                    raise FormatError(f"{at}: frame {t} is {w} x {h} pixels, the first is {frames[0].shape[1]} x "
+                                      f"{frames[0].shape[0]}.")
+                if mode not in EIGHT_BIT_MODES:
+                    raise FormatError(f"{at}: frame {t} has {mode!r} pixels; expected 8 bits a channel (RGB, RGBA, "
+                                      "grey or palette).")
+                if not frames:
+                    require_memory(len(cells) * w * h * 3, f"{at}: {len(cells)} frames of {w} x {h} pixels")
+                frames.append(np.asarray(im.convert("RGB")))
+        except InputError:
+            raise
+        except Image.DecompressionBombError as e:  # Pillow's own bound, above ours, at opening
+            raise FormatError(f"{at}: frame {t} declares more pixels than a camera frame iwsim imports "
+                              f"({MAX_IMAGE_PIXELS}): {reason(e)}") from None
+        except (OSError, ValueError, SyntaxError, TypeError) as e:
+            what = formats[0] if formats is not None and len(formats) == 1 else "image"
+            raise FormatError(f"{at}: frame {t} is not a readable {what} ({reason(e)}).") from None
+    if not frames:
+        raise FormatError(f"{at}: the episode is empty.")
+    return np.stack(frames)
 
 
 META_MAX_BYTES = 256 << 20  # a metadata file (info.json, episodes.jsonl, ...) larger than this is not one

@@ -33,7 +33,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from iwsim.data.formats.common import FormatError, check_episode, positive_int, reason, where
+from iwsim.data.formats.common import FormatError, check_episode, decode_images, positive_int, reason, where
 from iwsim.data.store import EpisodeStore
 
 log = logging.getLogger(__name__)
@@ -179,22 +179,8 @@ def _decode_jpegs(rows: np.ndarray, at: str, frame_ids: list[int] | None = None)
     RGB arrays. Pillow decodes the JPEG's true colours, i.e. with R and B swapped relative to
     those arrays, so the channels are reversed here. ``frame_ids`` name the rows in messages.
     """
-    from PIL import Image
-
-    frames: list[np.ndarray] = []
-    for k, row in enumerate(rows):
-        t = k if frame_ids is None else frame_ids[k]
-        try:
-            with Image.open(io.BytesIO(row.tobytes()), formats=["JPEG"]) as im:
-                rgb = np.asarray(im.convert("RGB"))
-        except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:
-            raise FormatError(f"{at}: frame {t} is not a readable JPEG ({reason(e)}).") from None
-        if frames and rgb.shape != frames[0].shape:
-            raise FormatError(f"{at}: frame {t} is {rgb.shape[:2]}, the first is {frames[0].shape[:2]}.")
-        frames.append(rgb)
-    if not frames:
-        raise FormatError(f"{at}: the episode is empty.")
-    return np.ascontiguousarray(np.stack(frames)[..., ::-1])
+    frames = decode_images([row.tobytes() for row in rows], at, formats=("JPEG",), ids=frame_ids)
+    return np.ascontiguousarray(frames[..., ::-1])
 
 
 def _aloha_frames(f: h5py.File, cam: str, path: Path, i: int, size: int) -> np.ndarray:

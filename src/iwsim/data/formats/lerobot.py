@@ -38,7 +38,15 @@ from typing import Any
 
 import numpy as np
 
-from iwsim.data.formats.common import FormatError, check_episode, positive_int, read_meta, store_episodes, where
+from iwsim.data.formats.common import (
+    FormatError,
+    check_episode,
+    decode_images,
+    positive_int,
+    read_meta,
+    store_episodes,
+    where,
+)
 from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video, write_episode_video
 from iwsim.data.store import EpisodeStore
 from iwsim.errors import InputError
@@ -416,20 +424,15 @@ def _column(table, key: str, path: Path, episode: int | None = None) -> np.ndarr
 
 
 def _images(table, key: str, path: Path, episode: int) -> np.ndarray:
-    """Frames of an 'image' feature stored in parquet as {bytes, path} (PNG/JPEG)."""
-    import io
-
-    from PIL import Image, UnidentifiedImageError
-
+    """Frames of an 'image' feature stored in parquet as {bytes, path} (PNG/JPEG), decoded
+    within bounds (:func:`~iwsim.data.formats.common.decode_images`)."""
     if key not in table.column_names:
         raise FormatError(f"{where(path, key, episode)}: column missing.")
-    frames = []
-    for cell in table.column(key).to_pylist():
-        try:
-            frames.append(np.asarray(Image.open(io.BytesIO(cell["bytes"])).convert("RGB")))
-        except (TypeError, KeyError, UnidentifiedImageError, OSError):
-            raise FormatError(f"{where(path, key, episode)}: an image cell is not an encoded image.") from None
-    return np.stack(frames)
+    try:
+        cells = [cell["bytes"] for cell in table.column(key).to_pylist()]
+    except (TypeError, KeyError):
+        raise FormatError(f"{where(path, key, episode)}: an image cell is not an encoded image.") from None
+    return decode_images(cells, where(path, key, episode))
 
 
 def _episode_from_rows(table, path: Path, e: int, cam: str, frames: np.ndarray | None,
