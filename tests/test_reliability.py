@@ -915,3 +915,17 @@ def test_export_model_force_never_replaces_another_kind_nor_deletes_what_it_did_
     assert (ckpt / "README.md").read_text() == "how it was made" and (ckpt / "metrics.json").exists()
     assert load_json(ckpt / "config.json")["stage2"]["rest_threshold"] == 0.05
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_world_model_is_not_its_own_trust_partner(tmp_path, capsys):
+    """Issue 65 row 10: --trust-model given the --world-model (or its weights at another
+    path) reported "0% of episodes differ", the model checked against itself."""
+    wm = ROOT / "checkpoints" / "pusht-64"
+    copy = tmp_path / "copy"
+    shutil.copytree(wm, copy)
+    for partner in (wm, copy):
+        assert main(["eval", "policy", "--checkpoint", str(ROOT / "checkpoints" / "dp-pusht-64"), "--env",
+                     "world-model", "--world-model", str(wm), "--trust-model", str(partner), "--episodes", "1",
+                     "--steps", "2", "--out", str(tmp_path / "eval")]) == 1
+        assert "holds the same weights as --world-model" in error_line(capsys)
+        assert not (tmp_path / "eval").exists()

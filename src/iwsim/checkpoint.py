@@ -161,6 +161,13 @@ def check_finite(tensors: dict[str, torch.Tensor], where: Path) -> None:
                                   "(e.g. saved from a run whose weights diverged) and is not used.")
 
 
+def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    """Whether two networks hold the same tensors (names, shapes and values), wherever they
+    were loaded from: what identifies a model, not its path."""
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(sa[k].shape == sb[k].shape and torch.equal(sa[k], sb[k]) for k in sa)
+
+
 def resolve_checkpoint(path: str | Path) -> Path:
     """A checkpoint directory, or a run directory (its ``checkpoints/last``); relative
     paths as :func:`locate` finds them."""

@@ -727,6 +727,12 @@ def _eval_policy(args: argparse.Namespace) -> int:
         if args.trust_model is not None:
             partner = WorldModel.load(args.trust_model, device)
             check_model_task(partner, task, f"--trust-model {args.trust_model}")
+            from iwsim.checkpoint import same_weights
+
+            if same_weights(partner, wm):
+                raise InputError(f"--trust-model {args.trust_model} holds the same weights as --world-model "
+                                 f"{world_model}: the model would be checked against itself; give a second model "
+                                 "trained differently (another seed or other data).")
     result = evaluate(policy, env, episodes=args.episodes, seed=args.seed, steps=steps, world_model=wm,
                       image_size=policy.image_size, out=args.out, videos=args.videos, progress=not args.no_progress,
                       meta={"checkpoint": str(args.checkpoint), "n_action_steps": policy.cfg.n_action_steps,
