@@ -929,3 +929,11 @@ def test_a_world_model_is_not_its_own_trust_partner(tmp_path, capsys):
                      "--steps", "2", "--out", str(tmp_path / "eval")]) == 1
         assert "holds the same weights as --world-model" in error_line(capsys)
         assert not (tmp_path / "eval").exists()
+
+
+def test_export_model_refuses_novelty_data_of_another_task(tmp_path, capsys, store):
+    """Issue 65 row 9: a T-push store's statistics were fitted into a pile-sweeping model."""
+    assert main(["export-model", "--run", str(ROOT / "checkpoints" / "pilesweep-64"), "--out", str(tmp_path / "wm"),
+                 "--novelty-data", str(store), "--no-progress"]) == 1
+    assert "holds episodes of task 'pusht' but the world model is of 'pilesweep'" in error_line(capsys)
+    assert not (tmp_path / "wm").exists()

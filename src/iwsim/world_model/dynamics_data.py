@@ -30,6 +30,7 @@ from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
 from iwsim.normalize import scale, widen
 from iwsim.resources import available_cores, torch_threads
+from iwsim.tasks import REGISTRY, task_from_store
 from iwsim.world_model.codec import Codec
 from iwsim.world_model.codecs import load_codec
 from iwsim.world_model.model import WorldModel
@@ -276,6 +277,10 @@ def fit_store_novelty(wm: WorldModel, data: str | Path, progress: bool = True,
     normalised actions before and at it (at an episode's first step its first action
     stands for both, as after a reset)."""
     store = EpisodeStore.open(data, "r")
+    own = task_from_store(data)
+    if wm.task is not None and own.kind in REGISTRY and wm.task.kind in REGISTRY and own.name != wm.task.name:
+        raise InputError(f"{data} holds episodes of task {own.name!r} but the world model is of {wm.task.name!r}; "
+                         "the trust signal is fitted on the model's own training data.")
     img = store.array("img")
     if img.shape[1] != wm.image_size:
         raise InputError(f"{data} holds {img.shape[1]}x{img.shape[1]} frames but the world model renders "
