@@ -1,6 +1,7 @@
 """iwsim/WorldModel-v0 and its vector form on a tiny world model, and the stage-2 CLI."""
 
 import json
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -155,3 +156,10 @@ def test_the_model_is_conditioned_on_the_motion_mujoco_executes(wm):
         np.testing.assert_allclose(vinfo["target"][0], truth["target"], atol=1e-6)
     with pytest.raises(ValueError, match="finite actions"):
         env.step(np.array([0.0, np.nan, 0.0, 0.0], np.float32))
+
+
+def test_a_store_of_another_task_is_refused_as_starts(play_store):
+    """Issue 65 row 11: T-push frames from --store were fed to (and scored by) a pile model."""
+    pile = WorldModel.load(Path(__file__).resolve().parents[1] / "checkpoints" / "pilesweep-64")
+    with pytest.raises(ValueError, match="holds episodes of task 'pusht'; the world model is of 'pilesweep'"):
+        WorldModelEnv(model=pile, reset_source="store", store=play_store)

@@ -83,6 +83,10 @@ class StoreStarts:
             self.store = EpisodeStore.open(path, "r")
         except (StoreError, OSError) as e:
             raise InputError(f"cannot read the episodes of task {task.name!r} at {path}: {e}") from None
+        named = self.store.attrs.get("task")
+        if task.kind in REGISTRY and named in REGISTRY and named != task.kind:
+            raise InputError(f"{path} holds episodes of task {named!r}; the world model is of {task.name!r}: start "
+                             "from a store of its own task.")
         size = self.store.array("img").shape[1]
         if size != image_size:
             raise InputError(f"{path} holds {size}x{size} frames; the world model needs {image_size}x{image_size}.")
