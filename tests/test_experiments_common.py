@@ -113,3 +113,14 @@ def test_jobs_run_on_one_thread_in_this_process_too():
     assert _in_parallel(torch.get_num_threads, [(), ()], 1, "threads", False) == [1, 1]
     assert _in_parallel(torch.get_num_threads, [()], 2, "threads", False) == [1]
     assert torch.get_num_threads() == 2
+
+
+def test_the_studies_find_the_shipped_model_from_any_directory(tmp_path, monkeypatch):
+    """Issue 65 row 13: outside the checkout a study said "world model checkpoints/pusht-64
+    is not a checkpoint directory", where demo, eval and play found it."""
+    from iwsim.experiments.common import check_study_model, fingerprint
+
+    here = fingerprint("checkpoints/pusht-64")
+    monkeypatch.chdir(tmp_path)
+    check_study_model("checkpoints/pusht-64")
+    assert fingerprint("checkpoints/pusht-64") == here

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from iwsim.checkpoint import load_json, write_json_atomic
+from iwsim.checkpoint import load_json, locate, write_json_atomic
 from iwsim.config import from_dict, to_dict
 from iwsim.data.lock import DirLock, LockedError
 from iwsim.envs.task import Task
@@ -152,7 +152,7 @@ def report_task(report: dict[str, Any]) -> Task:
 def check_study_model(world_model: str | os.PathLike | None, task: Task = STUDY) -> None:
     """One line unless ``world_model`` is a world-model checkpoint of ``task``: a study
     compares the model with the task's simulator, its ground truth."""
-    path = Path(world_model) if world_model is not None else None
+    path = locate(world_model) if world_model is not None else None  # the shipped one from any directory
     if path is None or not (path / "config.json").is_file():
         raise InputError(f"world model {world_model} is not a checkpoint directory (config.json + "
                          "model.safetensors); pass --world-model PATH.")
@@ -177,7 +177,7 @@ def fingerprint(world_model: str | os.PathLike) -> str:
     otherwise, are told apart."""
     h = hashlib.sha256(f"observation {OBSERVATION_VERSION}".encode())
     for name in ("config.json", "model.safetensors"):
-        path = Path(world_model) / name
+        path = locate(world_model) / name
         if not path.is_file():
             raise InputError(f"{world_model} is not a world-model checkpoint: it has no {name}.")
         with path.open("rb") as f:
