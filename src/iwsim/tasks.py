@@ -74,6 +74,14 @@ class DatasetTask(Task):
         return StoreStarts(self, path, image_size)
 
 
+def foreign_task(path: str | Path, task: Task) -> str | None:
+    """The name of the built-in task whose episodes the store at ``path`` holds, when it is
+    not ``task`` (itself built in); else None (the same task, or a store or task of some
+    robot's own data, which has no name to compare)."""
+    own = task_from_store(path)
+    return own.name if own.kind in REGISTRY and task.kind in REGISTRY and own.name != task.name else None
+
+
 class StoreStarts:
     """Initial frames from a store: ``draw(seed)`` is the first frame of episode ``seed %
     episodes`` (``first=True``), or a random frame of a random episode drawn from ``seed``."""
@@ -83,9 +91,9 @@ class StoreStarts:
             self.store = EpisodeStore.open(path, "r")
         except (StoreError, OSError) as e:
             raise InputError(f"cannot read the episodes of task {task.name!r} at {path}: {e}") from None
-        named = self.store.attrs.get("task")
-        if task.kind in REGISTRY and named in REGISTRY and named != task.kind:
-            raise InputError(f"{path} holds episodes of task {named!r}; the world model is of {task.name!r}: start "
+        other = foreign_task(path, task)
+        if other is not None:
+            raise InputError(f"{path} holds episodes of task {other!r}; the world model is of {task.name!r}: start "
                              "from a store of its own task.")
         size = self.store.array("img").shape[1]
         if size != image_size:

@@ -68,7 +68,7 @@ from iwsim.experiments.common import (
 )
 from iwsim.experiments.demos import DemoRecipe, simulator_demos
 from iwsim.policies.scripted import ScriptedConfig
-from iwsim.tasks import REGISTRY, get_task, task_from_store
+from iwsim.tasks import foreign_task, get_task
 from iwsim.world_model_env import score_key
 
 log = logging.getLogger(__name__)
@@ -194,9 +194,9 @@ def _demos(cfg: PolicyEvalConfig, work: Path, progress: bool) -> tuple[Path, dic
         if store.n_episodes < need:
             raise InputError(f"{path} holds {store.n_episodes} demonstrations; the study trains on the first {need} "
                              "(lower --demo-episodes or bring a bigger store).")
-        own = task_from_store(path)
-        if own.kind in REGISTRY and own.name != task.name:
-            raise InputError(f"{path} holds episodes of task {own.name!r}; the study runs on {task.name!r} "
+        other = foreign_task(path, task)
+        if other is not None:
+            raise InputError(f"{path} holds episodes of task {other!r}; the study runs on {task.name!r} "
                              "(--task): bring demonstrations of it.")
         return path, {"path": str(path), "episodes": store.n_episodes, "policy": store.attrs.get("policy"),
                       "given": True}

@@ -30,7 +30,7 @@ from iwsim.diffusion.schedule import gaussian
 from iwsim.errors import InputError
 from iwsim.normalize import scale, widen
 from iwsim.resources import available_cores, torch_threads
-from iwsim.tasks import REGISTRY, task_from_store
+from iwsim.tasks import foreign_task
 from iwsim.world_model.codec import Codec
 from iwsim.world_model.codecs import load_codec
 from iwsim.world_model.model import WorldModel
@@ -277,9 +277,9 @@ def fit_store_novelty(wm: WorldModel, data: str | Path, progress: bool = True,
     normalised actions before and at it (at an episode's first step its first action
     stands for both, as after a reset)."""
     store = EpisodeStore.open(data, "r")
-    own = task_from_store(data)
-    if wm.task is not None and own.kind in REGISTRY and wm.task.kind in REGISTRY and own.name != wm.task.name:
-        raise InputError(f"{data} holds episodes of task {own.name!r} but the world model is of {wm.task.name!r}; "
+    other = None if wm.task is None else foreign_task(data, wm.task)
+    if wm.task is not None and other is not None:
+        raise InputError(f"{data} holds episodes of task {other!r} but the world model is of {wm.task.name!r}; "
                          "the trust signal is fitted on the model's own training data.")
     img = store.array("img")
     if img.shape[1] != wm.image_size:
