@@ -4,7 +4,7 @@ row's max IoU. It shows what a world-model score measures, e.g. why the policy-e
 world model scores a learned policy far above MuJoCo.
 
     MUJOCO_GL=egl python bench/wm_strip.py \\
-        --policy runs/experiments/policy_eval/runs/sim_expert-875c153b/dp-100demos/checkpoints/00003000 \\
+        --policy runs/experiments/policy_eval/runs/sim_expert-*/dp-100demos/checkpoints/00003000 \\
         --seed 100007 --steps 300 --every 30 --out bench/results/experiments/policy_eval/dp_strip.png
 """
 

@@ -69,8 +69,44 @@ def test_evaluations_in_a_model_retrained_at_the_same_path_are_redone(tmp_path, 
     tiny_world_model(1).save(tmp_path / "wm")
     second = evaluate_policies(expert, "world-model", seeds=[5], steps=2, world_model=tmp_path / "wm",
                                out=tmp_path / "eval", progress=False)["expert"]
-    assert first["key"]["world_model"] == second["key"]["world_model"]
     assert first["key"]["world_model_sha256"] != second["key"]["world_model_sha256"]
+
+
+def test_stores_policies_and_models_are_known_by_content_not_path(play_store, tmp_path):
+    """Issue 65 row 12: the same store, policy or world model reached by another path (a
+    copy, another working directory) was another one: evaluated again, trained again, or
+    refused as "a different config". Their identity is now what they hold."""
+    from iwsim.data.store import EpisodeStore
+    from iwsim.experiments.policy_eval import _store_tag
+    from tests.test_dynamics import tiny_world_model
+
+    moved = shutil.copytree(play_store, tmp_path / "elsewhere" / play_store.name)
+    store = EpisodeStore.open(play_store)
+    assert _store_tag(moved, 2) == _store_tag(play_store, 2) != _store_tag(play_store, 1)
+    assert store.content_hash(2) != store.content_hash() or store.n_episodes == 2
+    # a finished policy run is not trained again from the moved store, and trains on from it
+    run = PolicyRun("a", "dp", ((str(play_store), 2),), steps=2, preset="tiny-dp", checkpoint_every=2)
+    root = tmp_path / "runs"
+    train_runs([run], root, progress=False)
+    stamp = (root / "a" / "metrics.jsonl").stat().st_mtime_ns
+    train_runs([dataclasses.replace(run, data=((str(moved), 2),))], root, progress=False)
+    assert (root / "a" / "metrics.jsonl").stat().st_mtime_ns == stamp
+    train_runs([dataclasses.replace(run, data=((str(moved), 2),), steps=4)], root, progress=False)
+    assert sorted(checkpoints(root / "a")) == [2, 4]
+    # other episodes are other data
+    with pytest.raises(InputError, match="different config"):
+        train_runs([dataclasses.replace(run, data=((str(moved), 1),), steps=4)], root, progress=False)
+    # an evaluation of the same weights in the same model at other paths is reused
+    tiny_world_model().save(tmp_path / "wm")
+    policy = shutil.copytree(root / "a" / "checkpoints" / "00000004", tmp_path / "policy-copy")
+    wm_copy = shutil.copytree(tmp_path / "wm", tmp_path / "elsewhere" / "wm")
+    first = evaluate_policies({"dp": root / "a"}, "world-model", seeds=[5], steps=2, world_model=tmp_path / "wm",
+                              out=tmp_path / "eval", progress=False)
+    path = tmp_path / "eval" / "world-model" / "dp.json"
+    stamp = path.stat().st_mtime_ns
+    again = evaluate_policies({"dp": policy}, "world-model", seeds=[5], steps=2, world_model=wm_copy,
+                              out=tmp_path / "eval", progress=False)
+    assert path.stat().st_mtime_ns == stamp and again == first
 
 
 def test_a_study_on_another_task_has_its_horizon_its_directories_and_its_policies(tmp_path):

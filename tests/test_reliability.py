@@ -937,3 +937,25 @@ def test_export_model_refuses_novelty_data_of_another_task(tmp_path, capsys, sto
                  "--novelty-data", str(store), "--no-progress"]) == 1
     assert "holds episodes of task 'pusht' but the world model is of 'pilesweep'" in error_line(capsys)
     assert not (tmp_path / "wm").exists()
+
+
+def test_a_demonstration_store_resumes_with_its_model_reached_by_another_path(tmp_path, capsys, monkeypatch):
+    """Issue 65 row 12: ``iwsim demos --world-model ckpts/wm`` rerun with ``ckpts/wm/``, an
+    absolute path or a copy was refused though the weights' hashes matched; another model
+    still is."""
+    from iwsim.data.store import EpisodeStore
+    from tests.test_dynamics import tiny_world_model
+
+    monkeypatch.chdir(tmp_path)
+    tiny_world_model().save(tmp_path / "ckpts" / "wm")
+    copy = shutil.copytree(tmp_path / "ckpts" / "wm", tmp_path / "copy")
+    base = ["demos", "--steps", "4", "--accept-iou", "0", "--tail", "0", "--batch", "1", "--out", "d.zarr",
+            "--no-progress"]
+    for n, model in enumerate(("ckpts/wm", "ckpts/wm/", str(tmp_path / "ckpts" / "wm"), str(copy)), 1):
+        assert main([*base, "--episodes", str(n), "--world-model", model]) == 0, model
+        assert EpisodeStore.open("d.zarr").n_episodes == n
+    capsys.readouterr()
+    tiny_world_model(seed=1).save(tmp_path / "other")
+    assert main([*base, "--episodes", "5", "--world-model", "other"]) == 1
+    assert "world_model_sha256=" in error_line(capsys)
+    assert EpisodeStore.open("d.zarr").n_episodes == 4

@@ -27,6 +27,7 @@ waits with ``wait=True``. Readers take no lock.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -515,6 +516,25 @@ class EpisodeStore:
         start = int(self._ends[i - 1]) if i else 0
         stop = int(self._ends[i])
         return {k: self.array(k)[start:stop] for k in self._arrays}
+
+    def content_hash(self, episodes: int | None = None, chunk: int = 4096) -> str:
+        """A short hash of what the first ``episodes`` episodes (None: all) hold: the task,
+        their lengths and every array's decoded values, not where the store lies or how it
+        is compressed. Two copies of a store, at any paths, hash alike; a store that grew
+        hashes alike over its old episodes."""
+        n = self.n_episodes if episodes is None else episodes
+        if not 0 <= n <= self.n_episodes:
+            raise InputError(f"{self.path} holds {self.n_episodes} episodes, not {n}.")
+        ends = self._ends[:n]
+        described = {"task": self._attrs.get("task"), "ends": ends.tolist()}
+        h = hashlib.sha256(json.dumps(described, sort_keys=True).encode())
+        stop = int(ends[-1]) if n else 0
+        for key in self.keys:
+            arr = self.array(key)
+            h.update(f"{key} {arr.dtype} {arr.shape[1:]}".encode())
+            for i in range(0, stop, chunk):
+                h.update(np.ascontiguousarray(arr[i:min(i + chunk, stop)]).tobytes())
+        return h.hexdigest()[:16]
 
     def info(self) -> dict[str, Any]:
         """Summary: episodes, frames, per-array shape/dtype/chunks, fps, task, image size,

@@ -32,17 +32,19 @@ from tqdm import tqdm
 from iwsim.checkpoint import load_json, locate, write_json_atomic
 from iwsim.config import from_dict, to_dict
 from iwsim.data.lock import DirLock, LockedError
+from iwsim.data.store import EpisodeStore
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.policy import WORLD_MODEL, rollout, summarize, trust
 from iwsim.eval.records import command_line
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class
 from iwsim.policies.data import Source
-from iwsim.policies.factory import load_policy
+from iwsim.policies.factory import checkpoint_dir, load_policy
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
 from iwsim.resources import torch_threads
 from iwsim.tasks import DEFAULT_TASK, get_task, task_from_config, task_of
 from iwsim.training.policy import train_policy
+from iwsim.training.trainer import data_by_content
 from iwsim.world_model import WorldModel
 from iwsim.world_model_env import OBSERVATION_VERSION
 
@@ -179,7 +181,7 @@ def fingerprint(world_model: str | os.PathLike) -> str:
     for name in ("config.json", "model.safetensors"):
         path = locate(world_model) / name
         if not path.is_file():
-            raise InputError(f"{world_model} is not a world-model checkpoint: it has no {name}.")
+            raise InputError(f"{world_model} is not a checkpoint: it has no {name}.")
         with path.open("rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
@@ -213,10 +215,12 @@ def _finished(run: PolicyRun, root: Path) -> bool:
     saved = load_json(root / run.name / "config.json")
     expected = {"policy": cfg.policy, "model": to_dict(from_dict(config_class(cfg.policy), cfg.model)),
                 "train": {k: v for k, v in to_dict(cfg.train).items() if k != "steps"}, "shift": cfg.shift,
-                "data": [{"path": str(s.path), "episodes": s.episodes} for s in run.sources()]}
+                "data": [{"path": str(s.path), "episodes": s.episodes,
+                          "sha256": EpisodeStore.open(s.path).content_hash(s.episodes)} for s in run.sources()]}
     saved = {k: saved.get(k) for k in expected}
     saved["train"] = {k: v for k, v in (saved["train"] or {}).items() if k != "steps"}
-    return json.loads(json.dumps(expected)) == saved  # tuples as lists, as read back
+    saved, expected = data_by_content(saved, json.loads(json.dumps(expected)))  # tuples as lists, as read back
+    return expected == saved
 
 
 def _train(run: PolicyRun, root: Path, progress: bool) -> str:
@@ -272,12 +276,11 @@ def train_runs(runs: Sequence[PolicyRun], root: Path, *, jobs: int = 1, progress
 
 def _describe(source: PolicySource) -> Any:
     """What identifies a policy in a cached evaluation's key: a scripted config, or the
-    checkpoint directory a path resolves to (a run's ``last`` changes as it trains)."""
+    content of the checkpoint a path names (a run's ``last``, which changes as it trains),
+    so that the same weights at another path reuse the evaluation."""
     if isinstance(source, ScriptedConfig):
         return dataclasses.asdict(source)
-    path = Path(source)
-    last = path / "checkpoints" / "last"
-    return str((last if last.exists() else path).resolve())
+    return {"sha256": fingerprint(checkpoint_dir(Path(source)))}
 
 
 def _load(source: PolicySource, task: Task) -> Any:
@@ -327,8 +330,8 @@ def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: 
     calls = []
     for name, source in policies.items():
         path = Path(out) / env / f"{name}.json"
-        key = {"policy": _describe(source), "env": env, "seeds": seeds, "steps": steps, "world_model": wm,
-               "world_model_sha256": wm_sha256}
+        key = {"policy": _describe(source), "env": env, "seeds": seeds, "steps": steps,
+               "world_model_sha256": wm_sha256}  # identities by content: the same files at another path match
         if path.is_file() and load_json(path).get("key") == key:
             results[name] = load_json(path)
         else:

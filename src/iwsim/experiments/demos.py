@@ -95,8 +95,10 @@ PUSHT = STUDY  # the studies' default task (bench/yardstick.py reads this name)
 POLICY_NAMES = {WORLD_MODEL: "world-model-teleop", "simulator": "expert-pixels"}
 SOURCES = {WORLD_MODEL: "world_model", "simulator": "mujoco"}
 # Attributes that must agree before a run may append to an existing store.
-MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model", "world_model_sha256", "first_seed",
-                  "accept_iou", "tail_steps", "dart_noise", "start", "demonstrator", "takeover",
+# The world model and the takeover policy by their content hashes: the same files reached
+# by another path (another working directory, a trailing slash, a copy) resume the store.
+MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model_sha256", "first_seed",
+                  "accept_iou", "tail_steps", "dart_noise", "start", "demonstrator",
                   "takeover_sha256", "takeover_steps")
 # What stores written before an attribute existed hold.
 OLDER_ATTRS = {"dart_noise": 0.0, "start": "random", "demonstrator": "expert", "takeover": None,
@@ -528,10 +530,15 @@ def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
 
 def _check_existing(store: EpisodeStore, attrs: dict[str, Any], task: Task) -> None:
     """Raise unless this run may append to ``store`` (the same demonstrations)."""
-    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS, absent=OLDER_ATTRS)
+    stored, keys = {**OLDER_ATTRS, **store.attrs}, []
+    for key in MATCHING_ATTRS:
+        if key.endswith("_sha256") and stored.get(key) != attrs[key]:
+            keys.append(key.removesuffix("_sha256"))  # a model or policy of other content is named by its path too
+        keys.append(key)
+    mismatch = attrs_mismatch(store, attrs, keys, absent=OLDER_ATTRS)
     if mismatch:
         raise InputError(f"{store.path} holds demonstrations with {mismatch}; choose another store.")
-    keys = episode_keys(task)
-    if store.n_episodes and set(store.keys) != set(keys):
-        raise InputError(f"{store.path} holds arrays {store.keys}, not the recorded {sorted(keys)}; "
+    arrays = episode_keys(task)
+    if store.n_episodes and set(store.keys) != set(arrays):
+        raise InputError(f"{store.path} holds arrays {store.keys}, not the recorded {sorted(arrays)}; "
                          "choose another store.")

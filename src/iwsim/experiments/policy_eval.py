@@ -30,7 +30,6 @@ evaluations) go under ``work``, so rerunning the command resumes; the report
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 import math
 import time
@@ -179,9 +178,10 @@ def command(cfg: PolicyEvalConfig, preset: str, out: Path, work: Path, jobs: int
     return study_command("policy-eval", preset, changed, "--jobs", str(jobs), "--out", str(out), "--work", str(work))
 
 
-def _store_tag(path: Path) -> str:
-    """A directory name for the runs trained on a store: its name and a hash of where it is."""
-    return f"{path.stem}-{hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:8]}"
+def _store_tag(path: Path, episodes: int) -> str:
+    """A directory name for the runs trained on the first ``episodes`` of a store: its name
+    and a hash of what they hold (a copy of the store at another path trains no runs again)."""
+    return f"{path.stem}-{EpisodeStore.open(path).content_hash(episodes)[:8]}"
 
 
 def _demos(cfg: PolicyEvalConfig, work: Path, progress: bool) -> tuple[Path, dict[str, Any]]:
@@ -259,8 +259,8 @@ def _run_policy_eval(cfg: PolicyEvalConfig, task: Task, out: Path, work: Path, r
     plan = cfg.runs(str(demos))
     log.info("policy-eval 2/4: training %d policy runs on %s", len(plan), demos)
     t = time.perf_counter()
-    run_dirs = train_runs([r for r, _ in plan], work / "policy_eval" / "runs" / _store_tag(demos), jobs=jobs,
-                          progress=progress)
+    runs_dir = work / "policy_eval" / "runs" / _store_tag(demos, cfg.demo_episodes)
+    run_dirs = train_runs([r for r, _ in plan], runs_dir, jobs=jobs, progress=progress)
     timings["training_s"] = time.perf_counter() - t
     timings["training_measured_s"] = sum(training_time(d)["seconds"] for d in run_dirs.values())
     zoo: dict[str, dict[str, Any]] = {}

@@ -60,7 +60,7 @@ class PolicyData:
         if not sources:
             raise InputError("the data mixture is empty; give at least one STORE[:N].")
         self.obs_horizon, self.horizon = obs_horizon, horizon
-        imgs, states, labels, lengths, self.counts = [], [], [], [], {}
+        imgs, states, labels, lengths, self.counts, self.hashes = [], [], [], [], {}, {}
         for src in sources:
             store = EpisodeStore.open(src.path, "r")
             for key in ("img", "state", actions):
@@ -76,6 +76,7 @@ class PolicyData:
             ends = store.episode_ends[:n]
             lengths += np.diff(ends, prepend=0).tolist()
             self.counts[os.fspath(src.path)] = n
+            self.hashes[os.fspath(src.path)] = store.content_hash(n)  # the data's identity, wherever it lies
             for name, arrays in (("frames", imgs), ("state", states), (actions, labels)):
                 if arrays[-1].shape[1:] != arrays[0].shape[1:]:
                     raise InputError(f"{src.path} has {name} of shape {arrays[-1].shape[1:]} per step, "

@@ -4,6 +4,7 @@ them is what evaluation is for), resumption, EMA weights exported."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -70,7 +71,8 @@ class PolicyTask:
     def config(self) -> dict[str, Any]:
         return {**describe(self.module), "task": self.task.describe(), "train": to_dict(self.cfg.train),
                 "shift": self.cfg.shift,
-                "data": [{"path": str(s.path), "episodes": s.episodes} for s in self.sources],
+                "data": [{"path": str(s.path), "episodes": s.episodes, "sha256": self.data.hashes[os.fspath(s.path)]}
+                         for s in self.sources],
                 "episodes_used": self.data.counts, "image_size": self.data.image_size}
 
 

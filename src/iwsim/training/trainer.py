@@ -112,6 +112,7 @@ def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False,
 
         # compared without the descriptions the old config predates
         new = {k: v for k, v in config.items() if k in old or k not in ADDED_DESCRIPTIONS}
+        old, new = data_by_content(old, new)
         if comparable(old) != comparable(new):
             diff = sorted(_diff_keys(comparable(old), comparable(new)))
             if not force:
@@ -127,6 +128,24 @@ def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False,
                 shutil.rmtree(run_dir / name, ignore_errors=True)
             (run_dir / "metrics.jsonl").unlink(missing_ok=True)
     write_json_atomic(path, config)
+
+
+def data_by_content(old: dict[str, Any], new: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Two configs' ``data`` sources made comparable by what they hold: where every source
+    of both records its content hash (``sha256``), without their paths (a store moved, or
+    reached by another path, is the same data; so are the episode counts by path that
+    describe it, ``episodes_used``); else, a run from before the hashes, by path."""
+    a, b = old.get("data"), new.get("data")
+    if not (isinstance(a, list) and isinstance(b, list) and all(isinstance(d, dict) for d in a + b)):
+        return old, new
+    if not all("sha256" in d for d in a + b):
+        return ({**old, "data": [{k: v for k, v in d.items() if k != "sha256"} for d in a]},
+                {**new, "data": [{k: v for k, v in d.items() if k != "sha256"} for d in b]})
+
+    def by_content(c: dict[str, Any]) -> dict[str, Any]:
+        return {**{k: v for k, v in c.items() if k != "episodes_used"},
+                "data": [{k: v for k, v in d.items() if k != "path"} for d in c["data"]]}
+    return by_content(old), by_content(new)
 
 
 def _diff_keys(a: Any, b: Any, prefix: str = "") -> set[str]:
