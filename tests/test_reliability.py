@@ -959,3 +959,62 @@ def test_a_demonstration_store_resumes_with_its_model_reached_by_another_path(tm
     assert main([*base, "--episodes", "5", "--world-model", "other"]) == 1
     assert "world_model_sha256=" in error_line(capsys)
     assert EpisodeStore.open("d.zarr").n_episodes == 4
+
+
+def test_row14_a_collect_killed_in_its_first_episode_leaves_a_store_any_collect_fills(tmp_path, capsys):
+    """Issue 65 row 14: kill -9 of ``iwsim collect`` in its first episode left an empty
+    store that ``data validate`` called 4 problems and a collect with other flags refused
+    ("holds episodes with steps=200", though it held none)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from iwsim.data.store import EpisodeStore
+
+    out = tmp_path / "s.zarr"
+    iwsim = str(Path(sys.executable).parent / "iwsim")
+    proc = subprocess.Popen([iwsim, "collect", "--task", "pusht", "--policy", "play", "--episodes", "1", "--steps",
+                             "5000", "--workers", "1", "--no-progress", "--out", str(out)],
+                            env={**os.environ, "MUJOCO_GL": "egl"})
+    deadline = time.monotonic() + 120
+    while not (out / ".zattrs").is_file() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)  # into the first episode
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert EpisodeStore.open(out).n_episodes == 0
+    assert main(["data", "validate", str(out)]) == 1
+    printed = capsys.readouterr()
+    assert "1 problem(s)" in printed.out + printed.err and "an empty store" in printed.out + printed.err
+    assert main(["collect", *TINY_COLLECT, "--episodes", "1", "--out", str(out)]) == 0  # 3 steps, not 5000
+    store = EpisodeStore.open(out)
+    assert store.n_episodes == 1 and store.attrs["steps"] == 3 and store.episode_ends.tolist() == [3]
+    assert main(["data", "validate", str(out)]) == 0
+    # a store that holds episodes still takes only its own command's
+    capsys.readouterr()
+    assert main(["collect", *TINY_COLLECT[:4], "--steps", "4", "--workers", "1", "--no-progress", "--episodes", "2",
+                 "--out", str(out)]) == 1
+    assert "holds episodes with steps=3, not steps=4" in error_line(capsys)
+
+
+def test_row14_an_empty_demonstration_store_is_refilled_unless_it_records_tried_candidates(tmp_path, capsys):
+    """The same for ``iwsim demos``: a store holding no takes and no tried candidates takes
+    another recipe; one whose candidates all failed keeps its record and refuses it."""
+    from iwsim.data.store import EpisodeStore
+    from iwsim.experiments.demos import demo_attrs
+
+    out = tmp_path / "d.zarr"
+    EpisodeStore.create(out, demo_attrs("pusht", 300, 64, None, 300000, 0.9, 10)).close()
+    base = ["demos", "--task", "pusht", "--steps", "4", "--accept-iou", "0", "--tail", "0", "--batch", "1",
+            "--no-progress", "--out", str(out)]
+    assert main([*base, "--episodes", "1"]) == 0
+    assert EpisodeStore.open(out).attrs["steps"] == 4 and EpisodeStore.open(out).n_episodes == 1
+    failed = tmp_path / "failed.zarr"
+    store = EpisodeStore.create(failed, demo_attrs("pusht", 300, 64, None, 300000, 0.9, 10))
+    store.update_attrs({"candidates_tried": 32, "candidate_max_iou": [0.1] * 32})
+    store.close()
+    capsys.readouterr()
+    assert main([*base[:-1], str(failed), "--episodes", "1"]) == 1
+    assert "steps=300" in error_line(capsys) and EpisodeStore.open(failed).attrs["candidates_tried"] == 32

@@ -382,11 +382,14 @@ class EpisodeStore:
 
     @classmethod
     def open_or_create(cls, path: str | os.PathLike, attrs: Mapping[str, Any], *,
-                       check: Callable[[EpisodeStore], None] | None = None, wait: bool = False) -> EpisodeStore:
+                       check: Callable[[EpisodeStore], None] | None = None, wait: bool = False,
+                       blank: Callable[[EpisodeStore], bool] | None = None) -> EpisodeStore:
         """The store at ``path`` open for appending: created with ``attrs`` when missing,
         else locked, then ``check``-ed read-only (it raises if this writer must not append,
         and nothing is touched), then opened. Locking comes before reading, so what
-        ``check`` sees cannot change until :meth:`close`."""
+        ``check`` sees cannot change until :meth:`close`. A store that holds no episodes
+        (and, where ``blank`` says so, nothing else its writer keeps) is the leftover of a
+        writer stopped before its first episode: it is not checked but takes ``attrs``."""
         path = Path(path)
         if not path.exists():
             try:
@@ -399,8 +402,13 @@ class EpisodeStore:
             cls._open(path, "r", None)
         lock = lock_store(path, wait=wait)
         try:
+            existing = cls._open(path, "r", None)
+            if not existing.n_episodes and (blank is None or blank(existing)):
+                store = cls.open(path, "a", lock=lock)
+                store._describe_anew(attrs)
+                return store
             if check is not None:
-                check(cls._open(path, "r", None))
+                check(existing)
             return cls.open(path, "a", lock=lock)
         except BaseException:
             lock.release()
@@ -647,6 +655,14 @@ class EpisodeStore:
         attrs = _settable(attrs)
         self._root.attrs.update(attrs)
         self._attrs.update(attrs)
+
+    def _describe_anew(self, attrs: Mapping[str, Any]) -> None:
+        """Replace every root attribute of this store, which holds no episodes, by ``attrs``."""
+        assert self.mode == "a" and not self.n_episodes
+        new = {**_settable(attrs), "store_version": self._attrs.get("store_version", STORE_VERSION), "seeds": []}
+        if new != self._attrs:
+            self._root.attrs.put(new)
+            self._attrs = dict(self._root.attrs)
 
     def _set_attr(self, key: str, value: Any) -> None:
         self._root.attrs[key] = value  # rewrites .zattrs atomically

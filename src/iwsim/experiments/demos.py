@@ -257,6 +257,7 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise), start,
                        demonstrator, task, None if takeover is None else os.fspath(takeover), takeover_steps)
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs, task),
+                                     blank=lambda s: not s.attrs.get("candidates_tried"),
                                      wait=wait_for_lock) as store:
         return _record_into(store, env, model, task, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
                             give_up_after, float(dart_noise), start, demonstrator, policy, takeover_steps, progress)

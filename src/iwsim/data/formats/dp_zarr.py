@@ -204,8 +204,10 @@ def validate_store(path: Path) -> list[str]:
         prev = ends[-1] if len(ends) else 0
         problems.append(f"{where(path, 'meta/episode_ends', len(ends))}: episode ends must increase strictly; "
                         f"entry {len(ends)} is {extra[0]} after {prev}.")
-    if not store.n_episodes:
-        problems.append(f"{path}: holds no episodes.")
+    if not store.n_episodes:  # one problem, not one per array it has yet to define
+        problems.append(f"{path}: holds no episodes: an empty store (a collect stopped before its first episode "
+                        "leaves one; a collect into it, with any flags, fills it).")
+        return problems
     for key in ("img", "state", "action"):
         if key not in store.keys:
             problems.append(f"{where(path, f'data/{key}')}: missing.")
