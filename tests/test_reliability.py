@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -1018,3 +1019,44 @@ def test_row14_an_empty_demonstration_store_is_refilled_unless_it_records_tried_
     capsys.readouterr()
     assert main([*base[:-1], str(failed), "--episodes", "1"]) == 1
     assert "steps=300" in error_line(capsys) and EpisodeStore.open(failed).attrs["candidates_tried"] == 32
+
+
+def test_row2_a_model_whose_finite_weights_overflow_is_refused_at_its_first_step(tmp_path, capsys):
+    """Issue 65 row 2, its other half: finite weights that overflow (here a dynamics layer
+    scaled by 1e30) gave NaN frames and scores through every command; the first step whose
+    output is not finite is now one line naming the model and the output, and nothing is
+    written."""
+    from safetensors.torch import load_file, save_file
+
+    from iwsim.checkpoint import CheckpointError
+    from iwsim.eval.policy import rollout
+    from iwsim.world_model import WorldModel
+    from tests.test_dynamics import tiny_world_model
+
+    wm = tiny_world_model().save(tmp_path / "wm")
+    tensors = load_file(wm / "model.safetensors")
+    for name in [k for k in tensors if k.startswith("dynamics.") and k.endswith("weight")]:
+        tensors[name] = tensors[name] * 1e30
+    save_file(tensors, wm / "model.safetensors")
+    model = WorldModel.load(wm)  # finite weights load
+    frames = np.zeros((1, 1, 64, 64, 3), np.uint8)
+    says = f"world model {wm} gave NaN or infinite values in its dynamics' next latent"
+    with pytest.raises(CheckpointError, match=says):
+        model.rollout(frames, np.zeros((1, 2, 4), np.float32))
+    assert main(["eval", "policy", "--checkpoint", str(ROOT / "checkpoints" / "dp-pusht-64"), "--env",
+                 "world-model", "--world-model", str(wm), "--episodes", "1", "--steps", "3", "--videos", "0",
+                 "--out", str(tmp_path / "eval"), "--no-progress"]) == 1
+    assert "NaN or infinite values in its dynamics' next latent" in error_line(capsys)
+    assert not (tmp_path / "eval" / "results.json").exists()
+
+    class Broken:  # a policy whose actions are not numbers
+        obs_horizon, name = 1, "policy broken"
+
+        def reset(self) -> None:
+            pass
+
+        def predict_action(self, obs: dict) -> np.ndarray:
+            return np.full((len(obs["image"]), 1, 4), np.nan, np.float32)
+
+    with pytest.raises(CheckpointError, match="policy broken gave NaN or infinite values in its actions"):
+        rollout(Broken(), "pusht", [0], 2, progress=False)

@@ -26,6 +26,7 @@ from itertools import chain
 from pathlib import Path
 from typing import Any, NoReturn, Protocol, TypeVar
 
+import numpy as np
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
@@ -159,6 +160,16 @@ def check_finite(tensors: dict[str, torch.Tensor], where: Path) -> None:
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise CheckpointError(f"{where}: tensor {name!r} holds NaN or infinite values; the checkpoint is broken "
                                   "(e.g. saved from a run whose weights diverged) and is not used.")
+
+
+def check_finite_output(value: torch.Tensor | np.ndarray, model: str, output: str) -> None:
+    """Refuse a model's output that holds NaN or infinite values (``model`` and ``output``
+    name them): with finite weights, a computation that overflows (weights trained far out
+    of range, a latent scale of 0), whose every later step would be garbage."""
+    ok = bool(torch.isfinite(value).all()) if isinstance(value, torch.Tensor) else bool(np.isfinite(value).all())
+    if not ok:
+        raise CheckpointError(f"{model} gave NaN or infinite values in {output} although its weights are finite "
+                              "(the computation overflows); it cannot be used.")
 
 
 def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:

@@ -32,7 +32,7 @@ from gymnasium import spaces
 from gymnasium.vector import SyncVectorEnv, VectorEnv
 from tqdm import tqdm
 
-from iwsim.checkpoint import write_json_atomic
+from iwsim.checkpoint import check_finite_output, write_json_atomic
 from iwsim.data.collect import Recorder
 from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.task import Task
@@ -177,6 +177,7 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
                 stacked = {"image": np.stack([h["pixels"] for h in history], 1),
                            "agent_pos": np.stack([h["agent_pos"] for h in history], 1)}
                 chunk = policy.predict_action(stacked)  # (E, Ta, A)
+                check_finite_output(chunk, getattr(policy, "name", "the policy"), "its actions")
                 queue = list(chunk.transpose(1, 0, 2))
             actions.append(queue.pop(0).astype(np.float32))
             obs, _, _, _, info = venv.step(actions[-1])

@@ -73,6 +73,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from iwsim.checkpoint import check_finite_output
 from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs import IMAGE_SIZES
@@ -328,7 +329,9 @@ class _Takeover:
         action = np.zeros((len(self.handover), self.task.action_dim), np.float32)
         if self.t < self.handover.max():  # the policy still drives some candidate
             if not self.queue:
-                self.queue = list(self.policy.predict_action(obs).transpose(1, 0, 2))  # (B, Ta, A) -> Ta x (B, A)
+                chunk = self.policy.predict_action(obs)
+                check_finite_output(chunk, f"takeover {getattr(self.policy, 'name', 'policy')}", "its actions")
+                self.queue = list(chunk.transpose(1, 0, 2))  # (B, Ta, A) -> Ta x (B, A)
             action[:] = self.queue.pop(0)
         for i in np.flatnonzero(self.handover <= self.t):
             expert = self.experts[i]

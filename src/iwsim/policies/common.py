@@ -62,6 +62,7 @@ class Policy(nn.Module):
 
     image_size: int  # the frames it was trained on; set by iwsim.policies.factory.load_policy
     task: Task | None = None  # the task of its training episodes (load_policy: as its checkpoint records it)
+    name = "the policy"  # what errors call it (load_policy: "policy PATH")
 
     def __init__(self, cfg, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__()

@@ -95,4 +95,5 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_s
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise CheckpointError(f"{path} does not hold a loadable policy ({' '.join(str(e).split())[:200]}).") from None
     policy.task = task_from_config(config, path / "config.json") if "task" in config else None
+    policy.name = f"policy {path}"
     return policy.to(device).eval()

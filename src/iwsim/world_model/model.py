@@ -56,6 +56,7 @@ from torch import nn
 from iwsim.checkpoint import (
     CheckpointError,
     build_within_memory,
+    check_finite_output,
     load_json,
     load_model_dir,
     locate,
@@ -186,6 +187,7 @@ class WorldModel(nn.Module):
         # The robot task (iwsim.envs.task.Task) the checkpoint records, set by load; None
         # for a model built in code (its callers then take iwsim.tasks.task_of's default).
         self.task: Task | None = None
+        self.name = "the world model"  # what errors call it (load: "world model PATH")
 
     @property
     def bf16(self) -> bool:
@@ -283,7 +285,9 @@ class WorldModel(nn.Module):
         """uint8 frames (B, H, W, 3) -> latents (B, *latent_shape)."""
         x = self.check_frames(frames, 4)
         with self._precision.autocast(self.device):
-            return self.codec.encode(to_model(x).to(self.device)).float()
+            z = self.codec.encode(to_model(x).to(self.device)).float()
+        check_finite_output(z, self.name, "its encoder's latents")
+        return z
 
     @torch.inference_mode()
     def decode(self, latents: np.ndarray | torch.Tensor, seed: int = 0) -> np.ndarray:
@@ -293,9 +297,13 @@ class WorldModel(nn.Module):
         if z.ndim != 4 or tuple(z.shape[1:]) != self.latent_shape:
             raise InputError(f"expected latents (B, {', '.join(map(str, self.latent_shape))}), "
                              f"got shape {tuple(z.shape)}.")
+        if not bool(torch.isfinite(z).all()):
+            raise InputError("the latents to decode hold NaN or infinite values.")
         g = torch.Generator(self.device).manual_seed(seed)
         with self._precision.autocast(self.device):
-            return to_uint8(self.codec.decode(z, None, 1, g).float())
+            images = self.codec.decode(z, None, 1, g).float()
+        check_finite_output(images, self.name, "its decoder's frames")
+        return to_uint8(images)
 
     # -- the dynamics' latent units -----------------------------------------------------------
     def standardize(self, z: torch.Tensor) -> torch.Tensor:
@@ -405,6 +413,7 @@ class WorldModel(nn.Module):
         noise = self._noise(state.generators, tuple(state.context.shape[2:]))
         still = state.held & ((actions - state.action).abs().amax(1) <= ACTION_STILL)
         new = self._predict(state.context, torch.stack([prev, actions], 1), noise, still)
+        check_finite_output(new, self.name, "its dynamics' next latent")
         z = self.unstandardize(new)
         images = None
         if decode or self.reencode:  # the decoder draws after the dynamics, from the same generators
@@ -457,6 +466,7 @@ class WorldModel(nn.Module):
         # channels-last activations: ~25% faster decoder convolutions on CPU (measured at batch 4)
         with self._precision.autocast(self.device):
             images = self.codec.decode(z.flatten(0, len(lead)).contiguous(memory_format=torch.channels_last), noise)
+        check_finite_output(images, self.name, "its decoder's frames")
         return images.float().contiguous().view(*z.shape[:-3], *shape)
 
     def rollout(self, context_frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor,
@@ -566,6 +576,7 @@ class WorldModel(nn.Module):
             wm.novelty = Novelty(tensors["novelty.mean"].shape[0])
             wm.novelty.load_state_dict({k[len("novelty."):]: v for k, v in tensors.items() if k.startswith("novelty.")})
         wm.task = task_from_config(config, path / "config.json")
+        wm.name = f"world model {path}"
         if wm.task.action_dim != wm.action_dim:
             raise CheckpointError(f"{path / 'config.json'}: its task {wm.task.name!r} takes {wm.task.action_dim}-D "
                                   f"actions but the model {wm.action_dim}-D ones.")
