@@ -54,7 +54,8 @@ from wm_studies_check import TELEOP_SEED, strip, teleop
 from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
 from iwsim.data.store import EpisodeStore
 from iwsim.envs import pixels
-from iwsim.errors import reporting_errors
+from iwsim.errors import InputError, check_positive, reporting_errors
+from iwsim.eval.policy import check_model_task
 from iwsim.eval.profiling import speed, stability
 from iwsim.eval.ranking import agreement
 from iwsim.eval.records import command_line, with_command
@@ -325,6 +326,27 @@ def parse_seen(items: list[str], models: dict[str, str]) -> dict[str, list[str]]
     return seen
 
 
+def read_report(path: Path) -> dict:
+    """A yardstick report (``results.json``) to merge, or one line of error."""
+    report = load_json(path, "--merge report")
+    if not (isinstance(report, dict) and isinstance(report.get("models"), dict) and "mujoco" in report
+            and "commands" in report):
+        raise InputError(f"--merge {path} is not a report of bench/yardstick.py (its results.json).")
+    return report
+
+
+def check_trust_pairs(pairs: list[str], names: list[str]) -> None:
+    """Each ``MODEL=PARTNER`` names two models of this run or of its reports: checked
+    before any work (whether both have the families part shows only after it)."""
+    for pair in pairs:
+        a, sep, b = pair.partition("=")
+        unknown = [n for n in (a, b) if n not in names]
+        if not sep or not a or not b or a == b or unknown:
+            raise InputError(f"--trust-pairs takes MODEL=PARTNER, two models of --models or of the report, got "
+                             f"{pair!r}" + (f" ({', '.join(map(repr, unknown))} unknown)" if sep and unknown else "")
+                             + ".")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--models", nargs="+", required=True, help="NAME=CHECKPOINT_OR_RUN world models")
@@ -365,20 +387,27 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"unknown parts or families {bad}; parts: {', '.join(PARTS)}; families: {', '.join(fam.FAMILIES)}")
     if not args.zoo and fam.LEARNED in args.families:
         args.families.remove(fam.LEARNED)
-    set_threads(args.threads)
-    torch.manual_seed(0)
-    work, out = Path(args.work), Path(args.out)
+    check_positive(args, "episodes", "steps", "candidates", "stability_steps", "horizon", "speed_calls", "threads",
+                   "jobs", "family_seeds", "idle_episodes")
     models = named_checkpoints(args.models)
+    for name, ckpt in models.items():
+        check_model_task(WorldModel.load(ckpt), PUSHT, f"--models {name}={ckpt}")
     try:
         seen = parse_seen(args.trained_on, models)
     except ValueError as e:
         p.error(str(e))
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(args.out)
     report_path = out / "results.json"
     report = load_json(report_path) if report_path.is_file() else {"models": {}}
+    merged = [read_report(Path(path)) for path in args.merge]
+    check_trust_pairs(args.trust_pairs, [*models, *report["models"], *(n for m in merged for n in m["models"])])
+    set_threads(args.threads)
+    torch.manual_seed(0)
+    work = Path(args.work)
+    out.mkdir(parents=True, exist_ok=True)
     command = command_line(__file__, argv)
     report["commands"] = [c for c in report.get("commands", []) if c != command] + [command]
-    for other in map(load_json, args.merge):  # rows measured side by side into other reports
+    for other in merged:  # rows measured side by side into other reports
         report["commands"] = [c for c in report["commands"] if c not in other["commands"]] + other["commands"]
         for name, row in other["models"].items():
             report["models"][name] = {**report["models"].get(name, {}), **row}

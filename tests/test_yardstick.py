@@ -94,3 +94,29 @@ def test_yardstick_families_and_idle_run_on_a_tiny_model(play_store, tmp_path):
     assert pair["episodes"] == 3 * len(FAMILIES) and set(pair["families"]) == set(FAMILIES)
     md = (out / "results.md").read_text()
     assert "## Generalisation" in md and "| tiny |" in md and "| miss |" in md and "| tiny=partner |" in md
+
+
+def test_yardstick_refuses_bad_input_in_one_line_before_any_work(tmp_path, capsys):
+    """Issue 65's smaller list: --episodes 0 and --steps -1 traced back, a name given twice
+    kept one row, a pile-sweeping model was measured against T-push, a bad --trust-pairs
+    was refused only after the work, and a bad --merge file was called a checkpoint file."""
+    import yardstick
+
+    tpush, pile = str(ROOT / "checkpoints" / "pusht-64"), str(ROOT / "checkpoints" / "pilesweep-64")
+    (tmp_path / "broken.json").write_text("{")
+    (tmp_path / "list.json").write_text("[1]")
+    out = tmp_path / "out"
+    for flags, says in ((["--episodes", "0"], "--episodes must be a positive integer, got 0."),
+                        (["--steps", "-1"], "--steps must be a positive integer, got -1."),
+                        ([f"a={tpush}"], "--models names 'a' twice"),
+                        ([f"c={pile}"], "is a world model of task 'pilesweep', not 'pusht'"),
+                        (["--trust-pairs", "a=nobody"], "--trust-pairs takes MODEL=PARTNER, two models of --models "
+                                                        "or of the report, got 'a=nobody' ('nobody' unknown)."),
+                        (["--merge", str(tmp_path / "broken.json")], "--merge report"),
+                        (["--merge", str(tmp_path / "list.json")], "is not a report of bench/yardstick.py")):
+        models = ["--models", f"a={tpush}"] + ([flags.pop(0)] if "=" in flags[0] else [])
+        argv = [*models, *flags, "--work", str(tmp_path / "work"), "--out", str(out)]
+        code = yardstick.reporting_errors("yardstick.py", lambda argv=argv: yardstick.main(argv))
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 1 and len(err) == 1 and says in err[0], (flags, err)
+    assert not out.exists() and not (tmp_path / "work").exists()

@@ -79,17 +79,18 @@ def load_tensors(path: Path) -> dict[str, torch.Tensor]:
 JSON_MAX_BYTES = 64 << 20  # a checkpoint's config or state is far smaller
 
 
-def load_json(path: Path) -> dict[str, Any]:
+def load_json(path: Path, what: str = "checkpoint file") -> dict[str, Any]:
+    """The JSON file at ``path`` (read with a cap), or one line of error calling it ``what``."""
     if not os.path.lexists(path):
-        raise CheckpointError(f"checkpoint file {path} is missing.")
+        raise CheckpointError(f"{what} {path} is missing.")
     try:
         return json.loads(read_capped(path, JSON_MAX_BYTES, CheckpointError))
     except FileNotFoundError:
-        raise CheckpointError(f"checkpoint file {path} is missing.") from None
+        raise CheckpointError(f"{what} {path} is missing.") from None
     except UnicodeDecodeError:
-        raise CheckpointError(f"checkpoint file {path} is not UTF-8 text.") from None
+        raise CheckpointError(f"{what} {path} is not UTF-8 text.") from None
     except json.JSONDecodeError as e:
-        raise CheckpointError(f"checkpoint file {path} is not valid JSON: {e}.") from None
+        raise CheckpointError(f"{what} {path} is not valid JSON: {e}.") from None
 
 
 class Weighted(Protocol):
@@ -196,12 +197,14 @@ def resolve_checkpoint(path: str | Path) -> Path:
 def named_checkpoints(items: list[str], flag: str = "--models") -> dict[str, str]:
     """``NAME=CHECKPOINT`` items (a checkpoint, or a run: its last) -> {name: checkpoint
     path}, in order, for the scripts that compare models; one line of error for an item
-    without a name."""
+    without a name, or with a name given before (its row would silently be one)."""
     named = {}
     for item in items:
         name, sep, path = item.partition("=")
         if not sep or not name:
             raise InputError(f"{flag} takes NAME=CHECKPOINT, got {item!r}.")
+        if name in named:
+            raise InputError(f"{flag} names {name!r} twice ({named[name]} and {path}); give each model its own name.")
         named[name] = str(resolve_checkpoint(path))
     return named
 
