@@ -198,7 +198,7 @@ def named_checkpoints(items: list[str], flag: str = "--models") -> dict[str, str
     """``NAME=CHECKPOINT`` items (a checkpoint, or a run: its last) -> {name: checkpoint
     path}, in order, for the scripts that compare models; one line of error for an item
     without a name, or with a name given before (its row would silently be one)."""
-    named = {}
+    named: dict[str, str] = {}
     for item in items:
         name, sep, path = item.partition("=")
         if not sep or not name:
