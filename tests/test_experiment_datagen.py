@@ -594,3 +594,31 @@ def test_the_demos_command_refuses_bad_input_in_one_line(learned, wm_path, tmp_p
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("iwsim: error: ") and "accept_iou=0.0, not accept_iou=0.5" in err[0]
     assert files() == before and EpisodeStore.open(out).n_episodes == 1
+
+
+def test_a_demos_run_killed_between_a_take_and_its_record_resumes_with_every_candidate_scored(wm_path, tmp_path,
+                                                                                              monkeypatch):
+    """Issue 65's smaller list: killed after appending a take but before recording the
+    candidates' scores, a rerun left ``candidates_tried`` one longer than
+    ``candidate_max_iou``. It now scores those candidates again (deterministic) without
+    appending their takes twice, and ends as an uninterrupted run."""
+    want = record("pusht", tmp_path / "whole.zarr", wm_path, episodes=3, accept_iou=0.2)
+    real = EpisodeStore.update_attrs
+
+    def killed(self, attrs):
+        if "candidates_tried" in attrs:
+            raise KeyboardInterrupt
+        return real(self, attrs)
+
+    monkeypatch.setattr(EpisodeStore, "update_attrs", killed)
+    with pytest.raises(KeyboardInterrupt):
+        record("pusht", tmp_path / "cut.zarr", wm_path, episodes=3, accept_iou=0.2)
+    monkeypatch.setattr(EpisodeStore, "update_attrs", real)
+    assert EpisodeStore.open(tmp_path / "cut.zarr").n_episodes >= 1
+    got = record("pusht", tmp_path / "cut.zarr", wm_path, episodes=3, accept_iou=0.2)
+    a, b = EpisodeStore.open(tmp_path / "cut.zarr"), EpisodeStore.open(tmp_path / "whole.zarr")
+    for k in ("candidates_tried", "candidate_max_iou", "seeds", "acceptance_rate"):
+        assert a.attrs[k] == b.attrs[k], k
+    assert len(a.attrs["candidate_max_iou"]) == a.attrs["candidates_tried"] == want.candidates == got.candidates
+    assert a.episode_ends.tolist() == b.episode_ends.tolist()
+    np.testing.assert_array_equal(a.array("img")[:], b.array("img")[:])

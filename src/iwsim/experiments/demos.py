@@ -380,11 +380,13 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: 
                  dart_noise: float, start: str, demonstrator: str, takeover: Policy | None,
                  takeover_steps: tuple[int, int], progress: bool) -> DemoStats:
     a = store.attrs
-    # the candidates tried; a run killed between an append and the attribute update below
-    # re-tries the rejected candidates after the last kept one (deterministic, so harmless)
-    last_kept = max((s - seed + 1 for s in a["seeds"]), default=0)
-    tried = max(int(a["candidates_tried"]), last_kept)
+    # The candidates whose scores the store records. A run killed between an append and the
+    # attribute update below kept takes of candidates it did not record: those are tried
+    # again (deterministic, so they score as before), counted and scored, not appended twice.
+    tried = min(int(a["candidates_tried"]), len(a["candidate_max_iou"]))
     max_ious = list(a["candidate_max_iou"])[:tried]
+    kept_seeds = {s for s in a["seeds"] if s is not None}
+    last_kept = max((s - seed + 1 for s in kept_seeds), default=0)
     seconds = float(a["record_seconds"])
     tried0, kept0 = tried, store.n_episodes
     if store.n_episodes < episodes and tried < max_attempts:
@@ -392,14 +394,17 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: 
                  env, store.path, store.n_episodes, episodes, seed + tried, max_attempts)
     bar = tqdm(total=episodes, initial=min(store.n_episodes, episodes), unit="ep", desc=f"demos {store.path.name}",
                disable=not progress)
-    while store.n_episodes < episodes and tried < max_attempts:
+    while (store.n_episodes < episodes and tried < max_attempts) or tried < last_kept:
         if give_up_after is not None and store.n_episodes == 0 and tried >= give_up_after:
             log.warning("%s: none of %d candidates reached pixel %s %g; giving up", store.path, tried,
                         task.score_name, accept_iou)
             break
         # enough candidates for the episodes still missing at the rate so far (Laplace's rule)
-        rate = (store.n_episodes + 1) / (tried + 2)
-        n = min(batch, max_attempts - tried, math.ceil((episodes - store.n_episodes) / rate))
+        kept = sum(s - seed < tried for s in kept_seeds)  # of the candidates tried
+        rate = (kept + 1) / (tried + 2)
+        n = min(batch, max_attempts - tried, math.ceil((episodes - kept) / rate))
+        if tried < last_kept:  # candidates kept but not recorded come first
+            n = max(n, min(batch, last_kept - tried))
         seeds = [seed + tried + i for i in range(n)]
         t0 = time.perf_counter()
         expert: ScriptedBatch | _NoisyExecution | _Takeover
@@ -422,9 +427,11 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: 
             take = ious[i, handover[i]:]  # the expert's part; a take that starts solved shows nothing
             max_ious.append(round(float(take.max()), 4))
             if take.max() >= accept_iou and (takeover is None or take[0] < accept_iou):
-                store.append(_episode(run, ious, i, accept_iou, tail, score_key(task), handover[i]), seed=s)
-                bar.update()
-                if store.n_episodes >= episodes:
+                if s not in kept_seeds:
+                    store.append(_episode(run, ious, i, accept_iou, tail, score_key(task), handover[i]), seed=s)
+                    kept_seeds.add(s)
+                    bar.update()
+                if store.n_episodes >= episodes and tried >= last_kept:
                     break
         seconds += time.perf_counter() - t0
         handovers = {} if takeover is None else {
