@@ -210,3 +210,17 @@ def test_a_study_on_pile_sweeping_refuses_another_tasks_inputs(inputs, pile_mode
     err = capsys.readouterr().err.strip()
     assert err.startswith("iwsim: error:") and match in err and "\n" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_study_with_two_jobs_ends_without_leaked_semaphores(inputs, tmp_path):
+    """Issue 65's smaller list: a clean ``--jobs 2`` study printed "leaked semaphore
+    objects" at exit (its pool's workers were killed holding tqdm's multiprocessing lock)."""
+    import os
+    import subprocess
+    import sys
+
+    iwsim = Path(sys.executable).parent / "iwsim"
+    run = subprocess.run([str(iwsim), *_argv(inputs, tmp_path, "--jobs", "2")], capture_output=True, text=True,
+                         env={**os.environ, "MUJOCO_GL": "egl"}, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "leaked" not in run.stderr and "resource_tracker" not in run.stderr, run.stderr[-2000:]

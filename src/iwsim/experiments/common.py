@@ -20,6 +20,7 @@ import json
 import logging
 import multiprocessing as mp
 import os
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -229,7 +230,11 @@ def _train(run: PolicyRun, root: Path, progress: bool) -> str:
 
 
 def _one_thread() -> None:
+    """A pool worker's set-up: one torch thread, and tqdm's lock a thread lock: its default
+    is a multiprocessing one, whose semaphore a worker never releases (Python then warns of
+    "leaked semaphore objects" at exit)."""
     torch.set_num_threads(1)
+    tqdm.set_lock(threading.RLock())
 
 
 def _in_parallel(fn: Callable, calls: list[tuple], jobs: int, desc: str, progress: bool) -> list[Any]:
@@ -251,6 +256,8 @@ def _in_parallel(fn: Callable, calls: list[tuple], jobs: int, desc: str, progres
             for i, p in enumerate(pending):
                 results[i] = p.get()
                 bar.update()
+            pool.close()  # the workers exit on their own (leaving the with block would kill them)
+            pool.join()
         return results
     finally:
         bar.close()
