@@ -1060,3 +1060,23 @@ def test_row2_a_model_whose_finite_weights_overflow_is_refused_at_its_first_step
 
     with pytest.raises(CheckpointError, match="policy broken gave NaN or infinite values in its actions"):
         rollout(Broken(), "pusht", [0], 2, progress=False)
+
+
+def test_weights_get_the_mode_of_every_other_file(tmp_path, play_store):
+    """Issue 65's smaller list: every model.safetensors was written 0600 (safetensors' own
+    mode) beside a config.json of 0644: weights others could not read."""
+    import stat
+
+    from tests.test_dynamics import tiny_world_model
+
+    def mode(p: Path) -> int:
+        return stat.S_IMODE(p.stat().st_mode)
+
+    wm = tiny_world_model().save(tmp_path / "wm")
+    assert mode(wm / "model.safetensors") == mode(wm / "config.json")
+    run = tmp_path / "dp"
+    assert main(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", f"{play_store}:1", "--steps",
+                 "1", "--out", str(run), "--no-progress"]) == 0
+    files = [p for p in run.rglob("*") if p.is_file() and p.name != ".iwsim.lock"]
+    assert {p.suffix for p in files} >= {".safetensors", ".json"}
+    assert {mode(p) for p in files} == {mode(run / "config.json")}, {str(p): oct(mode(p)) for p in files}

@@ -54,11 +54,25 @@ def write_json_atomic(path: Path, obj: Any, sort_keys: bool = True) -> None:
     write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=sort_keys) + "\n")
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+# The mode a file this process creates gets (0666 less the umask; read once, at import,
+# before any thread runs: reading the umask sets it for a moment).
+FILE_MODE = 0o666 & ~_umask()
+
+
 def save_tensors(tensors: dict[str, torch.Tensor], path: Path, metadata: dict[str, str] | None = None) -> None:
     """``safetensors`` ``save_file``, with a failed write (e.g. a full disk) an OSError
-    naming ``path`` instead of a SafetensorError, and no partial file left behind."""
+    naming ``path`` instead of a SafetensorError, and no partial file left behind. The
+    file gets the mode every other file gets (``save_file`` itself writes 0600, so weights
+    would be unreadable to the group and others who can read the ``config.json`` beside)."""
     try:
         save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, path, metadata=metadata)
+        os.chmod(path, FILE_MODE)
     except SafetensorError as e:
         Path(path).unlink(missing_ok=True)
         full = "StorageFull" in str(e) or "os error 28" in str(e)

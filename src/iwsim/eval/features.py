@@ -36,11 +36,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import save_file
 from torch import nn
 from torch.nn import functional as F
 
-from iwsim.checkpoint import CheckpointError, load_tensors
+from iwsim.checkpoint import CheckpointError, load_tensors, save_tensors
 from iwsim.errors import InputError, IwsimError
 
 WEIGHTS_ENV = "IWSIM_WEIGHTS"
@@ -510,7 +509,7 @@ def convert(kind: str, sources: list[Path], out_dir: Path | None = None) -> Path
     tmp = out_dir / f".{filename}.tmp"
     # The module's own state dict: canonical keys, no shared storage (which safetensors refuses).
     state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
-    save_file(state, tmp, metadata={"source": ", ".join(p.name for p in sources)})
+    save_tensors(state, tmp, metadata={"source": ", ".join(p.name for p in sources)})
     os.replace(tmp, path)
     return path
 
