@@ -167,7 +167,8 @@ def semantic_problems(words: tuple[str, ...], ns: argparse.Namespace) -> list[st
         from iwsim.envs import IMAGE_SIZES, POLICIES, TASKS
 
         learned = "/" in ns.policy  # a policy run or checkpoint: a read (reads_and_writes)
-        for flag, value, allowed in (("--task", ns.task, TASKS), ("--policy", ns.policy, POLICIES.get(ns.task, ())),
+        task = ns.task or "pusht"  # a scripted policy's default (a learned one's task is its own)
+        for flag, value, allowed in (("--task", task, TASKS), ("--policy", ns.policy, POLICIES.get(task, ())),
                                      ("--image-size", ns.image_size, IMAGE_SIZES)):
             if flag == "--policy" and learned:
                 continue
@@ -250,7 +251,7 @@ def reads_and_writes(words: tuple[str, ...], ns: argparse.Namespace) -> tuple[li
     if words[:2] == ("iwsim", "collect"):
         reads += paths_in(ns.policy, pairs=False)  # a learned policy's run (a scripted name has no "/")
         if ns.out is None:
-            writes.append(f"data/{ns.task}_{ns.policy}.zarr")
+            writes.append(f"data/{ns.task or 'pusht'}_{ns.policy}.zarr")
     if words[:2] == ("iwsim", "bench") and ns.data is None and committed(ns.checkpoint):
         # without --data it reads the store the checkpoint was trained on
         config = json.loads((ROOT / ns.checkpoint / "config.json").read_text())

@@ -1080,3 +1080,26 @@ def test_weights_get_the_mode_of_every_other_file(tmp_path, play_store):
     files = [p for p in run.rglob("*") if p.is_file() and p.name != ".iwsim.lock"]
     assert {p.suffix for p in files} >= {".safetensors", ".json"}
     assert {mode(p) for p in files} == {mode(run / "config.json")}, {str(p): oct(mode(p)) for p in files}
+
+
+def test_collect_runs_a_learned_policy_on_its_own_task(tmp_path, capsys):
+    """Issue 65's smaller list: a pile-sweeping policy given to ``collect`` without --task
+    was refused in eval's words ("evaluate it on 'pilesweep'"); it now collects on its own
+    task, and a --task naming another is refused in collect's words."""
+    from iwsim.data.store import EpisodeStore
+    from iwsim.tasks import task_from_store
+
+    pile = tmp_path / "pile.zarr"
+    assert main(["collect", "--task", "pilesweep", "--policy", "play", "--episodes", "1", "--steps", "4",
+                 "--workers", "1", "--no-progress", "--out", str(pile)]) == 0
+    run = tmp_path / "dp"
+    assert main(["train", "policy", "--policy", "dp", "--preset", "tiny-dp", "--data", str(pile), "--steps", "1",
+                 "--out", str(run), "--no-progress"]) == 0
+    out = tmp_path / "learned.zarr"
+    assert main(["collect", "--policy", str(run), "--episodes", "1", "--steps", "3", "--workers", "1",
+                 "--no-progress", "--out", str(out)]) == 0
+    assert task_from_store(out).name == "pilesweep" and EpisodeStore.open(out).n_episodes == 1
+    capsys.readouterr()
+    assert main(["collect", "--task", "pusht", "--policy", str(run), "--episodes", "1", "--steps", "3",
+                 "--no-progress", "--out", str(tmp_path / "other.zarr")]) == 1
+    assert "not --task pusht; collect its episodes with --task pilesweep" in error_line(capsys)

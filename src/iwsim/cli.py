@@ -32,7 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("collect", help="record episodes of a MuJoCo task (scripted or learned policy) into a store")
-    p.add_argument("--task", default=TASK.kind, help=f"task: {', '.join(TASKS)} (default: %(default)s)")
+    p.add_argument("--task", help=f"task: {', '.join(TASKS)} (default: a learned policy's own, as its checkpoint "
+                   f"records it, else {TASK.kind})")
     scripted = "; ".join(f"{', '.join(names)} ({task})" for task, names in POLICIES.items())
     p.add_argument("--policy", default="play", help=f"scripted policy: {scripted}; or a learned policy's "
                    "run or checkpoint directory (its episodes run batched in this process) (default: %(default)s)")
@@ -420,22 +421,28 @@ def _collect(args: argparse.Namespace) -> int:
 
     from iwsim.data.collect import collect
     from iwsim.envs import POLICIES
+    from iwsim.tasks import DEFAULT_TASK
 
     recorder, policy = None, args.policy
-    if policy not in POLICIES.get(args.task, ()) and Path(policy).is_dir():  # a learned policy
-        from iwsim.eval.policy import choose_task
+    if policy not in POLICIES.get(args.task or DEFAULT_TASK.kind, ()) and Path(policy).is_dir():  # a learned policy
         from iwsim.eval.policy import recorder as learned
         from iwsim.policies.factory import load_policy
+        from iwsim.tasks import REGISTRY
 
         if args.out is None:
             raise InputError("collecting a learned policy's episodes needs --out STORE.")
         net = load_policy(policy)
-        choose_task(args.task, None, net.task)  # a policy of another task: one line
+        own = net.task.name if net.task is not None and net.task.kind in REGISTRY else None
+        if args.task is not None and own is not None and own != args.task:
+            raise InputError(f"{policy} was trained on episodes of task {own!r} (its checkpoint records it), not "
+                             f"--task {args.task}; collect its episodes with --task {own} (or without --task).")
+        args.task = args.task or own or DEFAULT_TASK.kind
         if net.image_size != args.image_size:
             raise InputError(f"{policy} was trained on {net.image_size}x{net.image_size} frames, not --image-size "
                              f"{args.image_size}.")
         recorder = learned(net, args.task, args.steps, image_size=args.image_size)
         policy = f"learned:{Path(policy).as_posix()}"
+    args.task = args.task or DEFAULT_TASK.kind
     out = args.out or f"data/{args.task}_{args.policy}.zarr"
     collect(
         args.task,
