@@ -84,17 +84,18 @@ def test_acceptance_filter(wm_path, tmp_path, caplog):
     assert store.seeds == kept and some.acceptance_rate == len(kept) / 4
     assert all(store.episode(i)["iou"].max() >= threshold for i in range(len(store)))
     with caplog.at_level(logging.WARNING):
-        none = record("world-model", tmp_path / "none.zarr", wm_path, episodes=2, max_attempts=3, accept_iou=1.5)
+        none = record("world-model", tmp_path / "none.zarr", wm_path, episodes=2, max_attempts=3, accept_iou=1.0)
     assert (none.episodes, none.candidates, none.acceptance_rate, none.complete) == (0, 3, 0.0, False)
     assert "holds 0 of the 2 demonstrations asked for: 3 candidates tried" in caplog.text
     assert EpisodeStore.open(tmp_path / "none.zarr").n_episodes == 0
     # with nothing kept after give_up_after candidates, the teleoperator stops early
     with caplog.at_level(logging.WARNING):
         early = record("world-model", tmp_path / "early.zarr", wm_path, episodes=2, max_attempts=8, give_up_after=2,
-                       accept_iou=1.5)
+                       accept_iou=1.0)
     assert (early.episodes, early.candidates) == (0, 2) and "none of 2 candidates" in caplog.text
-    with pytest.raises(ValueError, match="accept_iou must be a finite number"):
-        record("pusht", tmp_path / "bad.zarr", wm_path, accept_iou=float("nan"))
+    for bad in (float("nan"), 2.0, -0.1):  # a score above 1 keeps nothing, after the whole budget (issue 65)
+        with pytest.raises(ValueError, match=r"accept_iou must be a score in \[0, 1\]"):
+            record("pusht", tmp_path / "bad.zarr", wm_path, accept_iou=bad)
     with pytest.raises(ValueError, match="needs? a world-model checkpoint"):
         record_demos("world-model", tmp_path / "bad.zarr", 1, 4, 0)
 
@@ -260,7 +261,7 @@ def test_tiny_study_end_to_end(wm_path, tmp_path):
     assert r2["runs"] == r["runs"] and r2["demos"]["sim"]["added"] == 0
     assert (work / "datagen" / "runs" / names[0] / "metrics.jsonl").stat().st_mtime_ns == stamp
     # too few demonstrations: the runs that need them are reported, not trained
-    assert main(["experiment", "datagen", "--preset", "tiny", "--world-model", str(wm_path), "--accept-iou", "1.5",
+    assert main(["experiment", "datagen", "--preset", "tiny", "--world-model", str(wm_path), "--accept-iou", "1.0",
                  "--out", str(tmp_path / "out2"), "--work", str(tmp_path / "work2"), "--jobs", "1",
                  "--no-progress"]) == 0
     r3 = json.loads((tmp_path / "out2" / "results.json").read_text())

@@ -1103,3 +1103,20 @@ def test_collect_runs_a_learned_policy_on_its_own_task(tmp_path, capsys):
     assert main(["collect", "--task", "pusht", "--policy", str(run), "--episodes", "1", "--steps", "3",
                  "--no-progress", "--out", str(tmp_path / "other.zarr")]) == 1
     assert "not --task pusht; collect its episodes with --task pilesweep" in error_line(capsys)
+
+
+@pytest.mark.parametrize("kind", ["store", "checkpoint"])
+def test_reports_are_not_written_into_a_store_or_a_checkpoint(kind, store, tmp_path, capsys):
+    """Issue 65's own probe: ``eval policy --out STORE`` wrote results.json, iou.json and
+    videos into an episode store (likewise into a checkpoint); a report now needs a
+    directory of its own, checked before the work."""
+    target = tmp_path / "target"
+    shutil.copytree(store if kind == "store" else ROOT / "checkpoints" / "dp-pusht-64", target)
+    before = sorted(p.name for p in target.rglob("*"))
+    assert main(["eval", "policy", "--checkpoint", str(ROOT / "checkpoints" / "dp-pusht-64"), "--episodes", "1",
+                 "--steps", "2", "--out", str(target), "--no-progress"]) == 1
+    assert "give the report a directory of its own" in error_line(capsys)
+    assert main(["experiment", "policy-eval", "--preset", "tiny", "--out", str(target), "--work",
+                 str(tmp_path / "work"), "--no-progress"]) == 1
+    assert "give the report a directory of its own" in error_line(capsys)
+    assert sorted(p.name for p in target.rglob("*")) == before

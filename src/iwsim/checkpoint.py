@@ -208,6 +208,24 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return last
 
 
+def check_output_dir(path: str | os.PathLike, flag: str = "--out") -> None:
+    """A directory a command writes its report into is absent, or a directory that is
+    neither an episode store nor a model checkpoint or run: results written into those
+    would mix with (or overwrite) what another command wrote. Checked before any work."""
+    path = Path(path)
+    if not path.exists():
+        return
+    if not path.is_dir():
+        raise InputError(f"{flag} {path} is a file; expected a directory (it is created if missing).")
+    if (path / ".zgroup").is_file() or (path / "meta" / "episode_ends").exists():
+        what = "an episode store"
+    elif (path / "model.safetensors").is_file() or (path / "checkpoints").is_dir():
+        what = "a model checkpoint or training run"
+    else:
+        return
+    raise InputError(f"{flag} {path} is {what}; give the report a directory of its own.")
+
+
 def named_checkpoints(items: list[str], flag: str = "--models") -> dict[str, str]:
     """``NAME=CHECKPOINT`` items (a checkpoint, or a run: its last) -> {name: checkpoint
     path}, in order, for the scripts that compare models; one line of error for an item

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from iwsim.checkpoint import load_json, resolve_checkpoint, write_json_atomic
+from iwsim.checkpoint import check_output_dir, load_json, resolve_checkpoint, write_json_atomic
 from iwsim.data.frames import split_episodes
 from iwsim.data.store import EpisodeStore
 from iwsim.errors import InputError
@@ -67,6 +67,7 @@ def run_benchmark(models: dict[str, str | Path], out: str | Path, data: str | Pa
     :func:`iwsim.eval.records.command_line`)."""
     if not models:
         raise InputError("no model to benchmark.")
+    check_output_dir(out)
     paths = {name: resolve_checkpoint(p) for name, p in models.items()}
     wms = {name: WorldModel.load(p, device) for name, p in paths.items()}
     task = task_of(next(iter(wms.values())))

@@ -32,7 +32,7 @@ from gymnasium import spaces
 from gymnasium.vector import SyncVectorEnv, VectorEnv
 from tqdm import tqdm
 
-from iwsim.checkpoint import check_finite_output, write_json_atomic
+from iwsim.checkpoint import check_finite_output, check_output_dir, write_json_atomic
 from iwsim.data.collect import Recorder
 from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.task import Task
@@ -326,6 +326,8 @@ def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: i
     same seeds and the result gains ``disagreement`` (:func:`disagreement`). ``image_size``:
     the policy's frame size (None: the environment's, as in :func:`make_vector_env`)."""
     check_args(episodes, seed, steps, videos, env)
+    if out is not None:
+        check_output_dir(out)
     if partner is not None and env != "world-model":
         raise InputError("a partner world model (--trust-model) applies to evaluations inside a world model.")
     seeds = [seed + i for i in range(episodes)]

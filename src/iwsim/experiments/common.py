@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from iwsim.checkpoint import load_json, locate, write_json_atomic
+from iwsim.checkpoint import check_output_dir, load_json, locate, write_json_atomic
 from iwsim.config import from_dict, to_dict
 from iwsim.data.lock import DirLock, LockedError
 from iwsim.data.store import EpisodeStore
@@ -108,6 +108,8 @@ def check_dirs(**dirs: Path) -> None:
     for flag, path in dirs.items():
         if path.exists() and not path.is_dir():
             raise InputError(f"--{flag} {path} is a file; expected a directory (it is created if missing).")
+        if flag == "out":
+            check_output_dir(path)
 
 
 def lock_work(work: Path, study: str) -> DirLock:

@@ -137,8 +137,7 @@ class DemoRecipe:
         for name, v in positive.items():
             if not isinstance(v, int) or v < 1:
                 raise InputError(f"{name} must be a positive integer, got {v!r}.")
-        if not (isinstance(self.accept_iou, (int, float)) and math.isfinite(self.accept_iou) and self.accept_iou >= 0):
-            raise InputError(f"accept_iou must be a finite number >= 0, got {self.accept_iou!r}.")
+        check_accept_iou(self.accept_iou)
         if not (isinstance(self.attempts_per_demo, (int, float)) and self.attempts_per_demo >= 1):
             raise InputError(f"attempts_per_demo must be >= 1, got {self.attempts_per_demo!r}.")
         _check_noise(self.dart_noise)
@@ -496,6 +495,13 @@ def _episode(run: dict[str, Any], ious: np.ndarray, i: int, accept_iou: float, t
             "target": run["target"][i, handover:t].astype(np.float32), key: ious[i, handover:t]}
 
 
+def check_accept_iou(value: Any) -> None:
+    """A take's acceptance score is a task's score, in [0, 1] (T-push's IoU, the pile's share
+    in the tray): above 1 no take is ever kept, and the whole budget is spent for nothing."""
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value <= 1):
+        raise InputError(f"accept_iou must be a score in [0, 1], got {value!r}.")
+
+
 def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any, accept_iou: float | None,
                 tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
                 image_size: int | None) -> None:
@@ -510,9 +516,8 @@ def _check_args(env: str, episodes: int, steps: int, seed: int, world_model: Any
         raise InputError(f"tail must be a positive number of steps or None (whole episodes), got {tail!r}.")
     if give_up_after is not None and (not isinstance(give_up_after, int) or give_up_after < 1):
         raise InputError(f"give_up_after must be a positive integer or None (never), got {give_up_after!r}.")
-    if accept_iou is not None and not (isinstance(accept_iou, (int, float)) and math.isfinite(accept_iou)
-                                       and accept_iou >= 0):
-        raise InputError(f"accept_iou must be a finite number >= 0, got {accept_iou!r}.")
+    if accept_iou is not None:
+        check_accept_iou(accept_iou)
     if not isinstance(seed, int) or not 0 <= seed <= MAX_SEED - max_attempts + 1:
         raise InputError(f"seed must be in 0..{MAX_SEED - max_attempts + 1} for {max_attempts} candidates, "
                          f"got {seed!r}.")
