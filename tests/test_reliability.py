@@ -1120,3 +1120,30 @@ def test_reports_are_not_written_into_a_store_or_a_checkpoint(kind, store, tmp_p
                  str(tmp_path / "work"), "--no-progress"]) == 1
     assert "give the report a directory of its own" in error_line(capsys)
     assert sorted(p.name for p in target.rglob("*")) == before
+
+
+def test_lerobot_v3_export_of_short_episodes(store, tmp_path, capsys):
+    """Issue 65's own probe: exporting episodes of a few frames to LeRobot v3 said
+    "file-000.mp4: No such file or directory" (the encoder had not yet written the file
+    whose size the exporter read); now they export and import back."""
+    from iwsim.data.store import EpisodeStore
+
+    out = tmp_path / "lerobot"
+    assert main(["data", "export", "--format", "lerobot-v3", "--in", str(store), "--out", str(out),
+                 "--no-progress"]) == 0
+    assert main(["data", "validate", str(out)]) == 0
+    back = tmp_path / "back.zarr"
+    assert main(["data", "import", "--format", "lerobot-v3", "--in", str(out), "--out", str(back),
+                 "--no-progress"]) == 0
+    a, b = EpisodeStore.open(store), EpisodeStore.open(back)
+    assert a.episode_ends.tolist() == b.episode_ends.tolist()
+    np.testing.assert_allclose(a.array("action")[:], b.array("action")[:])
+
+
+def test_a_world_model_is_not_rolled_out_on_another_tasks_episodes(store, tmp_path, capsys):
+    """Issue 65's own probe: ``iwsim rollout`` (and ``iwsim bench``) of the pile-sweeping
+    model on T-push episodes ran and scored, the frames of one task fed to a model of another."""
+    assert main(["rollout", "--checkpoint", str(ROOT / "checkpoints" / "pilesweep-64"), "--data", str(store),
+                 "--episode", "0", "--steps", "2", "--out", str(tmp_path / "r.mp4")]) == 1
+    assert "holds episodes of task 'pusht' but the world model is of 'pilesweep'" in error_line(capsys)
+    assert not (tmp_path / "r.mp4").exists()

@@ -16,7 +16,7 @@ from iwsim.errors import InputError
 from iwsim.eval.figures import plot_psnr
 from iwsim.eval.video import score_bar, upscale, write_video
 from iwsim.metrics import psnr, ssim
-from iwsim.tasks import task_of
+from iwsim.tasks import foreign_task, task_of
 from iwsim.world_model import WorldModel
 
 
@@ -60,6 +60,11 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
     (and the actions between them) are the context; then ``steps`` recorded actions."""
     if context < 1 or steps < 1:
         raise InputError(f"context and steps must be >= 1, got {context} and {steps}.")
+    task = task_of(wm)  # its pixel scorer, if it has one: never T-push's IoU on another robot's frames
+    other = foreign_task(store.path, task)
+    if other is not None:
+        raise InputError(f"{store.path} holds episodes of task {other!r} but the world model is of {task.name!r}; "
+                         f"roll it out on episodes of {task.name!r}.")
     eps = [store.episode(e) for e in episodes]  # raises on a bad index
     for e, ep in zip(episodes, eps):
         if len(ep["img"]) < context + steps:
@@ -72,7 +77,6 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
     truth = np.stack([ep["img"][context:context + steps] for ep in eps])
     pred = wm.rollout(frames, actions, ctx_actions, seed=seed, progress=progress)
     p, s = frame_scores(truth, pred)
-    task = task_of(wm)  # its pixel scorer, if it has one: never T-push's IoU on another robot's frames
     return OpenLoop(list(episodes), truth, pred, p, s, task.score(truth), task.score(pred))
 
 

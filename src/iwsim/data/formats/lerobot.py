@@ -278,7 +278,7 @@ def export_v3(store: EpisodeStore, out: Path, *, fps: int, task: str, progress: 
 
     for e, ep, cols, start in _episodes(store, fps, "export lerobot-v3", progress):
         t = len(ep["img"])
-        if video is None or video.path.stat().st_size > VIDEO_FILE_MB * 2**20:
+        if video is None or video.size > VIDEO_FILE_MB * 2**20:
             if video is not None:
                 video.close()
                 next_file("video")

@@ -41,6 +41,12 @@ class VideoWriter:
             for packet in self._stream.encode(frame):
                 self._container.mux(packet)
 
+    @property
+    def size(self) -> int:
+        """Bytes written so far (the file appears only once the encoder gives its first
+        packet, which a few short episodes may not yet have made)."""
+        return self.path.stat().st_size if self.path.exists() else 0
+
     def close(self) -> None:
         for packet in self._stream.encode():
             self._container.mux(packet)
