@@ -202,6 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
                                          f"shipped one, {TASK.checkpoint} for {TASK.kind})")
     q.add_argument("--trust-model", help="a second world model of the task (trained differently): the policy runs "
                    "in it too, and each episode's score difference says how far the first can be trusted")
+    q.add_argument("--paired", metavar="RESULTS", help="for --env world-model, the results.json of the same policy "
+                   "in the task's simulator from some of these seeds (at least 2): adds the prediction-powered "
+                   "estimate of the real score and success rate, with a 95%% interval")
     q.add_argument("--episodes", type=int, default=50, help="(default: %(default)s)")
     q.add_argument("--seed", type=int, default=100000, help="first MuJoCo seed (default: %(default)s)")
     q.add_argument("--steps", type=int, help=f"steps per episode (default: the task's horizon, {TASK.horizon} for "
@@ -705,11 +708,15 @@ def _train_policy(args: argparse.Namespace) -> int:
 
 
 def _eval_policy(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     import torch
 
-    from iwsim.eval.policy import WORLD_MODEL, check_args, check_model_task, choose_task, evaluate
+    from iwsim.checkpoint import load_json
+    from iwsim.eval.policy import WORLD_MODEL, check_args, check_model_task, check_paired, choose_task, evaluate
     from iwsim.eval.records import command_line
-    from iwsim.policies.factory import load_policy, recorded_task
+    from iwsim.experiments.common import fingerprint
+    from iwsim.policies.factory import checkpoint_dir, load_policy, recorded_task
     from iwsim.tasks import DEFAULT_TASK, shipped_world_model
     from iwsim.training.trainer import resolve_device
     from iwsim.world_model_env import score_key
@@ -719,6 +726,8 @@ def _eval_policy(args: argparse.Namespace) -> int:
     check_args(args.episodes, args.seed, steps, args.videos, env)
     if args.trust_model is not None and env != WORLD_MODEL:
         raise InputError("--trust-model applies to --env world-model (MuJoCo is the ground truth).")
+    if args.paired is not None and env != WORLD_MODEL:
+        raise InputError("--paired applies to --env world-model (it corrects the model's score with real episodes).")
     world_model = None
     if env == WORLD_MODEL:
         world_model = args.world_model or shipped_world_model(task)
@@ -740,11 +749,19 @@ def _eval_policy(args: argparse.Namespace) -> int:
                 raise InputError(f"--trust-model {args.trust_model} holds the same weights as --world-model "
                                  f"{world_model}: the model would be checked against itself; give a second model "
                                  "trained differently (another seed or other data).")
+    policy_sha256 = fingerprint(checkpoint_dir(args.checkpoint))
+    real = None
+    if args.paired is not None:
+        assert task is not None  # the world model's
+        real = load_json(Path(args.paired), "--paired results")
+        check_paired(real, task, [args.seed + i for i in range(args.episodes)], steps, policy_sha256,
+                     policy.cfg.n_action_steps, args.paired)
     result = evaluate(policy, env, episodes=args.episodes, seed=args.seed, steps=steps, world_model=wm,
                       image_size=policy.image_size, out=args.out, videos=args.videos, progress=not args.no_progress,
-                      meta={"checkpoint": str(args.checkpoint), "n_action_steps": policy.cfg.n_action_steps,
-                            "world_model": world_model, "trust_model": args.trust_model}, partner=partner,
-                      command=command_line("iwsim", args.argv))
+                      meta={"checkpoint": str(args.checkpoint), "policy_sha256": policy_sha256,
+                            "n_action_steps": policy.cfg.n_action_steps, "world_model": world_model,
+                            "trust_model": args.trust_model, "paired_results": args.paired},
+                      partner=partner, command=command_line("iwsim", args.argv), paired=real)
     if result["scorer"] is None:
         print(f"{env}: no scorer (task {result['task']!r} has no pixel scorer): {args.episodes} episodes of "
               f"{steps} steps without a score; {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
@@ -756,6 +773,13 @@ def _eval_policy(args: argparse.Namespace) -> int:
     print(f"{env}: mean max {result['scorer']} {mean:.3f}; success {result['success_rate']:.2f} "
           f"(Beta posterior mean {post['mean']:.2f}, 95% {post['low']:.2f}-{post['high']:.2f}; "
           f"Clopper-Pearson {lo:.2f}-{hi:.2f}); {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
+    if "paired" in result:
+        est, rate = result["paired"][f"mean_max_{score_key(task)}"], result["paired"]["success_rate"]
+        print(f"paired with {est['n_paired']} real episodes ({args.paired}): real mean max {result['scorer']} "
+              f"{est['estimate']:.3f} (95% {est['interval'][0]:.3f}-{est['interval'][1]:.3f}; the model's own "
+              f"{est['model_mean']:.3f}, its bias on the pairs {est['bias_paired']:+.3f}); success "
+              f"{rate['estimate']:.2f} (95% {rate['interval'][0]:.2f}-{rate['interval'][1]:.2f}); worth "
+              f"{est['effective_n']:.1f} real episodes (prediction-powered, Student t)")
     if "disagreement" in result:
         dis = result["disagreement"]
         print(f"trust: the two world models' scores differ by {dis['mean']:.3f} on average; "

@@ -37,6 +37,7 @@ from iwsim.data.collect import Recorder
 from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
+from iwsim.eval.paired import paired_estimate, paired_rate
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.eval.video import upscale, write_video
 from iwsim.policies.common import PolicyLike
@@ -313,9 +314,50 @@ def disagreement(scores: np.ndarray, partner_scores: np.ndarray) -> dict[str, An
             "above_warn": float((gap > DISAGREE_WARN).mean()), "warn": DISAGREE_WARN}
 
 
+def check_paired(real: dict[str, Any], task: Task, seeds: list[int], steps: int, policy_sha256: str,
+                 n_action_steps: int | None, where: str) -> None:
+    """One line unless ``real`` (a ``results.json`` of :func:`evaluate`, read from ``where``)
+    is the same policy (by its weights' hash, and executed alike) in ``task``'s simulator
+    over ``steps`` steps, from at least 2 of ``seeds``: the pairs of a paired estimate."""
+    if not isinstance(real, dict) or not isinstance(real.get("episodes"), list):
+        raise InputError(f"--paired {where} is not the results.json of iwsim eval policy.")
+    if real.get("env") != task.kind or real.get("task") != task.name:
+        raise InputError(f"--paired {where} is an evaluation in {real.get('env')!r} of task {real.get('task')!r}; "
+                         f"pair with one in the simulator of {task.name!r} (--env {task.kind}).")
+    if "policy_sha256" not in real:
+        raise InputError(f"--paired {where} does not record the policy's weights (written before iwsim recorded "
+                         "them); evaluate the policy in MuJoCo again.")
+    if real["policy_sha256"] != policy_sha256 or real.get("n_action_steps") != n_action_steps:
+        raise InputError(f"--paired {where} evaluated another policy ({real.get('checkpoint')}, "
+                         f"{real.get('n_action_steps')} actions per query) than this one; pair with the same "
+                         "checkpoint and --action-steps.")
+    if real.get("steps") != steps:
+        raise InputError(f"--paired {where} ran {real.get('steps')} steps per episode, this evaluation {steps}.")
+    theirs = [e.get("seed") for e in real["episodes"]]
+    outside = sorted(set(theirs) - set(seeds))
+    if outside:
+        raise InputError(f"--paired {where} holds seeds {outside[:5]} outside this evaluation's {seeds[0]}.."
+                         f"{seeds[-1]}: the real episodes must start from the model's first states.")
+    if len(set(theirs)) < 2:
+        raise InputError(f"--paired {where} holds {len(set(theirs))} episode(s); a paired estimate needs at least 2.")
+
+
+def paired_scores(model: dict[str, Any], real: dict[str, Any], key: str) -> dict[str, Any]:
+    """The prediction-powered estimates of the real mean max score and success rate from
+    this evaluation's episodes (``model``) and the real ones of the same seeds (``real``)."""
+    index = {e["seed"]: i for i, e in enumerate(model["episodes"])}
+    pairs = {e["seed"]: e for e in real["episodes"]}  # one real episode per seed
+    idx = [index[s] for s in pairs]
+    score = paired_estimate([e[f"max_{key}"] for e in model["episodes"]],
+                            [pairs[s][f"max_{key}"] for s in pairs], idx)
+    success = paired_rate([e["success"] for e in model["episodes"]], [pairs[s]["success"] for s in pairs], idx)
+    return {f"mean_max_{key}": score, "success_rate": success, "seeds": sorted(pairs)}
+
+
 def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
              image_size: int | None = None, out: str | Path | None = None, videos: int = 4, progress: bool = True,
-             meta: dict[str, Any] | None = None, partner: Any = None, command: str | None = None) -> dict[str, Any]:
+             meta: dict[str, Any] | None = None, partner: Any = None, command: str | None = None,
+             paired: dict[str, Any] | None = None) -> dict[str, Any]:
     """Evaluate ``policy`` in ``env`` (a built-in task's simulator, by the task's name, or
     "world-model") on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``, write
     ``results.json`` (and each step's score: T-push's ``iou.json``, another task's
@@ -324,7 +366,11 @@ def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: i
     files begin with it. With ``partner``
     (a second world model, for ``env="world-model"``), the policy also runs in it from the
     same seeds and the result gains ``disagreement`` (:func:`disagreement`). ``image_size``:
-    the policy's frame size (None: the environment's, as in :func:`make_vector_env`)."""
+    the policy's frame size (None: the environment's, as in :func:`make_vector_env`).
+    ``paired``: the results of the same policy in the task's simulator from some of these
+    seeds (checked by :func:`check_paired`); the result gains ``paired``, the
+    prediction-powered estimates of the real score and success rate
+    (:mod:`iwsim.eval.paired`)."""
     check_args(episodes, seed, steps, videos, env)
     if out is not None:
         check_output_dir(out)
@@ -341,6 +387,8 @@ def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: i
     if partner is not None and run["iou"] is not None:
         other = rollout(policy, env, seeds, steps, world_model=partner, image_size=image_size, progress=progress)
         result["disagreement"] = disagreement(run["iou"].max(1), other["iou"].max(1))
+    if paired is not None and run["iou"] is not None:
+        result["paired"] = paired_scores(result, paired, key)
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

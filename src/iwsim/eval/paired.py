@@ -1,0 +1,106 @@
+"""Unbiased estimates of a policy's real score from many world-model episodes and a few
+paired real ones: prediction-powered inference (Angelopoulos et al., Science 2023), with
+the power tuning of PPI++ (Angelopoulos, Duchi & Zrnic 2023).
+
+A policy runs in the world model from N first states (scores ``f_1..f_N``) and in the real
+environment (here MuJoCo) from n of those same states (scores ``y_j``, paired with the
+model's ``f_j`` of the same state). The estimate of the real mean is
+
+    theta = mean_n(y) + lam * (mean_N(f) - mean_n(f))
+
+the paired episodes' real mean, corrected by how far the model's mean over all N states is
+from its mean over the paired ones. For any fixed ``lam`` it is unbiased whatever the
+model's error; ``lam`` = 1 is the classic PPI (the model's mean plus the paired bias,
+mean_n(y - f)), ``lam`` = 0 ignores the model. So a model without error gives the model's
+mean, and a constant bias is removed exactly. From :data:`TUNE_FROM` pairs on, ``lam`` is
+power-tuned: the variance-minimising slope Cov(y, f) / Var(f) over the pairs, clipped to
+[0, 1], so a model whose scores do not move with the real ones gets little weight.
+
+Because the paired states are among the N, the estimate splits into two independent means,
+
+    theta = mean_n(y - lam (1 - n/N) f) + lam (1 - n/N) mean_{N - n}(f),
+
+whose variances add. With n of 2-10 pairs the normal approximation the PPI papers use does
+not hold: the interval is Student t on the paired term's degrees of freedom (n - 1, or
+n - 2 with a fitted slope), which is conservative when the unpaired term matters (on
+synthetic policies the 95% interval covers 96-100% of the time for n = 2-10).
+``effective_n`` is how many real episodes alone would give the estimate's variance. Success
+rates are the same estimator on 0/1 scores, their interval clipped to [0, 1].
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from iwsim.errors import InputError
+
+METHOD = ("prediction-powered (PPI; PPI++ power tuning from 5 pairs, lam in [0, 1]); Student t on the paired "
+          "term's degrees of freedom")
+# Pairs from which the weight is fitted; with fewer, the slope of 3-4 points costs more than
+# it saves (measured on synthetic policies: wider intervals than lam = 1).
+TUNE_FROM = 5
+
+
+def power_tuned_lambda(real: np.ndarray, model_paired: np.ndarray) -> float:
+    """The variance-minimising weight of the model's scores: the slope of the real scores
+    on the model's over the pairs, clipped to [0, 1] (1 when the model's paired scores do
+    not vary: nothing to fit, the classic PPI correction)."""
+    var = float(np.var(model_paired, ddof=1))
+    if var <= 1e-12:
+        return 1.0
+    cov = float(np.cov(real, model_paired, ddof=1)[0, 1])
+    return float(np.clip(cov / var, 0.0, 1.0))
+
+
+def paired_estimate(model: Sequence[float] | np.ndarray, real: Sequence[float] | np.ndarray,
+                    paired: Sequence[int] | np.ndarray, level: float = 0.95,
+                    lam: float | None = None) -> dict[str, Any]:
+    """The estimate of the real mean score from ``model`` (N,) world-model scores and
+    ``real`` (n,) real scores of the states ``paired`` (n indices into ``model``), with
+    its ``level`` interval (see the module docstring). ``lam`` None: power-tuned."""
+    f = np.asarray(model, np.float64)
+    y = np.asarray(real, np.float64)
+    idx = np.asarray(paired, np.int64)
+    n, big_n = len(y), len(f)
+    if f.ndim != 1 or y.ndim != 1 or idx.shape != y.shape:
+        raise InputError(f"expected N model scores, n real ones and their n indices, got shapes {f.shape}, "
+                         f"{y.shape} and {idx.shape}.")
+    if n < 2:
+        raise InputError(f"a paired estimate needs at least 2 paired episodes (for the spread of the model's "
+                         f"error), got {n}.")
+    if len(set(idx.tolist())) != n or idx.min() < 0 or idx.max() >= big_n:
+        raise InputError(f"the paired indices must be {n} distinct states among the model's {big_n}.")
+    if not (np.isfinite(f).all() and np.isfinite(y).all()):
+        raise InputError("the scores must be finite numbers.")
+    fp = f[idx]
+    tuned = lam is None and n >= TUNE_FROM
+    lam = power_tuned_lambda(y, fp) if tuned else (1.0 if lam is None else float(lam))
+    w = lam * (1 - n / big_n)  # the model's weight in the paired term
+    rest = np.delete(f, idx)
+    estimate = float(y.mean() + lam * (f.mean() - fp.mean()))
+    fitted = 2 if tuned else 1  # the slope was fitted to these pairs: one degree of freedom less
+    a = float(np.var(y - w * fp, ddof=fitted)) / n  # the paired term's variance
+    spread = float(np.var(rest if len(rest) > 1 else f, ddof=1))  # one unpaired state: the model's spread over all
+    b = w ** 2 * spread / len(rest) if len(rest) else 0.0
+    var = a + b
+    df = float(n - fitted)  # the paired term's: with a few pairs it dominates the uncertainty of the variance
+    half = float(stats.t.ppf((1 + level) / 2, df)) * math.sqrt(var)
+    real_var = float(np.var(y, ddof=1))
+    return {"estimate": estimate, "interval": [estimate - half, estimate + half], "level": level, "lam": lam,
+            "n_paired": n, "n_model": big_n, "df": float(df), "std_error": math.sqrt(var),
+            "effective_n": real_var / var if var > 0 else float("inf"),
+            "model_mean": float(f.mean()), "real_mean_paired": float(y.mean()),
+            "bias_paired": float((fp - y).mean()), "method": METHOD}
+
+
+def paired_rate(model: Sequence[bool], real: Sequence[bool], paired: Sequence[int] | np.ndarray,
+                level: float = 0.95) -> dict[str, Any]:
+    """:func:`paired_estimate` of a success rate (0/1 outcomes), its interval clipped to [0, 1]."""
+    out = paired_estimate(np.asarray(model, np.float64), np.asarray(real, np.float64), paired, level)
+    lo, hi = out["interval"]
+    return {**out, "interval": [max(0.0, lo), min(1.0, hi)]}
