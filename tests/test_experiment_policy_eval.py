@@ -224,3 +224,26 @@ def test_a_study_with_two_jobs_ends_without_leaked_semaphores(inputs, tmp_path):
                          env={**os.environ, "MUJOCO_GL": "egl"}, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "leaked" not in run.stderr and "resource_tracker" not in run.stderr, run.stderr[-2000:]
+
+
+def test_a_tiny_study_with_paired_estimates(inputs, tmp_path, capsys):
+    """Issue 66 item 2: --paired-episodes N reports every policy's paired estimate judged
+    against MuJoCo on held-out first states, with coverage, widths and the ranking."""
+    assert main(_argv(inputs, tmp_path, "--paired-episodes", "2", "--holdout-episodes", "3")) == 0
+    capsys.readouterr()
+    report = json.loads((tmp_path / "out" / "results.json").read_text())
+    paired = report["paired"]
+    assert paired["holdout_episodes"] == 3 and paired["holdout_seeds"] == [110000, 110002]
+    rows = paired["by_n"]["2"]["policies"]
+    assert set(rows) == {p["name"] for p in report["policies"]}
+    for r in rows.values():
+        lo, hi = r["interval"]
+        assert lo <= r["estimate"] <= hi and r["covered"] == (lo <= r["truth"] <= hi)
+        assert r["lam"] == 1.0  # two pairs: the classic PPI weight
+    assert 0 <= paired["by_n"]["2"]["coverage"] <= 1 and "pearson" in paired["by_n"]["2"]["agreement"]
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert "## Paired estimates" in md and "| 2 |" in md
+    assert "--paired-episodes 2" in report["command"]
+    for bad, says in (("1", "--paired-episodes must be counts in 2..2"), ("a,b", "takes counts N,N")):
+        assert main(_argv(inputs, tmp_path, "--paired-episodes", bad)) == 1
+        assert says in capsys.readouterr().err

@@ -335,6 +335,11 @@ def build_parser() -> argparse.ArgumentParser:
                                    "missing)")
     q.add_argument("--demo-episodes", type=int, help="demonstrations of the full-data runs (default: 100)")
     q.add_argument("--small-demos", type=int, help="demonstrations of the small-data run (default: 25)")
+    q.add_argument("--paired-episodes", help="N,N,...: paired estimates from each policy's first N first states in "
+                   "both simulators (e.g. 2,5,10), judged against MuJoCo on --holdout-episodes other first states "
+                   "(default: none)")
+    q.add_argument("--holdout-episodes", type=int, help="MuJoCo episodes per policy that judge the paired "
+                   "estimates (default: 50)")
     _study_run_flags(q, "policy_eval")
     q.set_defaults(func=_experiment_policy_eval)
     for q in _leaf_parsers(parser):
@@ -968,11 +973,22 @@ def _experiment_policy_eval(args: argparse.Namespace) -> int:
     recipe = base if args.demonstrator is None else dataclasses.replace(base, demonstrator=args.demonstrator)
     cfg, out = _study_config(args, PRESETS, "policy_eval", episodes=args.episodes, steps=args.steps, seed=args.seed,
                              demos=args.demos, demo_episodes=args.demo_episodes, small_demos=args.small_demos,
-                             recipe=recipe)
+                             recipe=recipe, paired=_counts(args.paired_episodes, "--paired-episodes"),
+                             holdout_episodes=args.holdout_episodes)
     report = run_policy_eval(cfg, out=out, work=args.work, preset=args.preset, jobs=args.jobs,
                              progress=not args.no_progress)
     print(f"{headline(report)} -> {out}/results.md")
     return 0
+
+
+def _counts(text: str | None, flag: str) -> tuple[int, ...] | None:
+    """``"2,5,10"`` -> (2, 5, 10); None stays None; anything else is one line of error."""
+    if text is None:
+        return None
+    try:
+        return tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise InputError(f"{flag} takes counts N,N,..., got {text!r}.") from None
 
 
 def _demo(args: argparse.Namespace) -> int:

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from iwsim.checkpoint import write_json_atomic, write_text_atomic
 from iwsim.config import to_dict
@@ -44,6 +45,7 @@ from iwsim.data.store import EpisodeStore
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
+from iwsim.eval.paired import METHOD, paired_estimate
 from iwsim.eval.policy import WORLD_MODEL, check_args
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import (
@@ -77,7 +79,9 @@ LEVEL = 0.95
 # The config fields the command's flags override.
 RECIPE_FLAGS = {"demonstrator": "--demonstrator"}  # the recipe fields the command's flags override
 FLAGS = {"world_model": "--world-model", "episodes": "--episodes", "steps": "--steps", "seed": "--seed",
-         "demos": "--demos", "demo_episodes": "--demo-episodes", "small_demos": "--small-demos"}
+         "demos": "--demos", "demo_episodes": "--demo-episodes", "small_demos": "--small-demos",
+         "paired": "--paired-episodes", "holdout_episodes": "--holdout-episodes"}
+HOLDOUT_SEED_OFFSET = 10_000  # the held-out MuJoCo first states start this far after the study's own
 
 
 def envs(task: Task) -> tuple[str, str]:
@@ -113,6 +117,11 @@ class PolicyEvalConfig:
     noise: tuple[float, ...] = (0.008, 0.012, 0.016, 0.02)  # the expert with Gaussian action noise (m)
     latency: tuple[int, ...] = (3, 4)  # the expert with latency (steps)
     play: bool = True  # the play policy, a floor
+    # Paired estimates (iwsim.eval.paired): for each n, the first n of each policy's first
+    # states paired with MuJoCo correct the model's score, judged against MuJoCo on
+    # holdout_episodes other first states (seeds from seed + HOLDOUT_SEED_OFFSET). () : none.
+    paired: tuple[int, ...] = ()
+    holdout_episodes: int = 50
     # How the simulator demonstrations are recorded when missing; the default is datagen's, so
     # the studies share the store (a store's recipe must match to be appended to).
     recipe: DemoRecipe = DemoRecipe()
@@ -133,6 +142,13 @@ class PolicyEvalConfig:
                 raise InputError(f"{name} must be positive integers, got {v!r}.")
         if not all(math.isfinite(n) and n > 0 for n in self.noise):
             raise InputError(f"noise levels must be finite and positive, got {self.noise!r}.")
+        if not all(isinstance(n, int) and 2 <= n <= self.episodes for n in self.paired):
+            raise InputError(f"--paired-episodes must be counts in 2..{self.episodes} (--episodes), got "
+                             f"{self.paired!r}.")
+        if not isinstance(self.holdout_episodes, int) or self.holdout_episodes < 2:
+            raise InputError(f"--holdout-episodes must be an integer >= 2, got {self.holdout_episodes!r}.")
+        if self.paired:
+            check_args(self.holdout_episodes, self.seed + HOLDOUT_SEED_OFFSET, self.steps, 0)
         if len(self.policy_names()) < 3:
             raise InputError(f"the study needs at least 3 policies to correlate, got {self.policy_names()}.")
 
@@ -288,6 +304,15 @@ def _run_policy_eval(cfg: PolicyEvalConfig, task: Task, out: Path, work: Path, r
                                          out=work / "policy_eval" / "eval", jobs=jobs, progress=progress)
         timings[f"eval_{env.replace('-', '_')}_s"] = time.perf_counter() - t
         timings[f"eval_{env.replace('-', '_')}_measured_s"] = sum(r["seconds"] for r in results[env].values())
+    holdout = None
+    if cfg.paired:
+        held = [cfg.seed + HOLDOUT_SEED_OFFSET + i for i in range(cfg.holdout_episodes)]
+        log.info("policy-eval: the paired estimates' truth, %d policies x %d held-out first states in %s",
+                 len(sources), len(held), task.kind)
+        t = time.perf_counter()
+        holdout = evaluate_policies(sources, task.kind, seeds=held, steps=cfg.steps, world_model=None,
+                                    out=work / "policy_eval" / "eval_holdout", jobs=jobs, progress=progress)
+        timings["eval_holdout_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
 
     policies = [{"name": name, **info, **{env: _scores(results[env][name], score_key(task)) for env in envs(task)}}
@@ -305,6 +330,7 @@ def _run_policy_eval(cfg: PolicyEvalConfig, task: Task, out: Path, work: Path, r
         # the same within the scripted and the learned policies: a world model can order
         # each group well yet be biased for one of them, which the pooled figures hide
         "agreement_within": {group: _agreement(members, task) for group, members in _groups(policies).items()},
+        **({} if holdout is None else {"paired": paired_report(cfg, results, holdout, task)}),
         "timings": {k: round(v, 1) for k, v in timings.items()},
         "note": ("timings are this invocation's, so a rerun that reuses cached work shows less; the *_measured_s "
                  "entries sum the trainings' and evaluations' own times (one process each), whenever they ran."),
@@ -315,6 +341,43 @@ def _run_policy_eval(cfg: PolicyEvalConfig, task: Task, out: Path, work: Path, r
     write_text_atomic(out / "results.md", markdown(report))
     log.info("policy-eval: %s -> %s", headline(report), out)
     return report
+
+
+def paired_report(cfg: PolicyEvalConfig, results: dict[str, dict[str, dict[str, Any]]],
+                  holdout: dict[str, dict[str, Any]], task: Task) -> dict[str, Any]:
+    """For each n of ``cfg.paired``: every policy's paired estimate of its real mean max
+    score (the model's episodes, MuJoCo's first n of the same first states), judged against
+    MuJoCo's mean over the held-out first states: whether the interval covers it, its
+    half-width against n MuJoCo episodes alone (Student t), and the ranking of the estimates
+    against the held-out means (r, rho, MMRV)."""
+    key = score_key(task)
+    reference, proxy = envs(task)
+    names = list(results[proxy])
+    out: dict[str, Any] = {"holdout_episodes": cfg.holdout_episodes,
+                           "holdout_seeds": [cfg.seed + HOLDOUT_SEED_OFFSET, cfg.seed + HOLDOUT_SEED_OFFSET
+                                             + cfg.holdout_episodes - 1], "method": METHOD, "by_n": {}}
+    truth = {name: float(holdout[name][f"mean_max_{key}"]) for name in names}
+    for n in cfg.paired:
+        rows = {}
+        for name in names:
+            model = [e[f"max_{key}"] for e in results[proxy][name]["episodes"]]
+            real = [e[f"max_{key}"] for e in results[reference][name]["episodes"]][:n]
+            est = paired_estimate(model, real, list(range(n)))
+            lo, hi = est["interval"]
+            alone = float(stats.t.ppf(0.975, n - 1) * np.std(real, ddof=1) / math.sqrt(n))
+            rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
+                          "truth": truth[name], "covered": bool(lo <= truth[name] <= hi),
+                          "half_width": (hi - lo) / 2, "half_width_mujoco_alone": alone}
+        widths = [(r["half_width"], r["half_width_mujoco_alone"]) for r in rows.values()
+                  if r["half_width_mujoco_alone"] > 0]
+        out["by_n"][str(n)] = {
+            "policies": rows, "coverage": float(np.mean([r["covered"] for r in rows.values()])),
+            "median_half_width": float(np.median([r["half_width"] for r in rows.values()])),
+            "median_half_width_ratio": float(np.median([a / b for a, b in widths])) if widths else None,
+            "agreement": agreement([truth[m] for m in names], [rows[m]["estimate"] for m in names],
+                                   labels=(f"held-out MuJoCo mean max {task.score_name}s",
+                                           f"paired estimates (n={n})"))}
+    return out
 
 
 def _agreement(policies: list[dict[str, Any]], task: Task) -> dict[str, dict[str, Any]]:
@@ -416,11 +479,30 @@ def markdown(report: dict[str, Any]) -> str:
             lo_, hi_ = r["success_clopper_pearson"]
             cells.append(f"{r['success_rate']:.2f} ({lo_:.2f}-{hi_:.2f})")
         lines.append("| " + " | ".join(map(str, cells)) + " |")
+    lines += _paired_markdown(report.get("paired"), name)
     t = report["timings"]
     lines += ["", "## Time", ""]
     lines += [f"- {k.removesuffix('_s').replace('_', ' ')}: {v / 60:.1f} min" for k, v in t.items()]
     lines += ["", f"({report['note']})", "", "Plot: `scatter.png`.", ""]
     return "\n".join(lines)
+
+
+def _paired_markdown(paired: dict[str, Any] | None, name: str | None) -> list[str]:
+    """The paired estimates' section of ``results.md`` (none without them)."""
+    if not paired:
+        return []
+    lo, hi = paired["holdout_seeds"]
+    lines = ["", "## Paired estimates (the model corrected by n MuJoCo episodes of the same first states)", "",
+             f"Judged against MuJoCo's mean max {name} over {paired['holdout_episodes']} held-out first states "
+             f"(seeds {lo}-{hi}). {paired['method']}.", "",
+             "| n | coverage of the 95% intervals | median half-width | against n MuJoCo episodes alone | "
+             "Pearson r | Spearman rho | MMRV |", "|---|---|---|---|---|---|---|"]
+    for n, r in paired["by_n"].items():
+        a, ratio = r["agreement"], r["median_half_width_ratio"]
+        lines.append(f"| {n} | {r['coverage']:.0%} | {r['median_half_width']:.3f} | "
+                     f"{'-' if ratio is None else f'{ratio:.2f}x'} | {_fmt(a['pearson'])} | "
+                     f"{_fmt(a['spearman'])} | {_fmt(a['mmrv'])} |")
+    return lines
 
 
 COLORS = {"dp": "tab:blue", "act": "tab:orange", "scripted": "tab:green"}
