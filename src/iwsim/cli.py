@@ -237,6 +237,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_export_model)
 
+    p = sub.add_parser("wip", help="save a training run's latest resumable state where a new machine finds it "
+                                   "(checkpoints/wip/NAME), or restore it")
+    wip_sub = p.add_subparsers(dest="wip_command", required=True, metavar="COMMAND")
+    q = wip_sub.add_parser("save", help="copy a run's config, metrics and newest checkpoint to --out, replacing "
+                                        "the state saved there before")
+    q.add_argument("--run", required=True, help="training run directory")
+    q.add_argument("--out", required=True, help="where the state goes, e.g. checkpoints/wip/NAME")
+    q.set_defaults(func=_wip_save)
+    q = wip_sub.add_parser("restore", help="lay a saved state out as a run directory; rerunning the run's command "
+                                           "then resumes it exactly")
+    q.add_argument("--wip", required=True, help="a state written by iwsim wip save")
+    q.add_argument("--out", required=True, help="the run directory (absent, or holding the run at an older step)")
+    q.set_defaults(func=_wip_restore)
+
     p = sub.add_parser("rollout", help="open-loop rollout of a recorded episode: truth | prediction video")
     p.add_argument("--checkpoint", required=True, help="world-model checkpoint directory")
     p.add_argument("--data", required=True, help="episode store")
@@ -835,6 +849,24 @@ def _export_model(args: argparse.Namespace) -> int:
     path = export_model(args.run, args.out, force=args.force, decoder=args.decoder, novelty=novelty,
                         inference=inference)
     print(path)
+    return 0
+
+
+def _wip_save(args: argparse.Namespace) -> int:
+    from iwsim.eval.records import command_line
+    from iwsim.training.wip import save_wip
+
+    info = save_wip(args.run, args.out, command=command_line("iwsim", args.argv))
+    print(f"{args.out}: {args.run} at step {info['step']} (restore it with iwsim wip restore --wip {args.out} "
+          f"--out {args.run}, then rerun the run's command)")
+    return 0
+
+
+def _wip_restore(args: argparse.Namespace) -> int:
+    from iwsim.training.wip import restore_wip
+
+    info = restore_wip(args.wip, args.out)
+    print(f"{args.out}: restored at step {info['step']}; rerun the run's command to resume it")
     return 0
 
 

@@ -1,0 +1,43 @@
+"""A run's resumable state saved where a new machine finds it (issue 64 item 4): restored
+into a fresh run directory, the run resumes bit-identically to one that never stopped."""
+
+import shutil
+
+import pytest
+import torch
+
+from iwsim.cli import main
+from iwsim.errors import InputError
+from iwsim.training.wip import restore_wip, save_wip
+from iwsim.world_model.train_codec import train_autoencoder
+from tests.test_training import assert_same, state, tiny
+
+
+def test_a_saved_state_resumes_on_a_new_machine_as_if_it_never_stopped(play_store, tmp_path, capsys):
+    cpu = torch.device("cpu")
+    train_autoencoder(tiny(6), play_store, tmp_path / "whole", device=cpu, progress=False)
+    run = tmp_path / "machine1" / "run"
+    train_autoencoder(tiny(3), play_store, run, device=cpu, progress=False)
+    wip = tmp_path / "repo" / "checkpoints" / "wip" / "run"
+    assert main(["wip", "save", "--run", str(run), "--out", str(wip)]) == 0
+    assert "at step 3" in capsys.readouterr().out
+    assert sorted(p.name for p in wip.iterdir()) == ["00000003", "config.json", "log.txt", "metrics.jsonl",
+                                                      "wip.json"]
+    assert not any(p.is_symlink() for p in wip.rglob("*"))  # committed as plain files
+    shutil.rmtree(tmp_path / "machine1")  # the machine is gone
+    fresh = tmp_path / "machine2" / "run"
+    assert main(["wip", "restore", "--wip", str(wip), "--out", str(fresh)]) == 0
+    train_autoencoder(tiny(6), play_store, fresh, device=cpu, progress=False)  # the run's command, rerun
+    for part in ("model", "ema", "optimizer"):
+        assert_same(state(tmp_path / "whole", 6, part), state(fresh, 6, part))
+    # a later save replaces the state (one state per run, not an accumulation)
+    save_wip(fresh, wip)
+    assert sorted(p.name for p in wip.iterdir() if p.name.isdigit()) == ["00000006"]
+    assert not [p for p in wip.parent.iterdir() if p.name.startswith(".")]
+    # never restored over newer work, nor saved over something else
+    with pytest.raises(InputError, match="already holds the run at step 6"):
+        restore_wip(wip, fresh)
+    with pytest.raises(InputError, match="is not a saved run state"):
+        save_wip(fresh, play_store)
+    with pytest.raises(InputError, match="is not a training run"):
+        save_wip(tmp_path / "nothing", tmp_path / "w2")
