@@ -75,6 +75,11 @@ TRAINING_FAMILIES: dict[str, tuple[str, ...]] = {
     "learned-zoo": (),
 }
 IDLE_STEPS = 50
+# The contact-then-rest measure: the pixel expert pushes for PUSH_STEPS, the pushers then
+# withdraw WITHDRAW_M from the block and hold still; the T is judged REST_STEPS later.
+PUSH_STEPS, REST_STEPS, WITHDRAW_M = 40, 20, 0.08
+REST_SEED = 720000  # its first states (never used for training, the studies or the families)
+MOVED_PX, MOVED_DEG = 1.0, 5.0  # a block the push moved (in MuJoCo)
 CRISP = 0.9  # a T fits crisply (the codec's reconstructions of first frames fit ~0.92)
 IN_PLACE_PX, IN_PLACE_DEG = 1.0, 5.0
 
@@ -222,6 +227,104 @@ def idle(model: str | None, work: Path, episodes: int, steps: int = IDLE_STEPS) 
         turn = np.degrees(np.abs((pose[..., 2] - ref_pose[..., 2] + np.pi) % (2 * np.pi) - np.pi))
         kept = (fit >= CRISP) & (shift_px <= IN_PLACE_PX) & (turn <= IN_PLACE_DEG)  # NaN compares False
         result.update(kept=float(kept[:, 1:].mean()), kept_per_step=kept.mean(0).round(3).tolist())
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(cached, {"key": key, "result": result})
+    return result
+
+
+class PushThenRest:
+    """The pixel expert for ``push`` steps; then each pusher withdraws ``away`` m straight
+    from the block's centre (as the frame shows it) and holds still."""
+
+    obs_horizon = n_action_steps = 1
+
+    def __init__(self, push: int = PUSH_STEPS, away: float = WITHDRAW_M) -> None:
+        self.expert, self.push, self.away = ScriptedBatch("expert"), push, away
+        self.reset()
+
+    def reset(self) -> None:
+        self.expert.reset()
+        self.t, self.hold = 0, None
+
+    def predict_action(self, obs: dict) -> np.ndarray:
+        self.t += 1
+        if self.t <= self.push:
+            return self.expert.predict_action(obs)
+        if self.hold is None:
+            task = get_task("pusht")
+            pos = obs["agent_pos"][:, -1].reshape(-1, 2, 2).astype(np.float64)  # (B, pusher, xy)
+            centre = np.stack([pixels.estimate_block_pose(f).pose[:2] for f in obs["image"][:, -1]])[:, None]
+            away = pos - np.where(np.isfinite(centre), centre, 0.0)
+            away /= np.maximum(np.linalg.norm(away, axis=-1, keepdims=True), 1e-6)
+            hold = (pos + self.away * away).reshape(len(pos), -1)
+            self.hold = np.clip(hold, task.action_low, task.action_high).astype(np.float32)
+        return self.hold[:, None]
+
+
+class Replay:
+    """The commands of another run (E, T, A), one per call, whatever the frames show."""
+
+    obs_horizon = n_action_steps = 1
+
+    def __init__(self, actions: np.ndarray) -> None:
+        self.actions = np.asarray(actions, np.float32)
+        self.reset()
+
+    def reset(self) -> None:
+        self.t = 0
+
+    def predict_action(self, obs: dict) -> np.ndarray:
+        self.t += 1
+        return self.actions[:, self.t - 1:self.t]
+
+
+def contact_rest(model: str | None, work: Path, episodes: int, push: int = PUSH_STEPS,
+                 rest: int = REST_STEPS) -> dict[str, Any]:
+    """Contact, then rest (issue 64): from ``episodes`` fresh starts the pixel expert pushes
+    the block in MuJoCo for ``push`` steps, the pushers withdraw and rest (:class:`PushThenRest`);
+    the model replays MuJoCo's commands from the same first frame. ``rest`` steps after the
+    pushers stopped, over the episodes whose block the push moved (>= 1 px or 5 degrees in
+    MuJoCo): the T's outline fit in the model's last frame against the fit of the codec's
+    rendering of MuJoCo's last frame (the level a model can reach; within 0.02 counts as
+    back), MuJoCo's own fit, and the pose error against MuJoCo's. Cached under ``work``."""
+    key = {"model": model and fingerprint(model), "episodes": episodes, "push": push, "rest": rest}
+    name = "mujoco" if model is None else fingerprint(model)
+    cached = work / "contact_rest" / f"{name}.json"
+    if cached.is_file() and (saved := load_json(cached))["key"] == key:
+        return saved["result"]
+    seeds = [REST_SEED + i for i in range(episodes)]
+    steps = push + rest + 8  # 8: the pushers' withdrawal at the speed limit (16 mm a step)
+    torch.manual_seed(0)
+    real = rollout(PushThenRest(push), "pusht", seeds, steps, record=episodes, progress=False)
+    frames = real["frames"]
+    pose, fit = block_state(frames[:, [0, -1]])
+    size = frames.shape[-2]
+    shift = np.linalg.norm(pose[:, 1, :2] - pose[:, 0, :2], axis=-1) / (2 * pixels.VIEW_HALF) * size
+    turn = np.degrees(np.abs((pose[:, 1, 2] - pose[:, 0, 2] + np.pi) % (2 * np.pi) - np.pi))
+    moved = (shift >= MOVED_PX) | (turn >= MOVED_DEG)
+    result: dict[str, Any] = {"episodes": episodes, "moved": int(moved.sum()), "push_steps": push,
+                              "rest_steps": rest, "fit_mujoco": float(np.mean(fit[moved, 1])) if moved.any() else None}
+    if model is not None and moved.any():
+        wm = WorldModel.load(model)
+        run = rollout(Replay(real["action"]), "world-model", seeds, steps, world_model=wm, record=episodes,
+                      progress=False)
+        m_pose, m_fit = block_state(run["frames"][:, -1])
+        with torch.inference_mode():
+            codec = wm.decode(wm.encode(frames[:, -1]))
+        _, c_fit = block_state(codec)
+        err_px = np.linalg.norm(m_pose[:, :2] - pose[:, 1, :2], axis=-1) / (2 * pixels.VIEW_HALF) * size
+        err_deg = np.degrees(np.abs((m_pose[:, 2] - pose[:, 1, 2] + np.pi) % (2 * np.pi) - np.pi))
+        back = m_fit >= c_fit - 0.02
+        found = moved & np.isfinite(err_px)  # a frame without a T has no pose to compare
+
+        def median(x: np.ndarray) -> float | None:  # None, not NaN: the cache and report are JSON
+            return float(np.median(x[found])) if found.any() else None
+
+        result.update(fit_model=float(np.mean(m_fit[moved])), fit_codec=float(np.mean(c_fit[moved])),
+                      back_to_codec=float(np.mean(back[moved])), pose_found=float(np.mean(found[moved])),
+                      pose_err_px=median(err_px), pose_err_deg=median(err_deg),
+                      crisp_in_place=float(np.mean(((m_fit >= CRISP) & (err_px <= IN_PLACE_PX)
+                                                    & (err_deg <= IN_PLACE_DEG))[moved])))
     cached.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(cached, {"key": key, "result": result})
     return result

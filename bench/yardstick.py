@@ -28,6 +28,11 @@ For each model, on one thread by default (about 20 minutes a model on this CPU):
    held its kind of motion (``--trained-on``); pooled r and MMRV over all (family,
    episode) pairs and over the unseen families'. And the idle measure: the pushers held
    still, the share of frames that keep the block crisp and in place.
+8. Contact, then rest (issue 64, ``bench/families.py``'s ``contact_rest``): the expert
+   pushes the block in MuJoCo, the pushers withdraw and rest; the model replays MuJoCo's
+   commands. Over the episodes whose block moved: the T's fit in the model's last frame
+   against the codec's rendering of MuJoCo's (the share back within 0.02 of it), and the
+   pose error.
 
 ``--parts`` picks which of these to run (``families,idle`` alone: about 20 minutes a
 model); a model's row keeps the parts measured before.
@@ -122,7 +127,7 @@ def goal_frames(path: Path) -> np.ndarray | None:
     return img if len(img) else None
 
 
-PARTS = ("core", "families", "idle")  # core: items 1-6 of the docstring
+PARTS = ("core", "families", "idle", "rest")  # core: items 1-6 of the docstring; rest: item 8
 
 
 def generalisation(name: str, ckpt: str, args: argparse.Namespace, work: Path, mujoco: dict, seen: list[str]
@@ -214,6 +219,29 @@ def cell(r: dict, key: str, fmt: str) -> str:
     return text
 
 
+def contact_rest_markdown(report: dict) -> list[str]:
+    """Item 8's table: one row per model with the measure."""
+    rows = {n: r["contact_rest"] for n, r in report["models"].items() if "fit_model" in r.get("contact_rest", {})}
+    if not rows:
+        return []
+    c0 = next(iter(rows.values()))
+    ref = report["mujoco"].get("contact_rest", {})
+    lines = ["", "## Contact, then rest (issue 64)", "",
+             f"From {c0['episodes']} fresh MuJoCo starts (seeds from {fam.REST_SEED}) the pixel expert pushes for "
+             f"{c0['push_steps']} steps, the pushers withdraw {fam.WITHDRAW_M * 100:g} cm and rest "
+             f"{c0['rest_steps']} steps; the model replays MuJoCo's commands. Over the {c0['moved']} episodes whose "
+             "block moved: the T's outline fit in the last frame, the share back within 0.02 of the codec's "
+             "rendering of MuJoCo's last frame, and the pose error against MuJoCo's (median)."
+             + ("" if ref.get("fit_mujoco") is None else f" MuJoCo's own fit: {ref['fit_mujoco']:.3f}."), "",
+             "| model | T fit | codec's fit | back to the codec's level | pose error px / deg | crisp and in place |",
+             "|---|---|---|---|---|---|", "| target | - | - | >= 90% | - | - |"]
+    for n, c in rows.items():
+        err = "no T found" if c["pose_err_px"] is None else f"{c['pose_err_px']:.1f} / {c['pose_err_deg']:.1f}"
+        lines.append(f"| {n} | {c['fit_model']:.3f} | {c['fit_codec']:.3f} | {c['back_to_codec']:.0%} | {err} | "
+                     f"{c['crisp_in_place']:.0%} |")
+    return lines
+
+
 def generalisation_markdown(report: dict) -> list[str]:
     """Item 7's tables: one row per model for the pooled figures and the idle measure, then
     each model's families."""
@@ -278,7 +306,7 @@ def markdown(report: dict, strip_rows: list[str]) -> str:
              *(f"    {c}" for c in report["commands"])]
     if "ranking" in report["mujoco"]:
         lines += core_markdown(report, strip_rows)
-    return "\n".join(lines + generalisation_markdown(report)) + "\n"
+    return "\n".join(lines + generalisation_markdown(report) + contact_rest_markdown(report)) + "\n"
 
 
 def core_markdown(report: dict, strip_rows: list[str]) -> list[str]:
@@ -366,6 +394,8 @@ def main(argv: list[str] | None = None) -> int:
                    "(default: %(default)s)")
     p.add_argument("--families", default=",".join(fam.FAMILIES), help="operator families (default: all)")
     p.add_argument("--family-seeds", type=int, default=24, help="first states per family (default: %(default)s)")
+    p.add_argument("--rest-episodes", type=int, default=20, help="fresh starts of the contact-then-rest measure "
+                   "(default: %(default)s)")
     p.add_argument("--idle-episodes", type=int, default=20, help="fresh starts of the idle measure "
                    "(default: %(default)s)")
     p.add_argument("--zoo", nargs="*", default=[], help="policy runs or checkpoints of the learned family "
@@ -388,7 +418,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.zoo and fam.LEARNED in args.families:
         args.families.remove(fam.LEARNED)
     check_positive(args, "episodes", "steps", "candidates", "stability_steps", "horizon", "speed_calls", "threads",
-                   "jobs", "family_seeds", "idle_episodes")
+                   "jobs", "family_seeds", "idle_episodes", "rest_episodes")
     models = named_checkpoints(args.models)
     for name, ckpt in models.items():
         check_model_task(WorldModel.load(ckpt), PUSHT, f"--models {name}={ckpt}")
@@ -436,6 +466,8 @@ def main(argv: list[str] | None = None) -> int:
     if "idle" in parts:
         mujoco["idle"] = {k: v for k, v in fam.idle(None, work, args.idle_episodes).items() if k != "pose"}
         report.update(idle_episodes=args.idle_episodes)
+    if "rest" in parts:
+        mujoco["contact_rest"] = fam.contact_rest(None, work, args.rest_episodes)
     report["steps"] = args.steps
     for name, ckpt in models.items():
         r = report["models"].get(name, {}) if report["models"].get(name, {}).get("checkpoint") == ckpt else {}
@@ -450,6 +482,12 @@ def main(argv: list[str] | None = None) -> int:
         if "idle" in parts:
             r["idle"] = fam.idle(ckpt, work, args.idle_episodes)
             print(f"{name}: idle block kept {r['idle']['kept']:.0%}", flush=True)
+        if "rest" in parts:
+            r["contact_rest"] = fam.contact_rest(ckpt, work, args.rest_episodes)
+            c = r["contact_rest"]
+            print(f"{name}: contact then rest: " + ("no block moved" if "fit_model" not in c else
+                  f"T fit {c['fit_model']:.3f} (codec {c['fit_codec']:.3f}), back in {c['back_to_codec']:.0%} "
+                  f"of {c['moved']}"), flush=True)
         report["models"][name] = r
         save()
     for pair in args.trust_pairs:

@@ -120,3 +120,25 @@ def test_yardstick_refuses_bad_input_in_one_line_before_any_work(tmp_path, capsy
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 1 and len(err) == 1 and says in err[0], (flags, err)
     assert not out.exists() and not (tmp_path / "work").exists()
+
+
+def test_contact_then_rest_on_a_tiny_model(tmp_path):
+    """Issue 64's contact-then-rest measure runs on a tiny model (no quality asserted): the
+    expert pushes, the pushers withdraw and hold still, the model replays MuJoCo's commands."""
+    import families as fam
+    import numpy as np
+    import yardstick
+
+    from iwsim.eval.policy import rollout
+
+    run = rollout(fam.PushThenRest(push=6), "pusht", [fam.REST_SEED], 16, progress=False)
+    held = run["action"][0, 6:]
+    assert np.all(held == held[0]) and np.abs(held[0] - run["action"][0, 5]).max() > 0  # withdrawn, then still
+    ckpt = tiny_world_model().save(tmp_path / "wm", {})
+    c = fam.contact_rest(str(ckpt), tmp_path / "work", 6, push=30, rest=4)
+    assert c["episodes"] == 6 and 0 <= c["moved"] <= 6
+    if c["moved"]:
+        assert 0 <= c["back_to_codec"] <= 1 and 0 <= c["fit_model"] <= 1 and 0 <= c["fit_codec"] <= 1
+        md = yardstick.contact_rest_markdown({"models": {"tiny": {"contact_rest": c}}, "mujoco": {}})
+        assert "## Contact, then rest" in "\n".join(md) and any(line.startswith("| tiny |") for line in md)
+    assert fam.contact_rest(str(ckpt), tmp_path / "work", 6, push=30, rest=4) == c  # cached
