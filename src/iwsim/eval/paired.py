@@ -59,10 +59,12 @@ def power_tuned_lambda(real: np.ndarray, model_paired: np.ndarray) -> float:
 
 def paired_estimate(model: Sequence[float] | np.ndarray, real: Sequence[float] | np.ndarray,
                     paired: Sequence[int] | np.ndarray, level: float = 0.95,
-                    lam: float | None = None) -> dict[str, Any]:
+                    lam: float | None = None, bounds: tuple[float, float] | None = None) -> dict[str, Any]:
     """The estimate of the real mean score from ``model`` (N,) world-model scores and
     ``real`` (n,) real scores of the states ``paired`` (n indices into ``model``), with
-    its ``level`` interval (see the module docstring). ``lam`` None: power-tuned."""
+    its ``level`` interval (see the module docstring). ``lam`` None: power-tuned.
+    ``bounds``: the range of a score (e.g. (0, 1)), to which the interval is clipped
+    (the mean lies in it, so the coverage is unchanged)."""
     f = np.asarray(model, np.float64)
     y = np.asarray(real, np.float64)
     idx = np.asarray(paired, np.int64)
@@ -91,7 +93,10 @@ def paired_estimate(model: Sequence[float] | np.ndarray, real: Sequence[float] |
     df = float(n - fitted)  # the paired term's: with a few pairs it dominates the uncertainty of the variance
     half = float(stats.t.ppf((1 + level) / 2, df)) * math.sqrt(var)
     real_var = float(np.var(y, ddof=1))
-    return {"estimate": estimate, "interval": [estimate - half, estimate + half], "level": level, "lam": lam,
+    lo, hi = estimate - half, estimate + half
+    if bounds is not None:
+        lo, hi = max(bounds[0], lo), min(bounds[1], hi)
+    return {"estimate": estimate, "interval": [lo, hi], "level": level, "lam": lam,
             "n_paired": n, "n_model": big_n, "df": float(df), "std_error": math.sqrt(var),
             "effective_n": real_var / var if var > 0 else float("inf"),
             "model_mean": float(f.mean()), "real_mean_paired": float(y.mean()),
@@ -101,6 +106,5 @@ def paired_estimate(model: Sequence[float] | np.ndarray, real: Sequence[float] |
 def paired_rate(model: Sequence[bool], real: Sequence[bool], paired: Sequence[int] | np.ndarray,
                 level: float = 0.95) -> dict[str, Any]:
     """:func:`paired_estimate` of a success rate (0/1 outcomes), its interval clipped to [0, 1]."""
-    out = paired_estimate(np.asarray(model, np.float64), np.asarray(real, np.float64), paired, level)
-    lo, hi = out["interval"]
-    return {**out, "interval": [max(0.0, lo), min(1.0, hi)]}
+    return paired_estimate(np.asarray(model, np.float64), np.asarray(real, np.float64), paired, level,
+                           bounds=(0.0, 1.0))

@@ -349,7 +349,7 @@ def paired_scores(model: dict[str, Any], real: dict[str, Any], key: str) -> dict
     pairs = {e["seed"]: e for e in real["episodes"]}  # one real episode per seed
     idx = [index[s] for s in pairs]
     score = paired_estimate([e[f"max_{key}"] for e in model["episodes"]],
-                            [pairs[s][f"max_{key}"] for s in pairs], idx)
+                            [pairs[s][f"max_{key}"] for s in pairs], idx, bounds=(0.0, 1.0))  # scores in [0, 1]
     success = paired_rate([e["success"] for e in model["episodes"]], [pairs[s]["success"] for s in pairs], idx)
     return {f"mean_max_{key}": score, "success_rate": success, "seeds": sorted(pairs)}
 

@@ -362,7 +362,7 @@ def paired_report(cfg: PolicyEvalConfig, results: dict[str, dict[str, dict[str, 
         for name in names:
             model = [e[f"max_{key}"] for e in results[proxy][name]["episodes"]]
             real = [e[f"max_{key}"] for e in results[reference][name]["episodes"]][:n]
-            est = paired_estimate(model, real, list(range(n)))
+            est = paired_estimate(model, real, list(range(n)), bounds=(0.0, 1.0))  # the scores lie in [0, 1]
             lo, hi = est["interval"]
             alone = float(stats.t.ppf(0.975, n - 1) * np.std(real, ddof=1) / math.sqrt(n))
             rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
