@@ -65,6 +65,8 @@ TRAINING_FAMILIES: dict[str, tuple[str, ...]] = {
     "expert-lagged": ("expert", "jitter", "latency3"),
     # rests, pauses, slow hands (time constants 1.5-5 steps) and tremors over random pushing
     "play-broad": ("play", "still", "pause", "lag3", "lag6", "jitter"),
+    # the same, its setpoints run 10-40 mm beyond the asked step in most segments (pressing)
+    "play-press": ("play", "still", "pause", "lag3", "lag6", "jitter"),
     # the noisy expert through slow or pausing hands: a person's kind of teleoperation
     "expert-hands": ("expert", "jitter", "lag3", "lag6", "pause", "person"),
     # the expert's motions with a learned policy's imprecision: grips off the grip points,

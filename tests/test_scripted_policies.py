@@ -199,7 +199,7 @@ def test_scripted_config_names_the_hand_and_still_holds():
     assert not np.allclose(missing, ScriptedBatch("expert").predict_action(obs))
 
 
-@pytest.mark.parametrize("name", ["play-broad", "expert-hands", "expert-imprecise"])
+@pytest.mark.parametrize("name", ["play-broad", "play-press", "expert-hands", "expert-imprecise"])
 def test_broad_play_and_the_hands_and_imprecise_experts_are_seeded_and_touch_the_block(name):
     a = record_episode("pusht", name, seed=5, steps=120)
     assert all(np.array_equal(a[k], record_episode("pusht", name, seed=5, steps=120)[k]) for k in a)
@@ -207,6 +207,20 @@ def test_broad_play_and_the_hands_and_imprecise_experts_are_seeded_and_touch_the
     assert (a["n_contacts"] > 0).mean() >= 0.05
     assert np.abs(np.diff(a["block_pose"], axis=0)).sum() > 0.02  # the block moved
 
+
+
+def test_pressing_play_holds_its_setpoints_ahead_of_the_pushers_as_learned_policies_do():
+    """Issue 64: learned policies hold setpoints 21-50 mm (p90) from the pushers, the other
+    collected policies within 20-25 mm; play-press's reach that range, play-broad's do not."""
+    def gap_p90(name: str) -> float:
+        gaps = []
+        for seed in range(3):
+            ep = record_episode("pusht", name, seed=seed, steps=150)
+            gaps.append(np.linalg.norm((ep["action"] - ep["state"]).reshape(-1, 2, 2), axis=-1).ravel())
+        return float(np.quantile(np.concatenate(gaps), 0.9))
+
+    press, broad = gap_p90("play-press"), gap_p90("play-broad")
+    assert 0.021 <= press <= 0.05 and press > broad + 0.01, (press, broad)
 
 
 @pytest.mark.parametrize("blind", [True, False])

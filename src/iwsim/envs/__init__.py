@@ -40,8 +40,8 @@ TASKS = {"pusht": "iwsim/BimanualPushT-v0", "pilesweep": "iwsim/PileSweep-v0"}
 IMAGE_SIZES = (64, 96, 128)  # what the MuJoCo tasks render
 SMALLEST_FRAME_BYTES = min(IMAGE_SIZES) ** 2 * 3  # an RGB frame's lower bound, for memory checks
 # The scripted policies of each task, by name (its scripted module makes them; iwsim collect records them).
-POLICIES = {"pusht": ("play", "play-broad", "expert", "expert-wide", "expert-noisy", "expert-lagged", "expert-hands",
-                      "expert-imprecise"),
+POLICIES = {"pusht": ("play", "play-broad", "play-press", "expert", "expert-wide", "expert-noisy", "expert-lagged",
+                      "expert-hands", "expert-imprecise"),
             "pilesweep": ("play", "expert", "expert-noisy", "expert-lagged")}
 
 
