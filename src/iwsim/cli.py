@@ -1005,22 +1005,13 @@ def _experiment_policy_eval(args: argparse.Namespace) -> int:
     recipe = base if args.demonstrator is None else dataclasses.replace(base, demonstrator=args.demonstrator)
     cfg, out = _study_config(args, PRESETS, "policy_eval", episodes=args.episodes, steps=args.steps, seed=args.seed,
                              demos=args.demos, demo_episodes=args.demo_episodes, small_demos=args.small_demos,
-                             recipe=recipe, paired=_counts(args.paired_episodes, "--paired-episodes"),
+                             recipe=recipe, paired=None if args.paired_episodes is None else
+                             _numbers("--paired-episodes", args.paired_episodes, int, "counts N,N,..."),
                              holdout_episodes=args.holdout_episodes)
     report = run_policy_eval(cfg, out=out, work=args.work, preset=args.preset, jobs=args.jobs,
                              progress=not args.no_progress)
     print(f"{headline(report)} -> {out}/results.md")
     return 0
-
-
-def _counts(text: str | None, flag: str) -> tuple[int, ...] | None:
-    """``"2,5,10"`` -> (2, 5, 10); None stays None; anything else is one line of error."""
-    if text is None:
-        return None
-    try:
-        return tuple(int(x) for x in text.split(","))
-    except ValueError:
-        raise InputError(f"{flag} takes counts N,N,..., got {text!r}.") from None
 
 
 def _demo(args: argparse.Namespace) -> int:
