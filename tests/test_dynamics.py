@@ -30,10 +30,16 @@ def randomise(module: torch.nn.Module, seed: int = 0, std: float = 0.2) -> torch
     return module.eval()
 
 
+STATE = {"state_dim": 4, "state_point_scale": (0.2 / 0.26,) * 4, "state_point_offset": (0.0,) * 4}
+
+
 def tiny_cfg(name: str = "ours"):
+    """The tiny preset as variant ``name``, with the sizes training takes from T-push data
+    (its points; the pushers' state for the ``state`` variant)."""
     cfg = variant(DYNAMICS_PRESETS["tiny"], name)
     points = POINTS if cfg.dynamics.positional_actions else {}
-    return dataclasses.replace(cfg, dynamics=dataclasses.replace(cfg.dynamics, **points))
+    state = STATE if cfg.predict_state and points else {"state_dim": 4} if cfg.predict_state else {}
+    return dataclasses.replace(cfg, dynamics=dataclasses.replace(cfg.dynamics, **points, **state))
 
 
 def tiny_world_model(seed: int = 0, name: str = "ours", **inference) -> WorldModel:
@@ -42,7 +48,8 @@ def tiny_world_model(seed: int = 0, name: str = "ours", **inference) -> WorldMod
     torch.manual_seed(seed)
     cfg = dataclasses.replace(tiny_cfg(name), **inference)
     ae = Autoencoder(AE_PRESETS["tiny"])
-    return WorldModel(ae, randomise(Dynamics(cfg.dynamics), seed), cfg, LOW, HIGH).eval()
+    state = ([-0.2] * 4, [0.2] * 4) if cfg.dynamics.state_dim else ((), ())
+    return WorldModel(ae, randomise(Dynamics(cfg.dynamics), seed), cfg, LOW, HIGH, None, 1.0, *state).eval()
 
 
 def test_blobs_sit_where_the_action_points():
@@ -123,7 +130,9 @@ def batch_for(cfg, z: torch.Tensor, actions: torch.Tensor, g: torch.Generator) -
     return DynBatch(z, actions, lo + (hi - lo) * torch.rand(b, n, generator=g),
                     torch.randn(b, n, k, *z.shape[2:], generator=g), torch.full((b, n), 999),
                     torch.zeros(b, n, dtype=torch.long), training_sigmas(b * n, g).view(b, n),
-                    torch.randn(b, n, *z.shape[2:], generator=g), torch.randn(b, n, *z.shape[2:], generator=g))
+                    torch.randn(b, n, *z.shape[2:], generator=g), torch.randn(b, n, *z.shape[2:], generator=g),
+                    torch.rand(b, n + 1, cfg.dynamics.state_dim, generator=g) * 2 - 1 if cfg.dynamics.state_dim
+                    else None)
 
 
 @pytest.mark.parametrize("name", VARIANTS)
@@ -167,7 +176,7 @@ def test_the_gradient_reaches_the_first_unrolled_step(through, every):
     batch = batch_for(cfg, torch.randn(b, k + n, 4, 16, 16, generator=g), torch.rand(b, n + 1, 4, generator=g) * 2 - 1,
                       g)
     batch.ctx_eps.requires_grad_(True)
-    module.unroll(batch)[:, -1].sum().backward()
+    module.unroll(batch)[0][:, -1].sum().backward()
     first = batch.ctx_eps.grad[:, 0].abs().max().item()
     assert (first > 0) == (through and every != 1)
     assert batch.ctx_eps.grad[:, -1].abs().max().item() > 0

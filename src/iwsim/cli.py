@@ -149,8 +149,10 @@ def build_parser() -> argparse.ArgumentParser:
                                      "autoencoder, normalisation and network are kept")
     q.add_argument("--variant", default="ours",
                    help="ours, or a benchmark baseline or ablation: deterministic, diffusion, no-context-noise, "
-                        "film-actions, no-points, no-unroll, no-delta, window-6, long-unroll; several joined by '+' "
-                        "apply in turn, e.g. long-unroll+deterministic (default: %(default)s)")
+                        "film-actions, no-points, no-unroll, no-delta, window-6, long-unroll; or state: the "
+                        "dynamics also takes and predicts the robot's own state (the store's data/state; with "
+                        "--init it is added to the model); several joined by '+' apply in turn, e.g. "
+                        "long-unroll+deterministic (default: %(default)s)")
     q.add_argument("--context", type=int, help="latents in the window (default: the preset's, or the fine-tuned "
                                                "model's); with --init, a wider window starts with the older "
                                                "latents' weights at zero: the model unchanged")
@@ -686,9 +688,9 @@ def _train_ae(args: argparse.Namespace) -> int:
 def _train_dynamics(args: argparse.Namespace) -> int:
     from iwsim.world_model.presets import DYNAMICS_PRESETS
 
-    if args.init is not None and args.variant != "ours":
-        raise InputError("--variant applies to training from scratch; --init keeps the model's own objective "
-                         "and network.")
+    if args.init is not None and args.variant not in ("ours", "state"):
+        raise InputError("--variant applies to training from scratch (with --init, only 'state', which adds the "
+                         "robot's state to the model); --init keeps the model's own objective and network.")
     check_positive(args, "context")
     from iwsim.world_model.train_dynamics import run_config, train_dynamics
 

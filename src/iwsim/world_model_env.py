@@ -12,10 +12,13 @@ from the same state in both environments; ``"dataset"`` for any other robot's ta
 first frame of its store's episode ``seed % episodes``), ``"store"`` (a random frame of
 the episode store ``store``), or ``reset(options={"frame": f})``.
 
-For T-push, each pusher's ``agent_pos`` is its executed setpoint where the frame shows it
-near the setpoint, and where the frame shows it when contact holds it back
-(:meth:`iwsim.envs.pusht_task.PushTTask.observe`); ``info["iou"]`` and the reward come
-from the pixel scorer, so nothing but the model's pixels and the commands is used.
+``agent_pos`` is the robot's state the model predicts, for a model trained to predict it
+(``--variant state``: the dynamics takes and predicts the store's ``data/state``; it
+starts from the start's ``agent_pos``). For another T-push model, each pusher's
+``agent_pos`` is its executed setpoint where the frame shows it near the setpoint, and
+where the frame shows it when contact holds it back
+(:meth:`iwsim.envs.pusht_task.PushTTask.observe`). ``info["iou"]`` and the reward come
+from the pixel scorer, so nothing but the model's outputs and the commands is used.
 Actions are commanded targets, approached at the task's speed limit exactly as MuJoCo
 does (:func:`iwsim.envs.tabletop.limit_targets`, starting from the pushers' positions at
 reset). A task without a scorer reports ``info["score"] = None`` and reward 0, and its
@@ -40,7 +43,7 @@ from gymnasium.vector.utils import batch_space
 from iwsim.envs.task import Start, Task
 from iwsim.errors import InputError
 from iwsim.tasks import StoreStarts, get_task, task_of
-from iwsim.world_model import WorldModel
+from iwsim.world_model import StreamState, WorldModel
 
 STORE = "store"
 # What the environment observes, versioned: results measured in an environment of another
@@ -100,6 +103,22 @@ def resolve_task(model: WorldModel, task: str | Task | None) -> Task:
     return task
 
 
+def predicts_agent_pos(model: WorldModel, task: Task) -> bool:
+    """Whether the model predicts the robot's state that the task observes as ``agent_pos``."""
+    return model.state_dim > 0 and model.state_dim == task.action_dim
+
+
+def predicted_agent_pos(model: WorldModel, task: Task, state: StreamState | None = None) -> np.ndarray | None:
+    """The model's predicted ``agent_pos`` (B, A) float32 at ``state`` (default: its current
+    rollouts'), within the bounds of the task's ``agent_pos`` (its action bounds, as
+    :meth:`Task.spaces` declares: a robot stays in its workspace); None for a model that
+    does not predict it."""
+    own = model.robot_state(state) if predicts_agent_pos(model, task) else None
+    if own is None:
+        return None
+    return np.clip(own, task.action_low, task.action_high).astype(np.float32)
+
+
 def _load(model: WorldModel | None, checkpoint: str | Path | None, device: str) -> WorldModel:
     if model is not None:
         return model
@@ -127,6 +146,7 @@ class WorldModelEnv(gym.Env):
         self._starts = Starts(self.task, self.model.image_size, store, reset_source)
         self._frame: np.ndarray | None = None
         self._agent_pos = np.zeros(self.task.action_dim, np.float32)
+        self._own_pos = predicts_agent_pos(self.model, self.task)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -142,8 +162,9 @@ class WorldModelEnv(gym.Env):
             start = self.task.start_from_frame(frame, options.get("agent_pos"))
         else:
             start = self._starts.draw(draw, options.get("source"), options.get("reset_to_state"))
-        self.model.reset(start.frame[None], seed=draw, held=np.asarray(start.command, np.float32)[None])
         self._frame, self._agent_pos = start.frame, np.asarray(start.agent_pos, dtype=np.float32)
+        self.model.reset(start.frame[None], seed=draw, held=np.asarray(start.command, np.float32)[None],
+                         state=self._agent_pos[None] if self._own_pos else None)
         self._setpoint = np.asarray(start.command, np.float64)
         return self._obs(), self._info(self.task.score(self._frame[None]))
 
@@ -154,7 +175,8 @@ class WorldModelEnv(gym.Env):
         self._setpoint = task.executed(self._setpoint, task.check_actions(action, (task.action_dim,)))
         self._frame = self.model.step(self._setpoint.astype(np.float32)[None])[0]
         score, pos = task.observe(self._frame[None], self._setpoint[None], self._agent_pos[None])
-        self._agent_pos = pos[0]
+        own = predicted_agent_pos(self.model, task)
+        self._agent_pos = pos[0] if own is None else own[0]
         info = {**self._info(score), "target": self._setpoint.astype(np.float32)}
         terminated = bool(self.terminate_on_success and info.get("is_success"))
         return self._obs(), 0.0 if score is None else float(score[0]), terminated, False, info
@@ -210,6 +232,7 @@ class WorldModelVectorEnv(VectorEnv):
         self._starts = Starts(self.task, self.model.image_size, store, reset_source)
         self._frames: np.ndarray | None = None
         self._agent_pos = np.zeros((num_envs, self.task.action_dim), np.float32)
+        self._own_pos = predicts_agent_pos(self.model, self.task)
         self._t = 0
         self._next_seed = 0
         self._needs_reset = False
@@ -235,9 +258,10 @@ class WorldModelVectorEnv(VectorEnv):
             drawn = [self._starts.draw(s, options.get("source")) for s in seeds]
             frames = np.stack([d.frame for d in drawn])
         self._setpoint = np.stack([d.command for d in drawn]).astype(np.float64)
-        self.model.reset(frames, seed=seeds, held=self._setpoint.astype(np.float32))
         self._frames = frames
         self._agent_pos = np.stack([d.agent_pos for d in drawn]).astype(np.float32)
+        self.model.reset(frames, seed=seeds, held=self._setpoint.astype(np.float32),
+                         state=self._agent_pos if self._own_pos else None)
         self._t, self._needs_reset = 0, False
         return self._obs(), self._info(self.task.score(self._frames))
 
@@ -252,7 +276,9 @@ class WorldModelVectorEnv(VectorEnv):
         self._setpoint = task.executed(self._setpoint, task.check_actions(actions, (self.num_envs, task.action_dim)))
         novelty = self.model.novelty_of(self.model.state, self._setpoint.astype(np.float32))
         self._frames = self.model.step(self._setpoint.astype(np.float32))
-        score, self._agent_pos = task.observe(self._frames, self._setpoint, self._agent_pos)
+        score, pos = task.observe(self._frames, self._setpoint, self._agent_pos)
+        own = predicted_agent_pos(self.model, task)
+        self._agent_pos = pos if own is None else own
         self._t += 1
         info = {**self._info(score), "target": self._setpoint.astype(np.float32)}
         if novelty is not None:  # the trust signal: how unlike the training data this step's inputs are

@@ -46,7 +46,7 @@ from iwsim.errors import InputError
 from iwsim.play import protocol as proto
 from iwsim.resources import MiB, human_bytes, require_memory
 from iwsim.world_model import StreamState, WorldModel
-from iwsim.world_model_env import STORE, Starts, resolve_task, score_key
+from iwsim.world_model_env import STORE, Starts, predicted_agent_pos, predicts_agent_pos, resolve_task, score_key
 
 log = logging.getLogger(__name__)
 
@@ -319,7 +319,9 @@ class Engine:
         T-push, a dataset episode's first frame otherwise) or a store frame."""
         seed = int(self._rng.integers(proto.MAX_SEED)) if seed is None else seed
         start = self.starts.draw(seed, source)
-        s.state = self.model.reset_state(start.frame[None], seed=seed, held=np.asarray(start.command, np.float32)[None])
+        own = start.agent_pos[None] if predicts_agent_pos(self.model, self.task) else None
+        s.state = self.model.reset_state(start.frame[None], seed=seed, held=np.asarray(start.command, np.float32)[None],
+                                         state=own)
         s.start, s.source, s.seed, s.step = start, source, seed, 0
         s.frame, s.agent_pos = start.frame, start.agent_pos.astype(np.float32)
         # the robot holds still: the command is where it is (T-push: MuJoCo's position
@@ -355,11 +357,13 @@ class Engine:
             state, frames = self.model.step_state(state, np.stack([s.setpoint for s in sessions]))
         finally:
             torch.set_num_threads(self._threads)
+        own = predicted_agent_pos(self.model, self.task, state)
         states = [state] if len(sessions) == 1 else state.split()
         for s, state, frame in zip(sessions, states, frames):
             s.state, s.frame = state, frame
         ious, pos = self.task.observe(np.stack(list(frames)), np.stack([s.setpoint for s in sessions]),
                                       np.stack([s.agent_pos for s in sessions]))
+        pos = pos if own is None else own
         for i, (s, p) in enumerate(zip(sessions, pos)):
             s.iou, s.agent_pos, s.step = None if ious is None else float(ious[i]), p, s.step + 1
             if s.twin_frame is not None:

@@ -13,7 +13,8 @@ samplers' convention (:mod:`iwsim.diffusion`), the conditioning as ``extra_args`
 All latents are the dynamics' standardised latents; ``context`` (B, K, C, h, w), newest
 last; ``actions`` (B, 2, A) normalised, the one that produced the newest context latent,
 then the one that produces the next latent; ``context_sigma`` (B,) the std of the noise on
-the context (training) or the std it is labelled with (inference).
+the context (training) or the std it is labelled with (inference); ``state`` (B, S) the
+robot's normalised state at the newest context latent, for a network that takes it.
 """
 
 from __future__ import annotations
@@ -40,30 +41,32 @@ class Denoiser:
         self.model = self.objective.model(self._net, self.schedule)
 
     def _net(self, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor, *, context: torch.Tensor,
-             context_level: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+             context_level: torch.Tensor, actions: torch.Tensor, state: torch.Tensor | None = None) -> torch.Tensor:
         """The dynamics network as the objectives call it: ``net(x, t, s, **extra_args)``."""
-        return self.network(x, context, t.float(), s.float(), context_level, actions)
+        return self.network(x, context, t.float(), s.float(), context_level, actions, state)
 
     @staticmethod
-    def _extra_args(context: torch.Tensor, context_sigma: torch.Tensor, actions: torch.Tensor) -> ExtraArgs:
-        return {"context": context, "context_level": context_sigma * LEVELS_PER_STD, "actions": actions}
+    def _extra_args(context: torch.Tensor, context_sigma: torch.Tensor, actions: torch.Tensor,
+                    state: torch.Tensor | None) -> ExtraArgs:
+        out = {"context": context, "context_level": context_sigma * LEVELS_PER_STD, "actions": actions}
+        return out if state is None else {**out, "state": state}
 
     def _base(self, context: torch.Tensor) -> torch.Tensor | None:
         return context[:, -1] if self.cfg.predict_delta else None
 
     def loss(self, target: torch.Tensor, context: torch.Tensor, context_sigma: torch.Tensor, actions: torch.Tensor,
-             levels: Levels, eps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+             levels: Levels, eps: torch.Tensor, state: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The objective's per-element error (B, C, h, w) for the next latent ``target``
         and its one-pass estimate of that latent (what unrolled training feeds back)."""
         base = self._base(context)
         y0 = target if base is None else target - base
-        extra_args = self._extra_args(context, context_sigma, actions)
+        extra_args = self._extra_args(context, context_sigma, actions, state)
         err, estimate = self.objective.loss(self.model, y0, levels, eps, extra_args)
         return err, estimate if base is None else base + estimate
 
     def sample(self, context: torch.Tensor, context_sigma: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor,
                jumps: int | None = None, euler_steps: int | None = None,
-               still: torch.Tensor | None = None) -> torch.Tensor:
+               still: torch.Tensor | None = None, state: torch.Tensor | None = None) -> torch.Tensor:
         """The next latent (B, C, h, w) from clipped Gaussian ``noise`` (B, C, h, w) in
         ``jumps`` consistency jumps or ``euler_steps`` Euler steps, whichever the objective
         takes (default: the config's). ``still`` (B,) bool: whether the executed setpoint
@@ -71,7 +74,7 @@ class Denoiser:
         knob = self.objective.steps_knob
         steps = {"jumps": jumps, "euler_steps": euler_steps}[knob]
         y = self.objective.sample(self.model, noise, getattr(self.cfg, knob) if steps is None else steps,
-                                  self._extra_args(context, context_sigma, actions))
+                                  self._extra_args(context, context_sigma, actions, state))
         base = self._base(context)
         if base is None:
             return y

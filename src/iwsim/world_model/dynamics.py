@@ -21,6 +21,14 @@ at CPU budgets, while the same network given actions as spatial maps used them):
 
 FiLM from the action MLP stays available (``action_film``) for comparison.
 
+The robot's own state (``state_dim`` > 0: the store's ``data/state``, e.g. where T-push's
+pushers actually are, which differs from their setpoints when contact holds them back)
+enters like the actions, as a learned grid plus blobs at its positions where it holds the
+same points as the actions (``state_point_scale``); and :meth:`Dynamics.predict_state`, a
+small head, predicts the next state from the new latent, the newest context latent, the
+actions and the current state. A rollout feeds each predicted state back as the next
+step's input (see :class:`~iwsim.world_model.WorldModel`).
+
 No layer mixes batch items, so a batched rollout equals per-item rollouts.
 """
 
@@ -55,6 +63,11 @@ class DynamicsConfig:
     point_scale: tuple[float, ...] = ()  # per action entry: image coordinate = a * scale + offset
     point_offset: tuple[float, ...] = ()
     point_sigma: float = 0.75  # blob std in latent cells
+    state_dim: int = 0  # the robot's own state, taken and predicted (0: none; filled in by training)
+    state_channels: int = 8  # of the learned state grid
+    state_point_scale: tuple[float, ...] = ()  # per state entry, as point_scale (empty: no state blobs)
+    state_point_offset: tuple[float, ...] = ()
+    state_head_channels: int = 32
 
 
 class SpatialAttention(nn.Module):
@@ -86,6 +99,8 @@ class Dynamics(nn.Module):
 
     point_scale: torch.Tensor  # (A,) buffers, with cfg.point_index
     point_offset: torch.Tensor
+    state_point_scale: torch.Tensor  # (S,) buffers, with cfg.state_point_scale
+    state_point_offset: torch.Tensor
 
     def __init__(self, cfg: DynamicsConfig = DynamicsConfig()) -> None:
         super().__init__()
@@ -102,9 +117,21 @@ class Dynamics(nn.Module):
             self.register_buffer("point_scale", torch.tensor(cfg.point_scale, dtype=torch.float32), persistent=False)
             self.register_buffer("point_offset", torch.tensor(cfg.point_offset, dtype=torch.float32),
                                  persistent=False)
+        if cfg.state_point_scale and not (cfg.point_index and len(cfg.state_point_scale) ==
+                                          len(cfg.state_point_offset) == cfg.state_dim):
+            raise InputError(f"state blobs need the action's point_index and {cfg.state_dim} values each in "
+                             f"state_point_scale and state_point_offset, got {len(cfg.state_point_scale)} and "
+                             f"{len(cfg.state_point_offset)}.")
+        if cfg.state_point_scale:
+            self.register_buffer("state_point_scale", torch.tensor(cfg.state_point_scale, dtype=torch.float32),
+                                 persistent=False)
+            self.register_buffer("state_point_offset", torch.tensor(cfg.state_point_offset, dtype=torch.float32),
+                                 persistent=False)
         cin = (1 + cfg.context) * cfg.latent_channels + 2 + 2 * len(cfg.point_index)
         cin += 2 * cfg.action_channels if cfg.spatial_actions else 0
-        self.conv_in = nn.Conv2d(cin, c, 3, padding=1)
+        self.state_grid = nn.Linear(cfg.state_dim, cfg.state_channels * s * s) if cfg.state_dim else None
+        state_in = self.state_features_channels()
+        self.conv_in = nn.Conv2d(cin + state_in, c, 3, padding=1)
         half = cfg.blocks // 2
         self.blocks_a = nn.ModuleList(ResBlock(c, c, e) for _ in range(half))
         self.attn = SpatialAttention(c, cfg.heads) if cfg.heads else None
@@ -112,6 +139,36 @@ class Dynamics(nn.Module):
         self.norm_out = group_norm(c)
         self.conv_out = nn.Conv2d(c, cfg.latent_channels, 3, padding=1)
         zero_init(self.conv_out)
+        self.state_head = StateHead(cfg, cin - cfg.context * cfg.latent_channels + cfg.latent_channels + state_in) \
+            if cfg.state_dim else None
+
+    def state_features_channels(self) -> int:
+        cfg = self.cfg
+        if not cfg.state_dim:
+            return 0
+        return cfg.state_channels + (len(cfg.point_index) if cfg.state_point_scale else 0)
+
+    def state_features(self, state: torch.Tensor) -> list[torch.Tensor]:
+        """Per-cell maps of the normalised state (B, S): the learned grid, and blobs at its
+        positions when it holds the action's points."""
+        if self.state_grid is None:
+            return []
+        b, s = state.shape[0], self.cfg.latent_size
+        maps = [self.state_grid(state).view(b, -1, s, s)]
+        if self.cfg.state_point_scale:
+            pos = state[:, None] * self.state_point_scale + self.state_point_offset
+            maps.append(blobs(pos, self.cfg.point_index, s, self.cfg.point_sigma).flatten(1, 2))
+        return maps
+
+    def predict_state(self, new: torch.Tensor, newest: torch.Tensor, actions: torch.Tensor,
+                      state: torch.Tensor) -> torch.Tensor:
+        """The normalised state (B, S) at the new latent ``new`` (B, C, h, w), from it, the
+        newest context latent ``newest`` (B, C, h, w), the actions (B, 2, A) (as forward's)
+        and the state (B, S) at the newest context latent."""
+        if self.state_head is None:
+            raise InputError("this dynamics network has no state head (it was trained without the robot's state).")
+        inp = [new, newest, coordinates(new), *self.action_features(actions), *self.state_features(state)]
+        return state + self.state_head(torch.cat(inp, 1))
 
     def action_features(self, actions: torch.Tensor) -> list[torch.Tensor]:
         """Per-cell action maps from normalised actions (B, 2, A) (previous, current)."""
@@ -126,12 +183,14 @@ class Dynamics(nn.Module):
         return maps
 
     def forward(self, x: torch.Tensor, context: torch.Tensor, t: torch.Tensor, s: torch.Tensor,
-                context_level: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+                context_level: torch.Tensor, actions: torch.Tensor, state: torch.Tensor | None = None
+                ) -> torch.Tensor:
         """x (B, C, h, w) the new latent's noisy input; context (B, K, C, h, w) the window,
         newest last; t, s (B,) the input level and the level to jump to (embedding units:
         0 .. 1000); context_level (B,) what the context is labelled with (same units);
         actions (B, 2, A) normalised: the one that produced the newest context latent, then
-        the one that produces the new latent. Returns (B, C, h, w)."""
+        the one that produces the new latent; state (B, S) the normalised state at the newest
+        context latent (a network with ``state_dim``). Returns (B, C, h, w)."""
         assert x.ndim == 4 and context.ndim == 5, f"got x {tuple(x.shape)}, context {tuple(context.shape)}"
         b = x.shape[0]
         e = self.cfg.emb_dim // 2
@@ -141,6 +200,10 @@ class Dynamics(nn.Module):
         if self.action_mlp is not None:
             emb = emb + self.action_mlp(actions.flatten(1))
         inp = [x, context.flatten(1, 2), coordinates(x), *self.action_features(actions)]
+        if self.state_grid is not None:
+            if state is None:
+                raise InputError("this dynamics network takes the robot's state (B, S); none was given.")
+            inp += self.state_features(state)
         h = self.conv_in(torch.cat(inp, 1))
         for block in self.blocks_a:
             h = block(h, emb)
@@ -149,6 +212,24 @@ class Dynamics(nn.Module):
         for block in self.blocks_b:
             h = block(h, emb)
         return self.conv_out(F.silu(self.norm_out(h))).view(b, *x.shape[1:])
+
+
+class StateHead(nn.Module):
+    """Inputs (B, cin, h, w) -> the change (B, S) of the normalised state: two convolutions
+    at latent resolution and a linear read-out of every cell (where a pusher is matters);
+    zero at initialisation, so the state starts by holding still."""
+
+    def __init__(self, cfg: DynamicsConfig, cin: int) -> None:
+        super().__init__()
+        c, s = cfg.state_head_channels, cfg.latent_size
+        out = nn.Linear(c * s * s, cfg.state_dim)
+        nn.init.zeros_(out.weight)
+        nn.init.zeros_(out.bias)
+        self.net = nn.Sequential(nn.Conv2d(cin, c, 3, padding=1), nn.SiLU(), nn.Conv2d(c, c, 3, padding=1),
+                                 nn.SiLU(), nn.Flatten(), out)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
 
 
 def widen_window(state: dict[str, torch.Tensor], cfg: DynamicsConfig, context: int) -> dict[str, torch.Tensor]:
@@ -161,6 +242,19 @@ def widen_window(state: dict[str, torch.Tensor], cfg: DynamicsConfig, context: i
     older = w.new_zeros(w.shape[0], (context - cfg.context) * c, *w.shape[2:])
     # Input channels: the new latent's c, then the window's, oldest first (see forward).
     return {**state, "conv_in.weight": torch.cat([w[:, :c], older, w[:, c:]], 1)}
+
+
+def add_state(state: dict[str, torch.Tensor], cfg: DynamicsConfig, new: Dynamics) -> dict[str, torch.Tensor]:
+    """The weights ``state`` of a :class:`Dynamics` with ``cfg`` (no robot state), for
+    ``new``, the same network with a state: the state's input weights are zero, so the
+    latent prediction starts unchanged, and the state head is ``new``'s own (it starts by
+    holding the state still)."""
+    if cfg.state_dim:
+        raise InputError("the network takes the robot's state already.")
+    w = state["conv_in.weight"]
+    extra = w.new_zeros(w.shape[0], new.state_features_channels(), *w.shape[2:])
+    own = {k: v for k, v in new.state_dict().items() if k.startswith(("state_grid.", "state_head."))}
+    return {**state, **own, "conv_in.weight": torch.cat([w, extra], 1)}
 
 
 def blobs(positions: torch.Tensor, index: tuple[tuple[int, int], ...], size: int, sigma: float) -> torch.Tensor:

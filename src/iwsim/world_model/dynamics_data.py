@@ -15,6 +15,7 @@ import logging
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -39,6 +40,8 @@ from iwsim.world_model.presets import DynamicsStageConfig
 
 log = logging.getLogger(__name__)
 
+# The network config's fields of the robot's state, which the data decides.
+STATE_FIELDS = ("state_dim", "state_point_scale", "state_point_offset")
 NOVELTY_STEPS = 50_000  # steps of the training data the trust signal's Gaussian is fitted to
 
 
@@ -49,7 +52,9 @@ class DynBatch:
     newest context frame) and u+1 (the one that produces its frame); context-noise stds
     (B, n) and noise (B, n, K, C, h, w); target levels t, s and EDM sigmas (B, n) and noise
     (B, n, C, h, w); the noise (B, n, C, h, w) a fed-back sample starts from (objectives
-    whose one-pass estimate is not what inference generates, see DynamicsTrainModule)."""
+    whose one-pass estimate is not what inference generates, see DynamicsTrainModule); the
+    robot's normalised states (B, n+1, S) at the newest context frame and at each frame to
+    predict (S = 0 for a network without the state)."""
 
     z: torch.Tensor
     actions: torch.Tensor
@@ -60,9 +65,11 @@ class DynBatch:
     sigma: torch.Tensor
     eps: torch.Tensor
     feed_eps: torch.Tensor
+    states: torch.Tensor | None = None
 
     def to(self, device: torch.device) -> DynBatch:
-        return DynBatch(*(v.to(device) for v in vars(self).values()))
+        moved: dict[str, Any] = {k: None if v is None else v.to(device) for k, v in vars(self).items()}
+        return DynBatch(**moved)
 
 
 class DynamicsData:
@@ -71,9 +78,16 @@ class DynamicsData:
     is the given config with the sizes the data decides (action size, latent shape,
     positional actions).
 
-    With ``init`` (a world model to fine-tune) its autoencoder, action and latent
+    With ``cfg.predict_state`` the store's ``data/state`` (the robot's own state) is
+    min-max normalised over the training episodes like the actions; where the store's task
+    declares the actions' image positions and the state has the action's size (the
+    tabletop tasks' ``agent_pos``: where the pushers are, as the actions say where they
+    should go), the state's entries are the same positions.
+
+    With ``init`` (a world model to fine-tune) its autoencoder, action, state and latent
     normalisation and network config are kept, so its weights stay meaningful; the data
-    must have its action size."""
+    must have its action size. A model without the state fine-tuned with it gains the
+    state's inputs (zero weights) and head (see :func:`~iwsim.world_model.dynamics.add_state`)."""
 
     def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path,
                  device: torch.device = torch.device("cpu"), progress: bool = True,
@@ -116,6 +130,10 @@ class DynamicsData:
             low, high = init.action_low.cpu(), init.action_high.cpu()
         self.action_low, self.action_high = low.numpy(), high.numpy()
         self.actions = scale(torch.from_numpy(actions), low, high)
+        self.states = torch.zeros(len(actions), 0)
+        self.state_low = self.state_high = np.zeros(0, np.float32)
+        if cfg.predict_state:
+            self._load_states(store, data, train_idx, len(actions), init)
         self.latents = encode_store(self.codec, store, device, progress, latent_cache,
                                     bf16=cfg.train.cpu_bf16 and device.type == "cpu")
         # The action size and latent shape follow the data; positional actions where the
@@ -124,9 +142,15 @@ class DynamicsData:
                                             latent_channels=self.latents.shape[1],
                                             latent_size=self.latents.shape[-1],
                                             **self.points(store.attrs, cfg)))
-        # Fine-tuning keeps the model's network; only its window may be widened (cfg's).
-        self.cfg = cfg if init is None else replace(cfg, dynamics=replace(init.cfg.dynamics,
-                                                                          context=cfg.dynamics.context))
+        cfg = replace(cfg, dynamics=replace(cfg.dynamics, **self.state_points(cfg)))
+        # Fine-tuning keeps the model's network; only its window may be widened (cfg's) and
+        # the state added.
+        if init is not None:
+            keep = replace(init.cfg.dynamics, context=cfg.dynamics.context)
+            if cfg.predict_state and not init.cfg.dynamics.state_dim:
+                keep = replace(keep, **{k: getattr(cfg.dynamics, k) for k in STATE_FIELDS})
+            cfg = replace(cfg, dynamics=keep)
+        self.cfg = cfg
         # Standardisation of the latents for the dynamics (see WorldModel): per-element
         # mean over the training frames, and the RMS of the per-element standard deviation.
         if init is None:
@@ -147,6 +171,43 @@ class DynamicsData:
         mid = (self.action_high + self.action_low) / 2 / view
         return {"point_index": tuple(tuple(int(i) for i in p) for p in points),
                 "point_scale": tuple(float(v) for v in half), "point_offset": tuple(float(v) for v in mid)}
+
+    def _load_states(self, store: EpisodeStore, data: str | Path, train_idx: np.ndarray, frames: int,
+                     init: WorldModel | None) -> None:
+        """The normalised states (N, S) and their bounds (the training episodes', or the
+        fine-tuned model's when it has a state)."""
+        if "state" not in store.keys:
+            raise StoreError(f"{data} has no data/state (the robot's own state) for the state head to learn; "
+                             "train without the 'state' variant, or give a store that records it.")
+        states = np.asarray(store.array("state")[:], dtype=np.float32)
+        if states.ndim != 2 or len(states) != frames or not np.isfinite(states).all():
+            raise StoreError(f"{data}: data/state must be finite (frames, state_dim) values, one row per frame; "
+                             f"got shape {states.shape}.")
+        if init is not None and init.state_dim:
+            if states.shape[1] != init.state_dim:
+                raise InputError(f"{data} has {states.shape[1]}-d states; the world model {self.ae_path} takes "
+                                 f"{init.state_dim}-d ones.")
+            low, high = init.state_low.cpu(), init.state_high.cpu()
+        else:
+            train_states = torch.from_numpy(states[train_idx])
+            low, high = widen(train_states.amin(0), train_states.amax(0), 1e-3)
+        self.state_low, self.state_high = low.numpy(), high.numpy()
+        self.states = scale(torch.from_numpy(states), low, high)
+
+    def state_points(self, cfg: DynamicsStageConfig) -> dict:
+        """The state fields of the network's config: its size and, when it holds the
+        action's image positions (see the class docstring), the map from normalised states
+        to image coordinates."""
+        dim = self.states.shape[1]
+        d = cfg.dynamics
+        if not (dim and d.point_index and dim == d.action_dim):
+            return {"state_dim": dim, "state_point_scale": (), "state_point_offset": ()}
+        # the action's map rewritten for the state's bounds: image = data / view_half
+        view = (self.action_high - self.action_low) / 2 / np.asarray(d.point_scale)
+        half = (self.state_high - self.state_low) / 2 / view
+        mid = (self.state_high + self.state_low) / 2 / view
+        return {"state_dim": dim, "state_point_scale": tuple(float(v) for v in half),
+                "state_point_offset": tuple(float(v) for v in mid)}
 
     def split(self) -> dict[str, list[int]]:
         return {"train_episodes": self.train_episodes, "heldout_episodes": self.heldout_episodes}
@@ -177,8 +238,9 @@ class DynamicsData:
         sigma = edm.training_sigmas(b * n, generator).view(b, n)
         feed_eps = gaussian((b, n, *shape), generator)  # drawn last: the draws above stay as they were
         z = (self.latents[idx[part]].float() - self.latent_mean) / self.latent_scale
+        states = self.states[idx[part, k - 1:]]  # the newest context frame's, then the predicted frames'
         return DynBatch(z, self.actions[act[part]], ctx_sigma[part], ctx_eps[part], t.view(b, n)[part],
-                        s.view(b, n)[part], sigma[part], eps[part], feed_eps[part]).to(device)
+                        s.view(b, n)[part], sigma[part], eps[part], feed_eps[part], states).to(device)
 
 
 @torch.no_grad()

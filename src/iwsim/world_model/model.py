@@ -68,7 +68,7 @@ from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.schedule import gaussian
 from iwsim.envs.task import Task
 from iwsim.errors import InputError
-from iwsim.normalize import scale
+from iwsim.normalize import scale, unscale
 from iwsim.precision import Precision, bf16_available, require_bf16
 from iwsim.tasks import task_from_config
 from iwsim.world_model.codec import DEFAULT_KIND, Codec
@@ -97,7 +97,8 @@ class StreamState:
     where the first action stands in for it); whether ``action`` is the setpoint the robot
     holds at the newest latent (``held`` (B,): known, or given at the reset though the
     network is shown the stand-in; what ``rest_threshold`` compares with); each item's
-    noise generator.
+    noise generator; for a model that predicts the robot's own state, that state (B, S)
+    at the newest latent, normalised (``robot``; None otherwise).
 
     Stepping returns a new state and leaves the old one's tensors as they were; the
     generators are shared and advance, so a state is stepped once."""
@@ -107,6 +108,7 @@ class StreamState:
     known: torch.Tensor
     held: torch.Tensor
     generators: list[torch.Generator]
+    robot: torch.Tensor | None = None
 
     @property
     def batch_size(self) -> int:
@@ -117,9 +119,12 @@ class StreamState:
         """One state for the rollouts of ``states``."""
         if not states:
             raise InputError("StreamState.cat needs at least one state.")
+        robots = [s.robot for s in states if s.robot is not None]
+        if robots and len(robots) != len(states):
+            raise InputError("StreamState.cat: the states come from models with and without the robot's state.")
         return StreamState(torch.cat([s.context for s in states]), torch.cat([s.action for s in states]),
                            torch.cat([s.known for s in states]), torch.cat([s.held for s in states]),
-                           [g for s in states for g in s.generators])
+                           [g for s in states for g in s.generators], torch.cat(robots) if robots else None)
 
     def previous(self, actions: torch.Tensor) -> torch.Tensor:
         """The action (B, A) that produced the newest context latent: the known one, else
@@ -129,7 +134,8 @@ class StreamState:
     def split(self) -> list[StreamState]:
         """One state per rollout (views, no copies)."""
         return [StreamState(self.context[i:i + 1], self.action[i:i + 1], self.known[i:i + 1], self.held[i:i + 1],
-                            [self.generators[i]]) for i in range(self.batch_size)]
+                            [self.generators[i]], None if self.robot is None else self.robot[i:i + 1])
+                for i in range(self.batch_size)]
 
 
 class WorldModel(nn.Module):
@@ -140,15 +146,23 @@ class WorldModel(nn.Module):
     frame-to-frame variation. Scene latents barely change from frame to frame (a static
     background, small moving objects), and without this the context noise of stage 2
     (levels up to 100, noise std up to 0.14) would drown the differences that matter.
+
+    A model whose dynamics takes the robot's own state (``cfg.dynamics.state_dim`` > 0)
+    min-max normalises it over ``state_low .. state_high`` and predicts it each step
+    (:meth:`robot_state` reads it from a state in the data's units).
     """
 
     action_low: torch.Tensor  # (A,) buffers
     action_high: torch.Tensor
+    state_low: torch.Tensor  # (S,) buffers (S = 0 without the robot's state)
+    state_high: torch.Tensor
     latent_mean: torch.Tensor  # (C, h, w) or (C, 1, 1)
 
     def __init__(self, codec: Codec, dynamics: Dynamics, cfg: DynamicsStageConfig,
                  action_low: Sequence[float] | torch.Tensor, action_high: Sequence[float] | torch.Tensor,
-                 latent_mean: torch.Tensor | None = None, latent_scale: float = 1.0) -> None:
+                 latent_mean: torch.Tensor | None = None, latent_scale: float = 1.0,
+                 state_low: Sequence[float] | torch.Tensor = (), state_high: Sequence[float] | torch.Tensor = ()
+                 ) -> None:
         super().__init__()
         if cfg.objective not in OBJECTIVES:
             raise InputError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
@@ -165,6 +179,14 @@ class WorldModel(nn.Module):
                              f"high > low, got {low.tolist()} and {high.tolist()}.")
         self.register_buffer("action_low", low)
         self.register_buffer("action_high", high)
+        slow = torch.as_tensor(state_low, dtype=torch.float32)
+        shigh = torch.as_tensor(state_high, dtype=torch.float32)
+        sdim = cfg.dynamics.state_dim
+        if slow.shape != (sdim,) or shigh.shape != slow.shape or not bool((shigh > slow).all()):
+            raise InputError(f"state bounds must be two vectors of {sdim} values (the dynamics' state_dim) with "
+                             f"high > low, got {slow.tolist()} and {shigh.tolist()}.")
+        self.register_buffer("state_low", slow)
+        self.register_buffer("state_high", shigh)
         c = cfg.dynamics.latent_channels
         mean = torch.zeros(c, 1, 1) if latent_mean is None else torch.as_tensor(latent_mean, dtype=torch.float32)
         if mean.ndim != 3 or mean.shape[0] != c or not latent_scale > 0:
@@ -234,6 +256,11 @@ class WorldModel(nn.Module):
     @property
     def action_dim(self) -> int:
         return self.cfg.dynamics.action_dim
+
+    @property
+    def state_dim(self) -> int:
+        """Size of the robot's own state the model predicts (0: none)."""
+        return self.cfg.dynamics.state_dim
 
     @property
     def device(self) -> torch.device:
@@ -317,30 +344,36 @@ class WorldModel(nn.Module):
     @torch.inference_mode()
     def reset_state(self, context: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
                     seed: int | Sequence[int] = 0, held: np.ndarray | torch.Tensor | None = None, *,
-                    latents: bool = False) -> StreamState:
+                    latents: bool = False, state: np.ndarray | torch.Tensor | None = None) -> StreamState:
         """The state of B rollouts from one context frame each, uint8 (B, H, W, 3), or from
         K frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them, in
         the data's units; ``held``: the setpoints (B, A) the robot holds at the newest
         frame, when the caller knows them (a still robot then keeps a still scene from the
         first step). Item i's noise comes from a generator seeded ``seed + i`` (or ``seed[i]``).
+        ``state``: the robot's own state (B, S) at the newest frame, for a model that
+        predicts it (ignored otherwise); without it, where the state has the action's size
+        (the tabletop tasks' pushers), the held setpoints (or the newest action) stand in,
+        else the middle of the state's range.
 
         ``latents=True``: everything in the model's units: context latents (B, K, C, h, w)
-        as ``encode`` gives them, ``actions`` and ``held`` normalised (``normalize_actions``)."""
+        as ``encode`` gives them, ``actions``, ``held`` and ``state`` normalised
+        (``normalize_actions``, ``normalize_state``)."""
         if latents:
             z = torch.as_tensor(context, dtype=torch.float32, device=self.device)
             if z.ndim != 5 or tuple(z.shape[2:]) != self.latent_shape:
                 raise InputError(f"expected context latents (B, K, {', '.join(map(str, self.latent_shape))}), "
                                  f"got shape {tuple(z.shape)}.")
-            a, h = (None if v is None else torch.as_tensor(v, dtype=torch.float32, device=self.device)
-                    for v in (actions, held))
+            a, h, r = (None if v is None else torch.as_tensor(v, dtype=torch.float32, device=self.device)
+                       for v in (actions, held, state))
         else:
             x = torch.as_tensor(context)
             x = self.check_frames(x[:, None] if x.ndim == 4 else x, 5)
             b, k = x.shape[:2]
             a = self.normalize_actions(actions, b) if k > 1 and actions is not None else None
             h = None if held is None else self.normalize_actions(held, b)
+            r = None if state is None or not self.state_dim else self.normalize_state(state, b)
             z = self.encode(x.flatten(0, 1)).unflatten(0, (b, k))
-        return self._reset(z, a, seed, h)
+        return self._reset(z, a, seed, h, r)
 
     @overload
     def step_state(self, state: StreamState, actions: np.ndarray | torch.Tensor, *,
@@ -370,9 +403,10 @@ class WorldModel(nn.Module):
         return state, to_uint8(images)
 
     def _reset(self, latents: torch.Tensor, actions: torch.Tensor | None, seed: int | Sequence[int],
-               held: torch.Tensor | None) -> StreamState:
+               held: torch.Tensor | None, robot: torch.Tensor | None = None) -> StreamState:
         """The state from context latents (B, K0, C, h, w) (as ``encode`` gives them), the
-        normalised actions (B, K0-1, A) between them and held setpoints (B, A). The window
+        normalised actions (B, K0-1, A) between them, held setpoints (B, A) and the robot's
+        normalised state (B, S) (see :meth:`reset_state` for its stand-ins). The window
         keeps the last K; fewer are padded by repeating the first, as in training at an
         episode's start."""
         b, k0 = latents.shape[:2]
@@ -396,8 +430,42 @@ class WorldModel(nn.Module):
         else:
             action = held if held is not None else torch.zeros(b, self.action_dim)
         known = torch.full((b,), k0 > 1, device=self.device)
+        if self.state_dim:
+            robot = self._robot_at_reset(robot, action if k0 > 1 or held is not None else None, b)
+        else:
+            robot = None
         return StreamState(z[:, -k:].contiguous(), action.to(self.device), known, known | (held is not None),
-                           [torch.Generator(self.device).manual_seed(int(s)) for s in seeds])
+                           [torch.Generator(self.device).manual_seed(int(s)) for s in seeds], robot)
+
+    def _robot_at_reset(self, robot: torch.Tensor | None, setpoint: torch.Tensor | None, b: int) -> torch.Tensor:
+        """The normalised state (B, S) a rollout starts from: ``robot`` if given, else the
+        setpoint (B, A) in the state's units where they have one size, else the middle."""
+        if robot is not None:
+            if tuple(robot.shape) != (b, self.state_dim):
+                raise InputError(f"expected the robot's state ({b}, {self.state_dim}), got {tuple(robot.shape)}.")
+            return robot.to(self.device)
+        if setpoint is not None and self.state_dim == self.action_dim:
+            data = unscale(setpoint.to(self.device), self.action_low, self.action_high)
+            return scale(data, self.state_low, self.state_high)
+        return torch.zeros(b, self.state_dim, device=self.device)
+
+    def normalize_state(self, state: np.ndarray | torch.Tensor, batch: int | None = None) -> torch.Tensor:
+        """The robot's state (B, S) in the data's units -> the model's units (not clipped)."""
+        r = torch.as_tensor(state, dtype=torch.float32, device=self.device)
+        if r.ndim != 2 or r.shape[-1] != self.state_dim or (batch is not None and r.shape[0] != batch):
+            raise InputError(f"expected the robot's state ({batch or 'B'}, {self.state_dim}), got {tuple(r.shape)}.")
+        if not bool(torch.isfinite(r).all()):
+            raise InputError("the robot's state must be finite.")
+        return scale(r, self.state_low, self.state_high)
+
+    def robot_state(self, state: StreamState | None = None) -> np.ndarray | None:
+        """The robot's own state (B, S) in the data's units that the model predicts at the
+        newest frame of ``state`` (default: the current rollouts'); None for a model that
+        does not predict it."""
+        state = self.state if state is None else state
+        if state.robot is None:
+            return None
+        return unscale(state.robot, self.state_low, self.state_high).cpu().numpy()
 
     def _step(self, state: StreamState, actions: torch.Tensor,
               decode: bool = False) -> tuple[StreamState, torch.Tensor, torch.Tensor | None]:
@@ -412,8 +480,14 @@ class WorldModel(nn.Module):
         prev = state.previous(actions)
         noise = self._noise(state.generators, tuple(state.context.shape[2:]))
         still = state.held & ((actions - state.action).abs().amax(1) <= ACTION_STILL)
-        new = self._predict(state.context, torch.stack([prev, actions], 1), noise, still)
+        acts = torch.stack([prev, actions], 1)
+        new = self._predict(state.context, acts, noise, still, state.robot)
         check_finite_output(new, self.name, "its dynamics' next latent")
+        robot = None
+        if state.robot is not None:
+            with self._precision.autocast(self.device):
+                robot = self.dynamics.predict_state(new, state.context[:, -1], acts, state.robot).float()
+            check_finite_output(robot, self.name, "its dynamics' robot state")
         z = self.unstandardize(new)
         images = None
         if decode or self.reencode:  # the decoder draws after the dynamics, from the same generators
@@ -421,23 +495,24 @@ class WorldModel(nn.Module):
             if self.reencode:
                 new = self.standardize(self.codec.encode(images.clamp(-1, 1)))
         done = torch.ones_like(state.known)
-        return (StreamState(torch.cat([state.context[:, 1:], new[:, None]], 1), actions, done, done, state.generators),
-                z, images)
+        return (StreamState(torch.cat([state.context[:, 1:], new[:, None]], 1), actions, done, done, state.generators,
+                            robot), z, images)
 
     def _noise(self, generators: Sequence[torch.Generator], shape: tuple[int, ...]) -> torch.Tensor:
         """Clipped Gaussian noise (B, *shape), item i from generator i."""
         return torch.cat([gaussian((1, *shape), g, self.device) for g in generators])
 
     def _predict(self, context: torch.Tensor, actions: torch.Tensor, noise: torch.Tensor,
-                 still: torch.Tensor | None = None) -> torch.Tensor:
+                 still: torch.Tensor | None = None, robot: torch.Tensor | None = None) -> torch.Tensor:
         """The next standardised latent (B, C, h, w) from the window (B, K, C, h, w), the
         previous and current normalised actions (B, 2, A) and the noise (B, C, h, w): what
         the objective generates, plus the newest context latent when it generates the
         change (``predict_delta``). ``still`` (B,): whether the setpoint holds still
-        (:meth:`Denoiser.sample`; default: the two actions are the same)."""
+        (:meth:`Denoiser.sample`; default: the two actions are the same); ``robot`` (B, S):
+        the robot's normalised state, for a model that takes it."""
         sigma = torch.full((context.shape[0],), self.context_label, device=context.device)
         with self._precision.autocast(self.device):
-            new = self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps, still)
+            new = self.denoiser.sample(context, sigma, actions, noise, self.jumps, self.euler_steps, still, robot)
         return new.float()
 
     @torch.inference_mode()
@@ -495,11 +570,11 @@ class WorldModel(nn.Module):
     # -- the stateful wrapper: the rollouts' state kept in ``self.state`` ----------------------
     def reset(self, context: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor | None = None,
               seed: int | Sequence[int] = 0, held: np.ndarray | torch.Tensor | None = None, *,
-              latents: bool = False) -> None:
+              latents: bool = False, state: np.ndarray | torch.Tensor | None = None) -> None:
         """Start B rollouts from one context frame each, uint8 (B, H, W, 3), or from K
         frames (B, K, H, W, 3) with the K - 1 actions (B, K-1, A) taken between them
-        (``held`` and ``latents``: see :meth:`reset_state`)."""
-        self._state = self.reset_state(context, actions, seed, held, latents=latents)
+        (``held``, ``latents`` and ``state``: see :meth:`reset_state`)."""
+        self._state = self.reset_state(context, actions, seed, held, latents=latents, state=state)
 
     @overload
     def step(self, actions: np.ndarray | torch.Tensor, *, latents: Literal[False] = False) -> np.ndarray: ...
@@ -529,6 +604,8 @@ class WorldModel(nn.Module):
         return {"kind": KIND, "codec": {"kind": self.codec.kind, "config": to_dict(self.codec.cfg)},
                 "stage2": to_dict(self.cfg),
                 "action_norm": {"low": self.action_low.tolist(), "high": self.action_high.tolist()},
+                **({"state_norm": {"low": self.state_low.tolist(), "high": self.state_high.tolist()}}
+                   if self.state_dim else {}),
                 "latent_norm": {"scale": self.latent_scale},
                 **({} if self.task is None else {"task": self.task.describe()})}
 
@@ -570,8 +647,9 @@ class WorldModel(nn.Module):
         except RuntimeError as e:
             raise CheckpointError(f"{path / 'model.safetensors'} does not match its config: "
                                   f"{' '.join(str(e).split())[:200]}") from None
-        norm = config["action_norm"]
-        wm = cls(codec, dyn, cfg, norm["low"], norm["high"], tensors["latent_mean"], config["latent_norm"]["scale"])
+        norm, snorm = config["action_norm"], config.get("state_norm") or {"low": [], "high": []}
+        wm = cls(codec, dyn, cfg, norm["low"], norm["high"], tensors["latent_mean"], config["latent_norm"]["scale"],
+                 snorm["low"], snorm["high"])
         if "novelty.mean" in tensors:
             wm.novelty = Novelty(tensors["novelty.mean"].shape[0])
             wm.novelty.load_state_dict({k[len("novelty."):]: v for k, v in tensors.items() if k.startswith("novelty.")})
@@ -651,7 +729,8 @@ def export_model(run: str | Path, out: str | Path, force: bool = False, decoder:
             raise InputError(f"{dec_src}'s codec encodes differently from {src}'s (other encoder weights); "
                              "its decoder renders other latents.")
         task, novelty = wm.task, wm.novelty
-        wm = WorldModel(codec, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean, wm.latent_scale)
+        wm = WorldModel(codec, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean, wm.latent_scale,
+                        wm.state_low, wm.state_high)
         wm.task, wm.novelty = task, novelty
         provenance["decoder"] = str(dec_src)
     if novelty is not None:

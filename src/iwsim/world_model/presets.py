@@ -139,6 +139,11 @@ class DynamicsStageConfig:
     # one stream; frames within a few grey levels of float32's (bench/results/speed).
     inference_bf16: bool = False
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
+    # The robot's own state (the store's data/state, e.g. where T-push's pushers are): the
+    # network takes it and predicts it each step (Dynamics.predict_state), each prediction
+    # fed back, supervised by an MSE on the normalised state weighted by state_weight.
+    predict_state: bool = False
+    state_weight: float = 1.0
     holdout_every: int = 20
     eval_episodes: int = 4  # held-out episodes rolled out open-loop at each evaluation
     eval_steps: int = 64
@@ -192,6 +197,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # longer unrolls with the gradient cut every 8 predictions.
     "window-6": {"dynamics": {"context": 6}},
     "long-unroll": {"unroll": ((0, 2), (200, 4), (500, 8), (800, 16), (1100, 24)), "unroll_grad_every": 8},
+    # Issue 64: the robot's own state taken, predicted and fed back (the store's data/state).
+    "state": {"predict_state": True},
 }
 
 

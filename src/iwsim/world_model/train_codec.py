@@ -157,7 +157,7 @@ class DecoderFinetuneTask(AETask):
     def world_model(self, codec: Codec) -> WorldModel:
         wm = self.wm
         return WorldModel(codec, wm.dynamics, wm.cfg, wm.action_low, wm.action_high, wm.latent_mean,
-                          wm.latent_scale)
+                          wm.latent_scale, wm.state_low, wm.state_high)
 
     def export(self, module: AETrainModule) -> dict[str, torch.Tensor]:
         return self.world_model(module.codec).export()

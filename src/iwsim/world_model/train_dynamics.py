@@ -18,6 +18,12 @@ estimate is not what inference produces.
 The conditioning actions are the motion the robot executed: ``data/target`` when the
 store has it (the task's rate-limited setpoints), else ``data/action``.
 
+With ``cfg.predict_state`` the network also takes the robot's own state (``data/state``)
+and predicts it after each prediction (``Dynamics.predict_state``, from the predicted
+latent); the state of the first prediction is the recorded one, each later one the
+previous prediction, cut from the gradient where the latents are. Its loss, an MSE on
+the normalised state times ``cfg.state_weight``, is added to each prediction's.
+
 Every checkpoint of a dynamics run is a complete world model (autoencoder + dynamics +
 action normalisation + config), loadable with :meth:`iwsim.WorldModel.load`.
 """
@@ -37,10 +43,11 @@ from iwsim.checkpoint import resolve_checkpoint
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.errors import InputError
 from iwsim.metrics import psnr
+from iwsim.normalize import unscale
 from iwsim.tasks import task_from_store
 from iwsim.training import trainer
 from iwsim.world_model.denoiser import Denoiser
-from iwsim.world_model.dynamics import Dynamics, widen_window
+from iwsim.world_model.dynamics import Dynamics, add_state, widen_window
 from iwsim.world_model.dynamics_data import DynamicsData, DynBatch
 from iwsim.world_model.model import KIND, WorldModel, complete_run_config
 from iwsim.world_model.objectives import Levels
@@ -70,34 +77,49 @@ class DynamicsTrainModule(nn.Module):
         return (self.dynamics,)
 
     def forward(self, batch: DynBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        per = self.unroll(batch)  # (B, n)
-        return per.mean(), {"loss_first": per[:, 0].mean().item(), "loss_last": per[:, -1].mean().item(),
-                            "unroll": float(per.shape[1])}
+        per, state_err = self.unroll(batch)  # (B, n) each
+        out = {"loss_first": per[:, 0].mean().item(), "loss_last": per[:, -1].mean().item(),
+               "unroll": float(per.shape[1])}
+        if state_err is not None:
+            out["state_mse"] = state_err.mean().item()
+        return per.mean(), out
 
-    def unroll(self, batch: DynBatch) -> torch.Tensor:
-        """The loss (B, n) of each of the n predictions of each sequence."""
+    def unroll(self, batch: DynBatch) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The loss (B, n) of each of the n predictions of each sequence (the state's
+        included), and the state's squared error (B, n) alone (None without the state)."""
         cfg = self.cfg
         k = cfg.dynamics.context
         n = batch.z.shape[1] - k
         ctx = batch.z[:, :k]
-        losses = []
+        with_state = bool(cfg.dynamics.state_dim)
+        state = batch.states[:, 0] if with_state and batch.states is not None else None
+        if with_state and state is None:
+            raise InputError("this dynamics network takes the robot's state; the batch holds none.")
+        losses, state_errs = [], []
         for u in range(n):
             sig = batch.ctx_sigma[:, u]
             ctx_in = ctx + sig.view(-1, 1, 1, 1, 1) * batch.ctx_eps[:, u]
             acts = batch.actions[:, u:u + 2]
             target = batch.z[:, k + u]
             levels = Levels(batch.t[:, u], batch.s[:, u], batch.sigma[:, u])
-            err, pred = self.denoiser.loss(target, ctx_in, sig, acts, levels, batch.eps[:, u])
+            err, pred = self.denoiser.loss(target, ctx_in, sig, acts, levels, batch.eps[:, u], state)
             changed = (target - batch.z[:, k + u - 1]).abs().amax(1, keepdim=True) > cfg.changed_threshold
-            losses.append((err * (1 + cfg.changed_weight * changed)).mean((1, 2, 3)))
+            loss = (err * (1 + cfg.changed_weight * changed)).mean((1, 2, 3))
+            if not self.feeds_estimate and (u < n - 1 or state is not None):
+                with torch.no_grad():
+                    pred = self.denoiser.sample(ctx_in, sig, acts, batch.feed_eps[:, u], state=state)
+            cut = not cfg.unroll_grad or (cfg.unroll_grad_every and (u + 1) % cfg.unroll_grad_every == 0)
+            if state is not None:
+                assert batch.states is not None  # with_state
+                state = self.dynamics.predict_state(pred, ctx[:, -1], acts, state)
+                state_errs.append(((state - batch.states[:, u + 1]) ** 2).mean(1))
+                loss = loss + cfg.state_weight * state_errs[-1]
+                state = state.detach() if cut else state
+            losses.append(loss)
             if u == n - 1:
                 break
-            if not self.feeds_estimate:
-                with torch.no_grad():
-                    pred = self.denoiser.sample(ctx_in, sig, acts, batch.feed_eps[:, u])
-            cut = not cfg.unroll_grad or (cfg.unroll_grad_every and (u + 1) % cfg.unroll_grad_every == 0)
             ctx = torch.cat([ctx[:, 1:], (pred.detach() if cut else pred)[:, None]], 1)
-        return torch.stack(losses, 1)
+        return torch.stack(losses, 1), torch.stack(state_errs, 1) if state_errs else None
 
 
 @torch.no_grad()
@@ -105,15 +127,21 @@ def evaluate_open_loop(wm: WorldModel, data: DynamicsData, episodes: int, steps:
                        ) -> tuple[dict[str, float], torch.Tensor, torch.Tensor]:
     """Open-loop rollouts of the first ``episodes`` held-out episodes from their first
     frame under the recorded actions, for up to ``steps`` steps: latent MSE (standardised
-    units) and decoded PSNR per step, and the true and predicted images (E, S, 3, H, W)."""
+    units) and decoded PSNR per step (and, for a model that predicts the robot's state, its
+    mean absolute error in the data's units, ``state_mae``, the rollout started from the
+    recorded state), and the true and predicted images (E, S, 3, H, W)."""
     eps = [e for e in data.heldout_episodes if data.ends[e] - data.starts[e] > 1][:episodes]
     steps = min([steps] + [int(data.ends[e] - data.starts[e]) - 1 for e in eps])
     first = torch.as_tensor(data.starts[eps])
-    state = wm.reset_state(data.latents[first][:, None], seed=0, latents=True)
-    preds = []
+    robot = data.states[first] if wm.state_dim else None
+    state = wm.reset_state(data.latents[first][:, None], seed=0, latents=True, state=robot)
+    preds, robots = [], []
     for k in range(steps):
         state, z = wm.step_state(state, data.actions[first + k], latents=True)
         preds.append(z)
+        r = wm.robot_state(state)
+        if r is not None:
+            robots.append(r)
     pred = torch.stack(preds, 1)  # (E, S, C, h, w)
     true_idx = first[:, None] + torch.arange(1, steps + 1)
     true = data.latents[true_idx].to(wm.device)
@@ -124,6 +152,9 @@ def evaluate_open_loop(wm: WorldModel, data: DynamicsData, episodes: int, steps:
     out = {"latent_mse": ((pred - true) ** 2).mean().item() / data.latent_scale ** 2,  # standardised units
            "psnr": p.mean().item(),
            f"psnr_step{steps}": p[:, -1].mean().item()}
+    if wm.state_dim:  # the robot's predicted state against the recorded one, in the data's units
+        recorded = unscale(data.states[true_idx], torch.as_tensor(data.state_low), torch.as_tensor(data.state_high))
+        out["state_mae"] = float(np.abs(np.stack(robots, 1) - recorded.numpy()).mean())
     return out, truth, frames
 
 
@@ -141,10 +172,13 @@ def run_config(cfg: DynamicsStageConfig, init: WorldModel | None = None,
                context: int | None = None) -> DynamicsStageConfig:
     """The stage-2 config a run trains with: ``cfg``; for a fine-tune of ``init``, the model's
     own (network, objective, context noise) with ``cfg.train``, its unroll curriculum at its
-    longest; with ``context`` latents in the window when given."""
+    longest, and the robot's state if ``cfg`` asks for it; with ``context`` latents in the
+    window when given."""
     if init is not None:
         longest = max(n for _, n in init.cfg.unroll) if init.cfg.unroll else 1
-        cfg = replace(init.cfg, train=cfg.train, unroll=((0, longest),))
+        cfg = replace(init.cfg, train=cfg.train, unroll=((0, longest),),
+                      predict_state=cfg.predict_state or init.cfg.predict_state,
+                      state_weight=cfg.state_weight if cfg.predict_state else init.cfg.state_weight)
     if context is not None:
         cfg = replace(cfg, dynamics=replace(cfg.dynamics, context=context))
     return cfg
@@ -180,8 +214,10 @@ class DynamicsTask:
             torch.manual_seed(cfg.train.seed)
             self.module = DynamicsTrainModule(Dynamics(cfg.dynamics), cfg)
         if wm is not None:
-            self.module.dynamics.load_state_dict(widen_window(wm.dynamics.state_dict(), wm.cfg.dynamics,
-                                                              cfg.dynamics.context))
+            weights = widen_window(wm.dynamics.state_dict(), wm.cfg.dynamics, cfg.dynamics.context)
+            if cfg.dynamics.state_dim and not wm.cfg.dynamics.state_dim:
+                weights = add_state(weights, wm.cfg.dynamics, self.module.dynamics)
+            self.module.dynamics.load_state_dict(weights)
         self.init = None if init is None else str(init)
         # The robot task the checkpoints record: the fine-tuned model's, else the store's.
         d = self.data
@@ -194,7 +230,7 @@ class DynamicsTask:
     def world_model(self, dynamics: Dynamics) -> WorldModel:
         d = self.data
         wm = WorldModel(d.codec, dynamics, self.cfg, d.action_low.tolist(), d.action_high.tolist(), d.latent_mean,
-                        d.latent_scale)
+                        d.latent_scale, d.state_low.tolist(), d.state_high.tolist())
         wm.task = self.task
         return wm
 

@@ -1,0 +1,175 @@
+"""The pushers' own state (issue 64, item 2): the dynamics takes the robot's state, predicts
+it each step and feeds the prediction back; the world-model environment and play report it
+as ``agent_pos``. Tiny models: trained a few steps, the head lowers its error."""
+
+import dataclasses
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from test_dynamics import batch_for, randomise, tiny_cfg
+
+from iwsim.cli import main
+from iwsim.errors import InputError
+from iwsim.world_model import StreamState, WorldModel
+from iwsim.world_model.dynamics import Dynamics, add_state
+from iwsim.world_model.train_dynamics import DynamicsTrainModule
+from iwsim.world_model_env import WorldModelVectorEnv, predicts_agent_pos
+
+
+def test_the_state_head_learns_where_the_pushers_go(one_thread):
+    """Pushers that follow their setpoints: the next state is the current action. A few
+    dozen steps on one batch take the state's error well below where it starts (the head
+    starts by holding the state still), and every state parameter gets a gradient (once the
+    zero-initialised output layers have moved)."""
+    cfg = tiny_cfg("state")
+    torch.manual_seed(0)
+    module = DynamicsTrainModule(Dynamics(cfg.dynamics), cfg)
+    g = torch.Generator().manual_seed(0)
+    b, n, k = 8, 3, cfg.dynamics.context
+    actions = torch.rand(b, n + 1, 4, generator=g) * 2 - 1
+    batch = batch_for(cfg, torch.randn(b, k + n, 4, 16, 16, generator=g), actions, g)
+    batch.states = torch.cat([torch.rand(b, 1, 4, generator=g) * 2 - 1, actions[:, 1:]], 1)  # state u+1 = action u+1
+    opt = torch.optim.Adam(module.parameters(), lr=3e-3)
+    errors = []
+    for i in range(40):
+        loss, parts = module(batch)
+        opt.zero_grad()
+        loss.backward()
+        if i == 39:
+            assert all(p.grad is not None and p.grad.abs().sum() > 0 for name, p in module.named_parameters()
+                       if name.startswith(("dynamics.state_head", "dynamics.state_grid")))
+        opt.step()
+        errors.append(parts["state_mse"])
+    assert errors[-1] < 0.3 * errors[0], errors
+
+
+def test_a_model_gains_the_state_without_changing_its_latents():
+    """``add_state``: a network without the state, given one with zero input weights, predicts
+    the same latents whatever the state, and its head starts by holding the state still."""
+    cfg = tiny_cfg("state").dynamics
+    without = dataclasses.replace(cfg, state_dim=0, state_point_scale=(), state_point_offset=())
+    old = randomise(Dynamics(without), 1)
+    new = Dynamics(cfg)
+    new.load_state_dict(add_state(old.state_dict(), without, new))
+    g = torch.Generator().manual_seed(0)
+    x, ctx = torch.randn(2, 4, 16, 16, generator=g), torch.randn(2, cfg.context, 4, 16, 16, generator=g)
+    t, a, state = torch.full((2,), 999.0), torch.rand(2, 2, 4, generator=g) * 2 - 1, torch.rand(2, 4, generator=g)
+    with torch.no_grad():
+        torch.testing.assert_close(new(x, ctx, t, t * 0, t * 0, a, state), old(x, ctx, t, t * 0, t * 0, a))
+        torch.testing.assert_close(new.predict_state(x, ctx[:, -1], a, state), state)
+    with pytest.raises(InputError, match="takes the robot's state"):
+        new(x, ctx, t, t * 0, t * 0, a)
+
+
+@pytest.fixture(scope="module")
+def state_model(play_store, tmp_path_factory):
+    """A tiny T-push world model trained with the state, as a user would."""
+    root = tmp_path_factory.mktemp("state")
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for argv in (["train", "ae", "--data", str(play_store), "--preset", "tiny", "--out", str(root / "ae"),
+                      "--no-progress"],
+                     ["train", "dynamics", "--data", str(play_store), "--ae", str(root / "ae"), "--preset", "tiny",
+                      "--variant", "state", "--out", str(root / "dyn"), "--no-progress"],
+                     ["export-model", "--run", str(root / "dyn"), "--out", str(root / "wm")]):
+            assert main(argv) == 0, argv
+    finally:
+        torch.set_num_threads(n)
+    return root
+
+
+def test_the_environment_reports_the_predicted_agent_pos(state_model, one_thread):
+    """The checkpoint records the state's normalisation; ``WorldModel-v0`` starts the state
+    at the start's agent_pos and reports the model's prediction after each step (within
+    the workspace), in one
+    environment and in the vector env (whose batched rollout equals the single ones)."""
+    wm = WorldModel.load(state_model / "wm")
+    assert wm.state_dim == 4 and predicts_agent_pos(wm, wm.task)
+    env = gym.make("iwsim/WorldModel-v0", model=wm)
+    obs, _ = env.reset(seed=100000)
+    start = obs["agent_pos"].copy()
+    np.testing.assert_allclose(wm.robot_state()[0], start, atol=1e-6)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-0.2, 0.2, (5, 4)).astype(np.float32)
+    singles = []
+    for a in actions:
+        obs, *_ = env.step(a)
+        # the prediction, within the workspace (the task's agent_pos bounds)
+        own = np.clip(wm.robot_state()[0], wm.task.action_low, wm.task.action_high).astype(np.float32)
+        np.testing.assert_array_equal(obs["agent_pos"], own)
+        assert env.observation_space["agent_pos"].contains(obs["agent_pos"])
+        singles.append(obs["agent_pos"])
+    assert not np.allclose(singles[-1], start)  # the state moves with the commands
+    venv = WorldModelVectorEnv(2, model=WorldModel.load(state_model / "wm"), max_episode_steps=10)
+    venv.reset(seed=100000)
+    for a in actions:
+        vobs, *_ = venv.step(np.stack([a, a]))
+    np.testing.assert_allclose(vobs["agent_pos"][0], singles[-1], atol=1e-5)
+
+
+def test_a_state_model_refuses_mixed_batches_and_fine_tunes_add_it(state_model, play_store, tmp_path, one_thread):
+    """StreamState.cat refuses states of a model with and without the state; ``--init`` of a
+    model trained without it with ``--variant state`` trains the state in; any other
+    variant with --init is still refused."""
+    wm = WorldModel.load(state_model / "wm")
+    frame = np.zeros((1, 64, 64, 3), np.uint8)
+    with_state = wm.reset_state(frame, state=np.zeros((1, 4), np.float32))
+    without = dataclasses.replace(with_state, robot=None)
+    with pytest.raises(InputError, match="with and without"):
+        StreamState.cat([with_state, without])
+    assert StreamState.cat([with_state, with_state]).split()[1].robot.shape == (1, 4)
+    ae = state_model / "ae"
+    plain = tmp_path / "plain"
+    assert main(["train", "dynamics", "--data", str(play_store), "--ae", str(ae), "--preset", "tiny", "--out",
+                 str(plain), "--no-progress"]) == 0
+    assert WorldModel.load(plain / "checkpoints" / "00000006").state_dim == 0
+    assert main(["train", "dynamics", "--data", str(play_store), "--init", str(plain), "--variant", "state",
+                 "--preset", "tiny", "--steps", "3", "--out", str(tmp_path / "ft"), "--no-progress"]) == 0
+    assert WorldModel.load(tmp_path / "ft" / "checkpoints" / "00000003").state_dim == 4
+    assert main(["train", "dynamics", "--data", str(play_store), "--init", str(plain), "--variant", "no-delta",
+                 "--preset", "tiny", "--out", str(tmp_path / "bad"), "--no-progress"]) != 0
+
+
+def test_training_with_the_state_needs_a_store_that_records_it(state_model, play_store, tmp_path, capsys):
+    """A store without data/state: one line that says so, and no checkpoint written."""
+    import shutil
+
+    store = tmp_path / "no_state.zarr"
+    shutil.copytree(play_store, store)
+    shutil.rmtree(store / "data" / "state")
+    capsys.readouterr()
+    assert main(["train", "dynamics", "--data", str(store), "--ae", str(state_model / "ae"), "--preset", "tiny",
+                 "--variant", "state", "--out", str(tmp_path / "dyn"), "--no-progress"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no data/state" in err[0], err
+    assert not (tmp_path / "dyn" / "checkpoints").exists()
+
+
+def test_play_shows_the_predicted_agent_pos_of_each_session(state_model, one_thread):
+    """``iwsim play``'s engine: two sessions stepped in one pass each get their own
+    predicted agent_pos, the one they would get alone."""
+    from iwsim.play import protocol as proto
+    from iwsim.play.engine import Engine, PlayConfig
+
+    targets = np.random.default_rng(1).uniform(-0.2, 0.2, (6, 4)).astype(np.float32)
+
+    def run(together: bool) -> np.ndarray:
+        eng = Engine(WorldModel.load(state_model / "wm"), PlayConfig())
+        sessions = [eng.open() for _ in range(2 if together else 1)]
+        for i, s in enumerate(sessions):
+            eng.handle(s, proto.Reset("mujoco", 3 + i))
+        s = sessions[0]
+        start = s.agent_pos.copy()
+        for t, target in enumerate(targets):
+            for other in sessions:
+                eng.handle(other, proto.Action(t, tuple(float(v) for v in target)))
+            eng.tick()
+        own = eng.model.robot_state(s.state)[0]
+        np.testing.assert_allclose(s.agent_pos, np.clip(own, -0.22, 0.22), atol=1e-6)
+        assert not np.allclose(s.agent_pos, start)
+        return s.agent_pos
+
+    np.testing.assert_allclose(run(True), run(False), atol=1e-5)
