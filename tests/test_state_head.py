@@ -3,6 +3,12 @@ it each step and feeds the prediction back; the world-model environment and play
 as ``agent_pos``. Tiny models: trained a few steps, the head lowers its error."""
 
 import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -135,8 +141,6 @@ def test_a_state_model_refuses_mixed_batches_and_fine_tunes_add_it(state_model, 
 
 def test_training_with_the_state_needs_a_store_that_records_it(state_model, play_store, tmp_path, capsys):
     """A store without data/state: one line that says so, and no checkpoint written."""
-    import shutil
-
     store = tmp_path / "no_state.zarr"
     shutil.copytree(play_store, store)
     shutil.rmtree(store / "data" / "state")
@@ -173,3 +177,24 @@ def test_play_shows_the_predicted_agent_pos_of_each_session(state_model, one_thr
         return s.agent_pos
 
     np.testing.assert_allclose(run(True), run(False), atol=1e-5)
+
+
+def test_pusher_state_bench_compares_the_prediction_and_the_pixel_reading(state_model, play_store, tmp_path):
+    """``bench/pusher_state.py`` on a state model and one without: each row says where its
+    agent_pos comes from, and the errors are finite millimetres (no quality asserted)."""
+    root = Path(__file__).resolve().parents[1]
+    plain = tmp_path / "plain"
+    assert main(["train", "dynamics", "--data", str(play_store), "--ae", str(state_model / "ae"), "--preset", "tiny",
+                 "--steps", "2", "--out", str(plain), "--no-progress"]) == 0
+    out = tmp_path / "out"
+    subprocess.run([sys.executable, str(root / "bench" / "pusher_state.py"), "--models",
+                    f"state={state_model / 'wm'}", f"plain={plain}", "--stores", str(play_store), "--steps", "10",
+                    "--out", str(out)], check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    report = json.loads((out / "results.json").read_text())
+    rows = report["models"]
+    assert rows["state"]["agent_pos"].startswith("the model's own") and "pixel" in rows["plain"]["agent_pos"]
+    for row in rows.values():
+        r = row["stores"][str(play_store)]
+        assert r["episodes"] == 4 and 0 <= r["median_mm"] <= r["p90_mm"] < 1000
+        assert 0 <= r["pressing_share"] <= 1
+    assert (out / "error_per_step.png").stat().st_size > 0 and "pusher_state.py" in (out / "results.md").read_text()
