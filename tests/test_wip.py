@@ -41,3 +41,27 @@ def test_a_saved_state_resumes_on_a_new_machine_as_if_it_never_stopped(play_stor
         save_wip(fresh, play_store)
     with pytest.raises(InputError, match="is not a training run"):
         save_wip(tmp_path / "nothing", tmp_path / "w2")
+
+
+def test_a_dynamics_run_resumes_from_latents_encoded_on_another_cpu(play_store, tmp_path, one_thread):
+    """A new machine encodes the store again, and its CPU's bf16 latents differ from the
+    first machine's in their last bits, so their statistics differ too: the resumed run
+    keeps the latent standardisation it started with (before, it refused the run as one of
+    a different config)."""
+    from safetensors import safe_open
+
+    from iwsim.checkpoint import save_tensors
+    from iwsim.world_model import WorldModel
+
+    ae, run, cache = tmp_path / "ae", tmp_path / "dyn", tmp_path / "latents.safetensors"
+    common = ["--data", str(play_store), "--preset", "tiny", "--no-progress", "--latent-cache", str(cache)]
+    assert main(["train", "ae", "--data", str(play_store), "--preset", "tiny", "--out", str(ae), "--no-progress"]) == 0
+    assert main(["train", "dynamics", "--ae", str(ae), "--out", str(run), "--steps", "3", *common]) == 0
+    before = WorldModel.load(run / "checkpoints" / "00000003")
+    with safe_open(cache, "pt") as f:  # the other machine's latents: the same up to a last bit
+        meta, latents = f.metadata(), f.get_tensor("latents")
+    save_tensors({"latents": (latents.float() * 1.002 + 0.001).half()}, cache, metadata=meta)
+    assert main(["train", "dynamics", "--ae", str(ae), "--out", str(run), "--steps", "6", *common]) == 0
+    after = WorldModel.load(run / "checkpoints" / "00000006")
+    assert after.latent_scale == before.latent_scale
+    assert torch.equal(after.latent_mean, before.latent_mean)

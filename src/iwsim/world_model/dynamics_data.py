@@ -87,11 +87,16 @@ class DynamicsData:
     With ``init`` (a world model to fine-tune) its autoencoder, action, state and latent
     normalisation and network config are kept, so its weights stay meaningful; the data
     must have its action size. A model without the state fine-tuned with it gains the
-    state's inputs (zero weights) and head (see :func:`~iwsim.world_model.dynamics.add_state`)."""
+    state's inputs (zero weights) and head (see :func:`~iwsim.world_model.dynamics.add_state`).
+
+    ``latent_norm`` (mean, scale): the latent standardisation to use instead of the
+    training frames' (a resumed run keeps the one it started with: re-encoded on another
+    CPU, bf16 latents differ in their last bits, and so would their statistics)."""
 
     def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path,
                  device: torch.device = torch.device("cpu"), progress: bool = True,
-                 latent_cache: Path | None = None, init: WorldModel | None = None) -> None:
+                 latent_cache: Path | None = None, init: WorldModel | None = None,
+                 latent_norm: tuple[torch.Tensor, float] | None = None) -> None:
         store = EpisodeStore.open(data, "r")
         for key in ("img", "action"):
             if key not in store.keys:
@@ -153,7 +158,9 @@ class DynamicsData:
         self.cfg = cfg
         # Standardisation of the latents for the dynamics (see WorldModel): per-element
         # mean over the training frames, and the RMS of the per-element standard deviation.
-        if init is None:
+        if init is None and latent_norm is not None:
+            self.latent_mean, self.latent_scale = latent_norm[0].float().cpu(), float(latent_norm[1])
+        elif init is None:
             train_z = self.latents[torch.from_numpy(train_idx)].float()
             self.latent_mean = train_z.mean(0)
             self.latent_scale = float(train_z.var(0).mean().sqrt().clamp_min(1e-6))

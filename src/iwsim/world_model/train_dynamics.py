@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.checkpoint import resolve_checkpoint
+from iwsim.checkpoint import last_checkpoint, load_json, load_tensors, resolve_checkpoint
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.errors import InputError
 from iwsim.metrics import psnr
@@ -193,12 +193,14 @@ class DynamicsTask:
     start, only ``cfg.train`` is taken from ``cfg`` (``ae_path`` is ignored), and the
     unroll curriculum, which the model has been through, starts at its longest. ``context``
     (latents in the window) replaces the config's; a fine-tuned model's window is widened
-    to it (:func:`~iwsim.world_model.dynamics.widen_window`)."""
+    to it (:func:`~iwsim.world_model.dynamics.widen_window`). ``resume``: the run directory;
+    a run from scratch that has a checkpoint there keeps its latent standardisation
+    (:func:`run_latent_norm`)."""
 
     def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path | None,
                  device: torch.device = torch.device("cpu"), progress: bool = True,
                  latent_cache: Path | None = None, init: str | Path | None = None,
-                 context: int | None = None) -> None:
+                 context: int | None = None, resume: Path | None = None) -> None:
         wm = None
         if init is not None:
             init = resolve_checkpoint(init)  # a checkpoint, or a run's last one
@@ -208,7 +210,8 @@ class DynamicsTask:
         if ae_path is None:
             raise InputError("a dynamics task needs a stage-1 checkpoint (ae_path) or a world model to fine-tune "
                              "(init).")
-        self.data = DynamicsData(cfg, data, ae_path, device, progress, latent_cache, init=wm)
+        self.data = DynamicsData(cfg, data, ae_path, device, progress, latent_cache, init=wm,
+                                 latent_norm=None if wm is not None or resume is None else run_latent_norm(resume))
         self.cfg = cfg = self.data.cfg
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
@@ -252,6 +255,19 @@ class DynamicsTask:
         return self.world_model(module.dynamics).export()
 
 
+def run_latent_norm(run: Path) -> tuple[torch.Tensor, float] | None:
+    """The latent standardisation (mean, scale) of the dynamics run in ``run``, from its
+    config and its last checkpoint; None where it has no checkpoint yet (or is not one)."""
+    last = last_checkpoint(run / "checkpoints")
+    if last is None or not (run / "config.json").is_file():
+        return None
+    scale = load_json(run / "config.json").get("latent_norm", {}).get("scale")
+    tensors = load_tensors(last / "model.safetensors")
+    if not isinstance(scale, int | float) or "latent_mean" not in tensors:
+        return None
+    return tensors["latent_mean"], float(scale)
+
+
 def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | None, out: str | Path, *,
                    device: torch.device, force: bool = False, progress: bool = True,
                    latent_cache: str | Path | None = None, init: str | Path | None = None,
@@ -265,7 +281,8 @@ def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | 
     if (ae is None) == (init is None):
         raise InputError("train dynamics takes either --ae (train from scratch) or --init (fine-tune), not both.")
     cache = Path(latent_cache) if latent_cache is not None else Path(out) / "latents.safetensors"
-    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache, init=init, context=context)
+    task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache, init=init, context=context,
+                        resume=Path(out))
     config = task.config(data)
     assert config["kind"] == KIND
     return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress,
