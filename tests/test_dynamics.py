@@ -30,7 +30,8 @@ def randomise(module: torch.nn.Module, seed: int = 0, std: float = 0.2) -> torch
     return module.eval()
 
 
-STATE = {"state_dim": 4, "state_point_scale": (0.2 / 0.26,) * 4, "state_point_offset": (0.0,) * 4}
+STATE = {"state_dim": 4, "state_point_scale": (0.2 / 0.26,) * 4, "state_point_offset": (0.0,) * 4,
+         "state_action_scale": (0.22 / 0.2,) * 4, "state_action_offset": (0.0,) * 4}
 
 
 def tiny_cfg(name: str = "ours"):

@@ -25,10 +25,10 @@ from iwsim.world_model_env import WorldModelVectorEnv, predicts_agent_pos
 
 
 def test_the_state_head_learns_where_the_pushers_go(one_thread):
-    """Pushers that follow their setpoints: the next state is the current action. A few
-    dozen steps on one batch take the state's error well below where it starts (the head
-    starts by holding the state still), and every state parameter gets a gradient (once the
-    zero-initialised output layers have moved)."""
+    """Pushers held back halfway to their setpoints (the state the action sets, times
+    0.5): a few dozen steps on one batch take the state's error well below where it starts
+    (the head starts at the setpoint), and every state parameter gets a gradient (once
+    the zero-initialised output layers have moved)."""
     cfg = tiny_cfg("state")
     torch.manual_seed(0)
     module = DynamicsTrainModule(Dynamics(cfg.dynamics), cfg)
@@ -36,7 +36,8 @@ def test_the_state_head_learns_where_the_pushers_go(one_thread):
     b, n, k = 8, 3, cfg.dynamics.context
     actions = torch.rand(b, n + 1, 4, generator=g) * 2 - 1
     batch = batch_for(cfg, torch.randn(b, k + n, 4, 16, 16, generator=g), actions, g)
-    batch.states = torch.cat([torch.rand(b, 1, 4, generator=g) * 2 - 1, actions[:, 1:]], 1)  # state u+1 = action u+1
+    held_back = 0.5 * actions[:, 1:] * 0.22 / 0.2  # half the state the action sets (tiny_cfg's state_action_scale)
+    batch.states = torch.cat([torch.rand(b, 1, 4, generator=g) * 2 - 1, held_back], 1)
     opt = torch.optim.Adam(module.parameters(), lr=3e-3)
     errors = []
     for i in range(40):
@@ -53,9 +54,10 @@ def test_the_state_head_learns_where_the_pushers_go(one_thread):
 
 def test_a_model_gains_the_state_without_changing_its_latents():
     """``add_state``: a network without the state, given one with zero input weights, predicts
-    the same latents whatever the state, and its head starts by holding the state still."""
+    the same latents whatever the state, and its head starts at the state the setpoint sets."""
     cfg = tiny_cfg("state").dynamics
-    without = dataclasses.replace(cfg, state_dim=0, state_point_scale=(), state_point_offset=())
+    without = dataclasses.replace(cfg, state_dim=0, state_point_scale=(), state_point_offset=(), state_action_scale=(),
+                                  state_action_offset=())
     old = randomise(Dynamics(without), 1)
     new = Dynamics(cfg)
     new.load_state_dict(add_state(old.state_dict(), without, new))
@@ -64,7 +66,7 @@ def test_a_model_gains_the_state_without_changing_its_latents():
     t, a, state = torch.full((2,), 999.0), torch.rand(2, 2, 4, generator=g) * 2 - 1, torch.rand(2, 4, generator=g)
     with torch.no_grad():
         torch.testing.assert_close(new(x, ctx, t, t * 0, t * 0, a, state), old(x, ctx, t, t * 0, t * 0, a))
-        torch.testing.assert_close(new.predict_state(x, ctx[:, -1], a, state), state)
+        torch.testing.assert_close(new.predict_state(x, ctx[:, -1], a, state), a[:, 1] * 0.22 / 0.2)
     with pytest.raises(InputError, match="takes the robot's state"):
         new(x, ctx, t, t * 0, t * 0, a)
 

@@ -26,7 +26,8 @@ pushers actually are, which differs from their setpoints when contact holds them
 enters like the actions, as a learned grid plus blobs at its positions where it holds the
 same points as the actions (``state_point_scale``); and :meth:`Dynamics.predict_state`, a
 small head, predicts the next state from the new latent, the newest context latent, the
-actions and the current state. A rollout feeds each predicted state back as the next
+actions and the current state, as a correction to the state the current setpoint asks for
+where the state is what the actions set (``state_action_scale``), else to the last state. A rollout feeds each predicted state back as the next
 step's input (see :class:`~iwsim.world_model.WorldModel`).
 
 No layer mixes batch items, so a batched rollout equals per-item rollouts.
@@ -68,6 +69,13 @@ class DynamicsConfig:
     state_point_scale: tuple[float, ...] = ()  # per state entry, as point_scale (empty: no state blobs)
     state_point_offset: tuple[float, ...] = ()
     state_head_channels: int = 32
+    # Where the state is the quantity the actions set (the same size: T-push's pushers and
+    # their setpoints), the map from a normalised action to the normalised state it sets,
+    # per entry: state = action * scale + offset. The head then predicts the state's offset
+    # from the current setpoint (contact holding a pusher back) instead of from the last
+    # state. Empty: from the last state.
+    state_action_scale: tuple[float, ...] = ()
+    state_action_offset: tuple[float, ...] = ()
 
 
 class SpatialAttention(nn.Module):
@@ -101,6 +109,8 @@ class Dynamics(nn.Module):
     point_offset: torch.Tensor
     state_point_scale: torch.Tensor  # (S,) buffers, with cfg.state_point_scale
     state_point_offset: torch.Tensor
+    state_action_scale: torch.Tensor  # (S,) buffers, with cfg.state_action_scale
+    state_action_offset: torch.Tensor
 
     def __init__(self, cfg: DynamicsConfig = DynamicsConfig()) -> None:
         super().__init__()
@@ -122,6 +132,14 @@ class Dynamics(nn.Module):
             raise InputError(f"state blobs need the action's point_index and {cfg.state_dim} values each in "
                              f"state_point_scale and state_point_offset, got {len(cfg.state_point_scale)} and "
                              f"{len(cfg.state_point_offset)}.")
+        if cfg.state_action_scale:
+            if not len(cfg.state_action_scale) == len(cfg.state_action_offset) == cfg.state_dim == cfg.action_dim:
+                raise InputError(f"state_action_scale and state_action_offset need {cfg.state_dim} values each, one "
+                                 "per state entry, and a state of the action's size.")
+            self.register_buffer("state_action_scale", torch.tensor(cfg.state_action_scale, dtype=torch.float32),
+                                 persistent=False)
+            self.register_buffer("state_action_offset", torch.tensor(cfg.state_action_offset, dtype=torch.float32),
+                                 persistent=False)
         if cfg.state_point_scale:
             self.register_buffer("state_point_scale", torch.tensor(cfg.state_point_scale, dtype=torch.float32),
                                  persistent=False)
@@ -164,11 +182,14 @@ class Dynamics(nn.Module):
                       state: torch.Tensor) -> torch.Tensor:
         """The normalised state (B, S) at the new latent ``new`` (B, C, h, w), from it, the
         newest context latent ``newest`` (B, C, h, w), the actions (B, 2, A) (as forward's)
-        and the state (B, S) at the newest context latent."""
+        and the state (B, S) at the newest context latent: the state the current action sets
+        (``state_action_scale``) or else the last state, plus the head's correction."""
         if self.state_head is None:
             raise InputError("this dynamics network has no state head (it was trained without the robot's state).")
         inp = [new, newest, coordinates(new), *self.action_features(actions), *self.state_features(state)]
-        return state + self.state_head(torch.cat(inp, 1))
+        base = actions[:, 1] * self.state_action_scale + self.state_action_offset if self.cfg.state_action_scale \
+            else state
+        return base + self.state_head(torch.cat(inp, 1))
 
     def action_features(self, actions: torch.Tensor) -> list[torch.Tensor]:
         """Per-cell action maps from normalised actions (B, 2, A) (previous, current)."""
@@ -215,9 +236,9 @@ class Dynamics(nn.Module):
 
 
 class StateHead(nn.Module):
-    """Inputs (B, cin, h, w) -> the change (B, S) of the normalised state: two convolutions
-    at latent resolution and a linear read-out of every cell (where a pusher is matters);
-    zero at initialisation, so the state starts by holding still."""
+    """Inputs (B, cin, h, w) -> the correction (B, S) of the normalised state: two
+    convolutions at latent resolution and a linear read-out of every cell (where a pusher
+    is matters); zero at initialisation, so the state starts at the setpoint (or held)."""
 
     def __init__(self, cfg: DynamicsConfig, cin: int) -> None:
         super().__init__()

@@ -41,7 +41,7 @@ from iwsim.world_model.presets import DynamicsStageConfig
 log = logging.getLogger(__name__)
 
 # The network config's fields of the robot's state, which the data decides.
-STATE_FIELDS = ("state_dim", "state_point_scale", "state_point_offset")
+STATE_FIELDS = ("state_dim", "state_point_scale", "state_point_offset", "state_action_scale", "state_action_offset")
 NOVELTY_STEPS = 50_000  # steps of the training data the trust signal's Gaussian is fitted to
 
 
@@ -207,14 +207,19 @@ class DynamicsData:
         to image coordinates."""
         dim = self.states.shape[1]
         d = cfg.dynamics
+        none = {"state_dim": dim, "state_point_scale": (), "state_point_offset": (), "state_action_scale": (),
+                "state_action_offset": ()}
         if not (dim and d.point_index and dim == d.action_dim):
-            return {"state_dim": dim, "state_point_scale": (), "state_point_offset": ()}
-        # the action's map rewritten for the state's bounds: image = data / view_half
-        view = (self.action_high - self.action_low) / 2 / np.asarray(d.point_scale)
-        half = (self.state_high - self.state_low) / 2 / view
-        mid = (self.state_high + self.state_low) / 2 / view
-        return {"state_dim": dim, "state_point_scale": tuple(float(v) for v in half),
-                "state_point_offset": tuple(float(v) for v in mid)}
+            return none
+        # a normalised action's setpoint in the state's units: data = mid + a * half, per bounds
+        a_half, a_mid = (self.action_high - self.action_low) / 2, (self.action_high + self.action_low) / 2
+        s_half, s_mid = (self.state_high - self.state_low) / 2, (self.state_high + self.state_low) / 2
+        # the action's map to image coordinates rewritten for the state's bounds: image = data / view_half
+        view = a_half / np.asarray(d.point_scale)
+        return {**none, "state_point_scale": tuple(float(v) for v in s_half / view),
+                "state_point_offset": tuple(float(v) for v in s_mid / view),
+                "state_action_scale": tuple(float(v) for v in a_half / s_half),
+                "state_action_offset": tuple(float(v) for v in (a_mid - s_mid) / s_half)}
 
     def split(self) -> dict[str, list[int]]:
         return {"train_episodes": self.train_episodes, "heldout_episodes": self.heldout_episodes}
