@@ -27,8 +27,9 @@ enters like the actions, as a learned grid plus blobs at its positions where it 
 same points as the actions (``state_point_scale``); and :meth:`Dynamics.predict_state`, a
 small head, predicts the next state from the new latent, the newest context latent, the
 actions and the current state, as a correction to the state the current setpoint asks for
-where the state is what the actions set (``state_action_scale``), else to the last state. A rollout feeds each predicted state back as the next
-step's input (see :class:`~iwsim.world_model.WorldModel`).
+where the state is what the actions set (``state_action_scale``), else to the last state.
+A rollout feeds each predicted state back as the next step's input (see
+:class:`~iwsim.world_model.WorldModel`).
 
 No layer mixes batch items, so a batched rollout equals per-item rollouts.
 """
