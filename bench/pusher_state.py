@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from iwsim.checkpoint import named_checkpoints, write_json_atomic, write_text_atomic
 from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.errors import IwsimError, one_line
 from iwsim.world_model import WorldModel
 from iwsim.world_model_env import WorldModelVectorEnv, predicts_agent_pos
 
@@ -97,15 +98,19 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--models", nargs="+", required=True, help="NAME=CHECKPOINT (world models)")
     p.add_argument("--stores", nargs="+", required=True, help="held-out MuJoCo stores (iwsim collect)")
-    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--steps", type=int, default=299, help="commands sent per episode (a store's episode of T steps "
+                                                           "holds T frames: T - 1 of them follow a command)")
     p.add_argument("--press-mm", type=float, default=20.0, help="a setpoint this far ahead of its pusher is pressing")
     p.add_argument("--out", type=Path, default=Path("bench/results/pusher_state"))
     args = p.parse_args(argv)
     if args.steps < 1 or not args.press_mm > 0:
         p.error(f"--steps must be >= 1 and --press-mm > 0, got {args.steps} and {args.press_mm}.")
-    models = named_checkpoints(args.models)
+    try:
+        models = named_checkpoints(args.models)
+        data = {s: episodes_of(s, args.steps) for s in args.stores}
+    except IwsimError as e:
+        p.error(one_line(e))
     torch.set_num_threads(1)
-    data = {s: episodes_of(s, args.steps) for s in args.stores}
     report: dict = {"command": "python bench/pusher_state.py " + " ".join(argv or sys.argv[1:]),
                     "steps": args.steps, "press_mm": args.press_mm, "models": {}}
     curves = {}
