@@ -147,7 +147,7 @@ class DynamicsData:
                                             latent_channels=self.latents.shape[1],
                                             latent_size=self.latents.shape[-1],
                                             **self.points(store.attrs, cfg)))
-        cfg = replace(cfg, dynamics=replace(cfg.dynamics, **self.state_points(cfg)))
+        cfg = replace(cfg, dynamics=replace(cfg.dynamics, **self.state_points(store.attrs, cfg)))
         # Fine-tuning keeps the model's network; only its window may be widened (cfg's) and
         # the state added.
         if init is not None:
@@ -201,21 +201,21 @@ class DynamicsData:
         self.state_low, self.state_high = low.numpy(), high.numpy()
         self.states = scale(torch.from_numpy(states), low, high)
 
-    def state_points(self, cfg: DynamicsStageConfig) -> dict:
-        """The state fields of the network's config: its size and, when it holds the
-        action's image positions (see the class docstring), the map from normalised states
-        to image coordinates."""
+    def state_points(self, attrs: dict, cfg: DynamicsStageConfig) -> dict:
+        """The state fields of the network's config (``cfg``: with the action's points
+        filled in): its size and, when it holds the action's image positions (see the class
+        docstring), the maps from normalised states to image coordinates (as :meth:`points`,
+        from the store's ``view_half``) and from normalised actions to the states they set."""
         dim = self.states.shape[1]
         d = cfg.dynamics
         none = {"state_dim": dim, "state_point_scale": (), "state_point_offset": (), "state_action_scale": (),
                 "state_action_offset": ()}
         if not (dim and d.point_index and dim == d.action_dim):
             return none
-        # a normalised action's setpoint in the state's units: data = mid + a * half, per bounds
+        view = attrs["view_half"]  # declared wherever the action's points are (see points)
+        # a normalised value's data: mid + a * half, per bounds
         a_half, a_mid = (self.action_high - self.action_low) / 2, (self.action_high + self.action_low) / 2
         s_half, s_mid = (self.state_high - self.state_low) / 2, (self.state_high + self.state_low) / 2
-        # the action's map to image coordinates rewritten for the state's bounds: image = data / view_half
-        view = a_half / np.asarray(d.point_scale)
         return {**none, "state_point_scale": tuple(float(v) for v in s_half / view),
                 "state_point_offset": tuple(float(v) for v in s_mid / view),
                 "state_action_scale": tuple(float(v) for v in a_half / s_half),
