@@ -226,3 +226,17 @@ def test_no_frame_size_or_task_defaults_to_t_push_outside_its_homes():
                                            ("iwsim.cli", len(LAYERS) - 1)])
 def test_layer_of(module, layer):
     assert layer_of(module) == layer
+
+
+def test_functions_and_the_command_line_stay_short():
+    """A function of more than 120 lines, or a ``cli.py`` of more than 150, is read by
+    nobody: the command line's groups live in ``iwsim.commands``, one module each."""
+    import ast
+
+    long = []
+    for name, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= 120:
+                long.append(f"{name}.{node.name}: {node.end_lineno - node.lineno + 1} lines")
+    assert long == []
+    assert len(MODULES["iwsim.cli"].read_text().splitlines()) <= 150

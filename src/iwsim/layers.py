@@ -30,7 +30,7 @@ LAYERS: list[tuple[str, ...]] = [
     # 5. what uses all of it (policy training, evaluation, play), the studies, then the command line
     ("iwsim.training", "iwsim.eval", "iwsim.play", "iwsim.demo"),
     ("iwsim.experiments",),
-    ("iwsim.cli",),
+    ("iwsim.cli", "iwsim.commands"),
 ]
 
 
