@@ -48,7 +48,7 @@ from iwsim.world_model import StreamState, WorldModel
 STORE = "store"
 # What the environment observes, versioned: results measured in an environment of another
 # version are other results (:func:`iwsim.experiments.common.fingerprint`). 2: T-push's
-# ``agent_pos`` at the setpoints of pushers seen near them (issue 41).
+# ``agent_pos`` at the setpoints of pushers seen near them.
 OBSERVATION_VERSION = 2
 
 

@@ -85,7 +85,7 @@ def _split(xy: np.ndarray, w: np.ndarray, k: int, iterations: int = 8) -> np.nda
 def count_pieces(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pieces in the tray and pieces seen, (...) int64 each, of (..., H, W, 3) uint8 frames."""
     frames = check_frames(frames)
-    # frame by frame: the colour model's arrays of a whole batch at once run ~20x slower
+    # frame by frame: the colour model's arrays of a whole batch at once run far slower
     found = [find_pieces(piece_fraction(f)) for f in frames.reshape(-1, *frames.shape[-3:])]
     inside = np.array([int(in_tray(p).sum()) for p in found], np.int64)
     seen = np.array([len(p) for p in found], np.int64)

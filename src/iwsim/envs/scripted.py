@@ -14,7 +14,7 @@ rigid grasp. Paths around the block come from a visibility graph over the corner
 T grown by the pusher radius, computed in the block's frame. The expert's pinch is precise
 (paths 5 mm from the block, a close once both pushers are within 4 mm of their pre-grip
 points); ``expert-wide``'s (:func:`wide_pinch`) tolerates centimetre errors, for
-demonstrations that imitation can follow (issue 44): paths 2 cm from the block, a close and
+demonstrations that imitation can follow: paths 2 cm from the block, a close and
 a carry relative to where the pushers are, commands that change smoothly.
 """
 
@@ -489,7 +489,7 @@ class PlayPolicy:
 
 
 class BroadPlayPolicy(PlayPolicy):
-    """Play of the breadth that people and policies show (issue 41), for world-model data.
+    """Play of the breadth that people and policies show, for world-model data.
 
     Segments of 30-80 steps, each with its own speed (3-16 mm a step) and its own hand
     (:class:`Hand`: half lag with a time constant of 1.5-5 steps, half start a pause at
@@ -574,8 +574,8 @@ class BroadPlayPolicy(PlayPolicy):
 
 class PressingPlayPolicy(BroadPlayPolicy):
     """:class:`BroadPlayPolicy` whose commands run ahead of the pushers, as learned policies'
-    do (issue 64, ``bench/probes/setpoint_gap.py``: they hold their setpoints 21-50 mm (p90),
-    up to ~70 mm, from the pushers, where the other collected policies stay within 20-25 mm).
+    do, far beyond what the other collected policies reach (``bench/probes/setpoint_gap.py``
+    measures both).
     In 60% of the segments that move, each command lies 10-40 mm (drawn per segment) beyond
     the step it asks for, along its direction: a pusher the block stops presses into it
     with its setpoint well ahead, the contact the world model must learn from."""
@@ -632,7 +632,7 @@ class ImpreciseExpertPolicy(SeededExpertPolicy):
     POSE_BIAS = (0.008, 0.008, 0.25)  # std of the per-episode belief error: m, m, rad
     # How far past the stem the grip's targets lie (m): up to through the other pusher, so
     # the pushers press the block and stay centimetres from their setpoints, as learned
-    # policies' do (their setpoint-to-pusher gap: p90 21-50 mm, p99 up to ~70 mm; the data's <= 21 mm)
+    # policies' do (bench/probes/setpoint_gap.py measures their gap and the data's)
     SQUEEZE = (0.005, 0.08)
     WOBBLE = (0.003, 0.003, 0.08)  # stationary std of its slow AR(1) drift
 

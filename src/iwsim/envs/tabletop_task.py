@@ -34,9 +34,10 @@ from iwsim.errors import InputError
 KEY_SPEED = 0.2  # m/s of a target under a held key or a full stick (one key tap: 2 cm)
 DRAG_SPEED = 0.3  # m/s at most when a target follows the mouse (the play data's top speed)
 # A pusher seen within this distance (m) of its setpoint is reported at the setpoint. MuJoCo's
-# pushers track their setpoints to ~1.3 mm in free space and stop up to ~25 mm short in
-# contact (T-push's expert squeezes 20 mm into the stem); a world model draws them 2-4 mm off
-# (median; p90 8-9 mm, about a pixel at 64 px), enough to stall the expert's 4 mm approach.
+# pushers track their setpoints closely in free space and stop short in contact (T-push's
+# expert squeezes 20 mm into the stem); a world model draws them a few mm off, enough to
+# stall the expert's 4 mm approach if read from pixels alone (bench/pusher_state.py and
+# the yardstick record both).
 SETPOINT_TOLERANCE = 0.008
 
 # WASD moves the left pusher, IJKL the right one; the left stick the left, the right stick the right.

@@ -50,8 +50,8 @@ MUJOCO = "mujoco"  # iwsim eval policy --env: the task's simulator
 # Where policies are evaluated: each built-in task's simulator (by the task's name), the world model.
 ENVS = (*(kind for kind, make in REGISTRY.items() if make().has_ground_truth), WORLD_MODEL)
 # An episode whose mean novelty is above this strays from the training data (about 1 for
-# steps like the training data's). On the yardstick novelty did not rank the episodes by
-# their error (bench/results/ablations.md, issue 41): an out-of-distribution flag, not a trust score.
+# steps like the training data's). An out-of-distribution flag, not a trust score: it does
+# not rank the episodes by their error (bench/results/ablations.md).
 NOVELTY_WARN = 2.0
 # An episode whose score differs by more than this between two world models (the ensemble
 # trust signal, :func:`disagreement`) is one the models cannot vouch for.

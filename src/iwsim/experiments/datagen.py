@@ -120,11 +120,9 @@ class DatagenConfig:
 
 PRESETS: dict[str, DatagenConfig] = {
     # The paper's protocol for Diffusion Policy, sized for <= 3 h on a 2-core CPU with two
-    # jobs; measured 2 h 20 min: 100 world-model demonstrations 13 min (129 candidates,
-    # ~6 s each), nine trainings of 3000 steps (~0.44 s per step on one thread beside
-    # another job, ~21 min each; the step the scaling curve of bench/policy_scaling.py
-    # chose at 25, 100 and 200 demonstrations) two at a time 107 min, ten evaluations of
-    # 50 x 600 steps 18 min. Sizes 5, 25, 100 (not also 50) keep it within the budget.
+    # jobs (the recorded report gives each part's time): nine trainings of 3000 steps (the
+    # step the scaling curve of bench/policy_scaling.py chose), ten evaluations of 50 x 600
+    # steps. Sizes 5, 25, 100 (not also 50) keep it within the budget.
     "default": DatagenConfig(train_steps=3000, checkpoint_every=1000, total=100,
                              wm_fractions=(0.0, 0.25, 0.5, 0.75, 1.0), sim_sizes=(5, 25, 100),
                              wm_sizes=(5, 25, 100), steps=STUDY.horizon),

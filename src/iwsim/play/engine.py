@@ -350,8 +350,8 @@ class Engine:
                     s.take[key].append(np.asarray(value, np.uint8 if key == "img" else np.float32))
         state = ready[0][1] if len(ready) == 1 else StreamState.cat([st for _, st in ready])
         # One session's step is too small to gain from a second thread, and with the browser
-        # on the same two cores a second thread made it slower (p95 key-to-frame 107 vs
-        # 95 ms at 25 Hz, bench/bench_play.py); batches do gain (4 sessions: 84 vs 113 ms).
+        # on the same cores a second thread makes it slower; batches do gain
+        # (bench/bench_play.py measures both).
         torch.set_num_threads(1 if len(sessions) == 1 else self._threads)
         try:
             state, frames = self.model.step_state(state, np.stack([s.setpoint for s in sessions]))

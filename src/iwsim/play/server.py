@@ -8,8 +8,8 @@ newest frame, so a slow client misses frames instead of stalling everyone else's
 event loop keeps receiving and sending while a step computes, and a message that arrives
 during step k is applied before step k + 1.
 
-Why the engine gets the main thread: PyTorch's CPU kernels ran this model about half as
-fast when called from a second thread (measured: 63 vs 30 ms per step at batch 1).
+Why the engine gets the main thread: PyTorch's CPU kernels run this model markedly slower
+when called from a second thread (bench/bench_play.py measures a step's latency).
 
 Access (the token, allowed origins and hosts) is decided in :mod:`iwsim.play.access`.
 Either thread failing stops the other and the process: a web server that cannot serve

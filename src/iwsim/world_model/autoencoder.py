@@ -61,7 +61,7 @@ class Autoencoder(EncoderCodec):
 
     def freeze_for_inference(self) -> Autoencoder:
         """Replace encoder and decoder by frozen TorchScript traces (constants folded,
-        convolutions prepacked for oneDNN): the same outputs, ~25% less time per call at
+        convolutions prepacked for oneDNN): the same outputs, less time per call at
         batch 1 on a CPU. The module can no longer be trained or saved; returns self."""
         size = self.image_size
         x = torch.zeros(1, self.cfg.encoder.image_channels, size, size, device=self._device())

@@ -262,8 +262,8 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
     bytes, encoder weights and precision match what ``cache`` was written for is not
     encoded again, so a cache made for a store serves a store that extends it (``iwsim
     data merge`` of it and more): only the new frames are encoded. ``bf16``: encode under
-    bf16 autocast (about 2x faster on CPUs with AVX-512-BF16; latents within ~0.01 of
-    float32's in standardised units). ``threads``: torch threads while encoding (default:
+    bf16 autocast (faster on CPUs with AVX-512-BF16 or AMX, latents within rounding of
+    float32's: bench/results/speed). ``threads``: torch threads while encoding (default:
     every core this process may use); float16 storage halves the memory of large stores."""
     img = store.array("img")
     weights = encoder_key(codec) + ("|bf16" if bf16 else "")

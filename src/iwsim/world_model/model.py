@@ -538,7 +538,7 @@ class WorldModel(nn.Module):
             gens = self.state.generators if generators is None else generators
             noise = self._noise(gens, (*lead, *shape)).flatten(0, len(lead))
             noise = noise.contiguous(memory_format=torch.channels_last)
-        # channels-last activations: ~25% faster decoder convolutions on CPU (measured at batch 4)
+        # channels-last activations: the decoder's convolutions run faster on CPU (bench/speed.py)
         with self._precision.autocast(self.device):
             images = self.codec.decode(z.flatten(0, len(lead)).contiguous(memory_format=torch.channels_last), noise)
         check_finite_output(images, self.name, "its decoder's frames")

@@ -1,4 +1,4 @@
-"""A trust signal: how far a world model's inputs stray from its training data (issue 41).
+"""A trust signal: how far a world model's inputs stray from its training data.
 
 A world model is faithful where it was trained. Each step's input, the newest context
 latent and the two actions around it, is compared with the training data's inputs by a

@@ -55,7 +55,7 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
             checkpoint_every=3, ema_decay=0.9),
         eval_images=8,
     ),
-    # The CPU default: 2200 steps take 45-50 minutes on 2 CPU cores; it passes 32 dB near step 1000.
+    # The CPU default, sized to train on 2 CPU cores in under an hour (bench/results/ae.md).
     "pusht-64": _ae(64, (16, 32, 64), 1, 128, steps=2200, batch_size=32, lr=1e-3, warmup_steps=100,
                     eval_every=250, checkpoint_every=250, ema_decay=0.995),
     # Paper scale (128 px, 64 base channels), for GPUs.
@@ -68,22 +68,21 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
     "conv-x2-64": ConvCodecConfig(64, channels=(32, 64), blocks_per_level=2, train=TrainConfig(
         steps=1500, batch_size=32, lr=1e-3, warmup_steps=100, eval_every=250, checkpoint_every=250,
         ema_decay=0.995)),
-    # Issue 23's coarse codecs: a decoder that holds the objects' shapes in its weights, fed
-    # by few latent cells (x8: 8 x 8 x 8 latents; x16: 16 x 4 x 4), trained on latents noised
-    # like stage 2's context (std up to 0.3) and with the small things weighted up. Measured
-    # (bench/results/ablations.md): dynamics steps ~5x cheaper, but at 700 steps the T melts
-    # as on 16 x 16 latents, and at x16 the pushers are lost.
+    # Coarse codecs: a decoder that holds the objects' shapes in its weights, fed by few
+    # latent cells (x8: 8 x 8 x 8 latents; x16: 16 x 4 x 4), trained on latents noised like
+    # stage 2's context (std up to 0.3) and with the small things weighted up, so that the
+    # dynamics runs on far fewer cells (what that costs and gains: bench/results/ablations.md).
     "conv-x8-64": ConvCodecConfig(
         64, latent_channels=8, channels=(16, 32, 64, 128), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
                                                     eval_every=250, checkpoint_every=250, ema_decay=0.995)),
-    # Issue 45: x8 cells (8 x 8 px) cannot hold a pile of 3 px pieces (bench/pile_codec.py:
-    # pieces kept within one in 0.4% of held-out play frames); x4 cells are 4 x 4 px.
+    # x4 cells (4 x 4 px) for scenes whose objects are smaller than an x8 cell, such as a
+    # pile of 3 px pieces (bench/pile_codec.py measures how many pieces each codec keeps).
     "conv-x4-64": ConvCodecConfig(
         64, latent_channels=8, channels=(16, 32, 64), blocks_per_level=2, foreground_weight=10.0,
         latent_noise=(0.0, 0.3), train=TrainConfig(steps=1000, batch_size=32, lr=1e-3, warmup_steps=100,
                                                     eval_every=250, checkpoint_every=250, ema_decay=0.995)),
-    # Issue 45: x4's latent size (2048 numbers) in x8's 8 x 8 cells, 32 channels each, so that
+    # x4's latent size (2048 numbers) in x8's 8 x 8 cells, 32 channels each, so that
     # the dynamics keeps x8's cost (its convolutions and attention run on the cells).
     "conv-x8c32-64": ConvCodecConfig(
         64, latent_channels=32, channels=(16, 32, 64, 128), blocks_per_level=2, foreground_weight=10.0,
@@ -126,17 +125,16 @@ class DynamicsStageConfig:
     changed_threshold: float = 0.1  # a cell changes when a channel moves by more (standardised)
     # Inference (predict_delta): a predicted change whose largest channel in a cell stays
     # under this (standardised units) is taken as no change, so that what nothing touches
-    # cannot creep by a small systematic change each step (the idle drift, issue 41). 0: off.
+    # cannot creep by a small systematic change each step (the idle drift). 0: off.
     delta_deadband: float = 0.0
     # Inference (predict_delta): a scene at rest stays at rest. When the executed setpoint
     # holds still and the newest latent changed by less than this (a cell's largest channel,
-    # standardised), the next latent is the newest. In the T-push data, 96% of such steps
-    # (setpoint still, change < 0.05) are followed by a change under 0.05, half by none at
-    # all; without it, a still scene creeps (the idle drift, issue 41). 0: off.
+    # standardised), the next latent is the newest: in the training data such steps are
+    # almost always followed by no change (bench/rest_stats.py counts them); without it, a
+    # still scene creeps (the idle drift). 0: off.
     rest_threshold: float = 0.0
-    # Inference: bf16 autocast (WorldModel.bf16) where the hardware has it, else float32.
-    # About twice the frames per second of a batch of 64 on a CPU with AMX, no faster for
-    # one stream; frames within a few grey levels of float32's (bench/results/speed).
+    # Inference: bf16 autocast (WorldModel.bf16) where the hardware has it, else float32:
+    # it pays for large batches, not for one stream (bench/results/speed).
     inference_bf16: bool = False
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
     # The robot's own state (the store's data/state, e.g. where T-push's pushers are): the
@@ -193,11 +191,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "no-points": {"dynamics": {"positional_actions": False}},
     "no-unroll": {"unroll": ((0, 1),)},
     "no-delta": {"predict_delta": False},
-    # Levers of issue 23 (rigid objects): a longer window (the paper's is 10 frames), and
+    # Levers for rigid objects: a longer window (the paper's is 10 frames), and
     # longer unrolls with the gradient cut every 8 predictions.
     "window-6": {"dynamics": {"context": 6}},
     "long-unroll": {"unroll": ((0, 2), (200, 4), (500, 8), (800, 16), (1100, 24)), "unroll_grad_every": 8},
-    # Issue 64: the robot's own state taken, predicted and fed back (the store's data/state).
+    # The robot's own state taken, predicted and fed back (the store's data/state).
     "state": {"predict_state": True},
 }
 

@@ -11,9 +11,9 @@ from iwsim.policies.registry import TINY_TRAIN, PolicyStageConfig, register_poli
 
 # The paper-sized-down defaults, and a tiny one for tests.
 PRESETS = {
-    # Issue 44 (bench/results/policies/runs.md, "ACT's execution and budget"): Diffusion Policy's
-    # trunk (a first conv of stride 2: the same 8 x 8 cells, a step ~1.5x cheaper, as good per
-    # step) and its learning rate, 3e-4 (twice as fast per step as the paper's 1e-4).
+    # Diffusion Policy's trunk (a first conv of stride 2: the same 8 x 8 cells, a cheaper
+    # step) and its learning rate, 3e-4, faster per step than the paper's 1e-4
+    # (bench/results/policies/runs.md, "ACT's execution and budget").
     "act": PolicyStageConfig("act", {"encoder_channels": (32, 64, 64), "encoder_stride": 2},
                              TrainConfig(steps=20_000, batch_size=32, lr=3e-4, warmup_steps=500,
                                          weight_decay=1e-4, eval_every=1000, checkpoint_every=1000)),
