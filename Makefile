@@ -45,7 +45,7 @@ rebuild-pilesweep-64: $(STAMP)
 	IWSIM=$(VENV)/bin/iwsim PYTHON=$(PY) bash checkpoints/pilesweep-64/recipe.sh
 
 lint: $(STAMP)
-	$(PY) -m ruff check src tests bench
+	$(PY) -m ruff check src tests bench scripts
 	$(PY) -m mypy
 
 clean:

@@ -2,7 +2,7 @@
 
 Starts the real server (``iwsim play`` in a subprocess, as ``bench_play.py`` does) with room
 for every client, drives it for ``--seconds`` with ``--clients`` page-like clients (key
-presses every 0.4-0.6 s, ``bench_play.client``), one flood client that sends as fast as
+presses every 0.4-0.6 s, :func:`iwsim.play.client.client`), one flood client that sends as fast as
 it can (valid actions, malformed and oversized messages, and now and then a connection
 without the token) and reads what comes back, and one token holder that floods bad
 messages and never reads (a tiny receive buffer); both reconnect whenever they are dropped.
@@ -21,7 +21,6 @@ import argparse
 import json
 import multiprocessing
 import os
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -29,12 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_play import REPO, Server, client, summary  # noqa: E402
+from iwsim.errors import reporting_errors
+from iwsim.eval.records import command_line
+from iwsim.play.client import Server, client, summary
 
-from iwsim.errors import reporting_errors  # noqa: E402
-from iwsim.eval.records import command_line  # noqa: E402
-
+REPO = Path(__file__).resolve().parents[1]
 SERVER_LOG = REPO / "outputs" / "bench_play_soak_server.log"
 FLOOD_MESSAGES = [  # sent after each valid action
     "{not json",

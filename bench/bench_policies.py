@@ -25,20 +25,17 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "src"))
-
-from iwsim.errors import reporting_errors  # noqa: E402
-from iwsim.eval.policy import evaluate, summarize  # noqa: E402
-from iwsim.eval.records import command_line  # noqa: E402
-from iwsim.policies.factory import load_policy  # noqa: E402
-from iwsim.tasks import get_task  # noqa: E402
+from iwsim.errors import reporting_errors
+from iwsim.eval.policy import evaluate, summarize
+from iwsim.eval.policy_runs import training_minutes
+from iwsim.eval.records import command_line
+from iwsim.policies.factory import load_policy
+from iwsim.tasks import get_task
 
 
 def _expert_episode(seed_steps: tuple[int, int]) -> float:
@@ -54,12 +51,6 @@ def expert(seeds: list[int], steps: int) -> dict:
     with mp.get_context("spawn").Pool(2) as pool:
         max_iou = np.array(pool.map(_expert_episode, [(s, steps) for s in seeds]))
     return {**summarize(max_iou, seeds, get_task("pusht").success_score), "seconds": time.perf_counter() - t0}
-
-
-def training_minutes(run: Path) -> dict[int, float]:
-    """Minutes of training at each logged step of a run."""
-    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line.strip()]
-    return {r["step"]: r["elapsed_s"] / 60 for r in rows if "elapsed_s" in r}
 
 
 def select(run: Path, budget_min: float, episodes: int, steps: int, seed: int) -> tuple[Path, dict]:

@@ -14,13 +14,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from yardstick import goal_frames, reconstruction_scores
-
 from iwsim.envs import pixels
 from iwsim.errors import reporting_errors
 from iwsim.experiments.demos import PUSHT
 from iwsim.resources import set_threads
 from iwsim.world_model import WorldModel
+from iwsim.yardstick.codec import goal_frames, reconstruction_scores
 
 
 def main(argv: list[str] | None = None) -> int:

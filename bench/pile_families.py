@@ -4,15 +4,16 @@ long rollouts, each in MuJoCo and in the world model from the same first states.
     MUJOCO_GL=egl python bench/pile_families.py --models pile=checkpoints/pilesweep-64 \\
         --zoo runs/experiments/pilesweep/policy_eval/runs/expert-258b0869/{dp-100demos,dp-25demos,act-100demos}
 
-1. Families (:data:`families.FAMILIES`, T-push's yardstick's; ``miss`` aims at T-push's
-   block and is left out): every family from ``--seeds`` first states (MuJoCo seeds from
-   :data:`families.SEED`, never used for training or by the studies) for ``--steps`` steps
-   in both; an episode's score is its max share of the pieces in the tray (the pixel
-   scorer). Per family the offset model - MuJoCo with a 95% bootstrap interval; pooled
-   Pearson r, Spearman rho and MMRV over all families and over the unseen ones. A family is
-   seen when the model's training data covers it (``--trained-on``: the collected policies,
-   :data:`families.TRAINING_FAMILIES`); the learned family is the ``--zoo`` checkpoints
-   round-robin over the episodes.
+1. Families (:data:`iwsim.yardstick.families.FAMILIES`, T-push's yardstick's; ``miss``
+   aims at T-push's block and is left out): every family from ``--seeds`` first states
+   (MuJoCo seeds from :data:`iwsim.yardstick.families.SEED`, never used for training or by
+   the studies) for ``--steps`` steps in both; an episode's score is its max share of the
+   pieces in the tray (the pixel scorer). Per family the offset model - MuJoCo with a 95%
+   bootstrap interval; pooled Pearson r, Spearman rho and MMRV over all families and over
+   the unseen ones. A family is seen when the model's training data covers it
+   (``--trained-on``: the collected policies,
+   :data:`iwsim.yardstick.families.TRAINING_FAMILIES`); the learned family is the ``--zoo``
+   checkpoints round-robin over the episodes.
 2. At rest: the pushers held still for :data:`IDLE_STEPS` steps from ``--idle-episodes``
    fresh starts. A model's frame keeps the pile when the scorer sees MuJoCo's count of that
    step within one and the pieces' pixels overlap MuJoCo's (IoU of piece masks) by at
@@ -33,7 +34,6 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-import families as fam
 import numpy as np
 import torch
 
@@ -48,6 +48,7 @@ from iwsim.policies.scripted import ScriptedBatch
 from iwsim.resources import set_threads
 from iwsim.tasks import get_task
 from iwsim.world_model import WorldModel
+from iwsim.yardstick import families as fam
 
 TASK = get_task("pilesweep")
 FAMILIES = [f for f in fam.FAMILIES if f != "miss"]

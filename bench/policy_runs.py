@@ -33,13 +33,12 @@ from iwsim.config import from_dict, to_dict
 from iwsim.data.store import EpisodeStore
 from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout, summarize
+from iwsim.eval.policy_runs import TEST_SEED, VAL_SEED, eval_path
 from iwsim.experiments.common import checkpoints
 from iwsim.policies import POLICIES, PRESETS, PolicyStageConfig
 from iwsim.policies.data import parse_mixture
 from iwsim.policies.factory import load_policy
 from iwsim.training.policy import train_policy
-
-VAL_SEED, TEST_SEED = 200_000, 100_000
 
 
 def _value(text: str):
@@ -47,11 +46,6 @@ def _value(text: str):
         return json.loads(text)
     except json.JSONDecodeError:
         return text
-
-
-def eval_path(run: Path, split: str, episodes: int, eval_steps: int, step: int, tag: str = "") -> Path:
-    """Where a checkpoint's evaluation is cached: one file per checkpoint, seeds and execution."""
-    return run / "eval" / f"{split}{episodes}x{eval_steps}{tag}" / f"{step:08d}.json"
 
 
 def stage_config(preset: str, steps: int, sets: list[str], bf16: bool, seed: int) -> PolicyStageConfig:

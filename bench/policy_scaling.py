@@ -16,20 +16,19 @@ every run of the policies it was given), with every policy's cached runs.
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import policy_runs  # noqa: E402
-from bench_policies import training_minutes  # noqa: E402
+from iwsim.checkpoint import load_json, write_text_atomic
+from iwsim.errors import reporting_errors
+from iwsim.eval.figures import pyplot, save_figure
+from iwsim.eval.policy_runs import eval_path, training_minutes
+from iwsim.eval.records import command_line
 
-from iwsim.checkpoint import load_json, write_text_atomic  # noqa: E402
-from iwsim.errors import reporting_errors  # noqa: E402
-from iwsim.eval.figures import pyplot, save_figure  # noqa: E402
-from iwsim.eval.records import command_line  # noqa: E402
-
+POLICY_RUNS = Path(__file__).resolve().with_name("policy_runs.py")
 DATA = "runs/experiments/demos/sim_expert.zarr"
 SIZES = (25, 50, 100, 200)
 # The recipe of each policy: steps and the checkpoints scored on validation seeds.
@@ -42,8 +41,17 @@ def run_name(policy: str, n: int) -> str:
 
 
 def cached(run: Path, split: str, episodes: int, step: int) -> dict | None:
-    path = policy_runs.eval_path(run, split, episodes, 600, step)
+    path = eval_path(run, split, episodes, 600, step)
     return load_json(path) if path.is_file() else None
+
+
+def policy_run(argv: list[str]) -> None:
+    """One ``bench/policy_runs.py`` run with ``argv`` (it trains and scores into the run's
+    directory; its output is this process's), in a process of its own: scripts do not
+    import each other. Its failure ends this process with its exit status."""
+    code = subprocess.run([sys.executable, str(POLICY_RUNS), *argv]).returncode
+    if code:
+        raise SystemExit(code)
 
 
 def one(policy: str, n: int, data: str, root: Path, budget: float, test_episodes: int, train: bool) -> dict | None:
@@ -53,7 +61,7 @@ def one(policy: str, n: int, data: str, root: Path, budget: float, test_episodes
     stores = ",".join(f"{store}:{n}" for store in data.split(","))
     common = ["--name", name, "--policy", policy, "--data", stores, "--steps", str(steps), "--root", str(root)]
     if train:
-        policy_runs.main([*common, "--eval-at", ",".join(map(str, evals))])
+        policy_run([*common, "--eval-at", ",".join(map(str, evals))])
     if not (run / "metrics.jsonl").is_file():
         return None
     mins = training_minutes(run)
@@ -63,7 +71,7 @@ def one(policy: str, n: int, data: str, root: Path, budget: float, test_episodes
         return None
     best = max(within, key=lambda s: val[s]["mean_max_iou"])
     if train and cached(run, "test", test_episodes, best) is None:
-        policy_runs.main([*common, "--eval-at", str(best), "--test", "--episodes", str(test_episodes)])
+        policy_run([*common, "--eval-at", str(best), "--test", "--episodes", str(test_episodes)])
     test = cached(run, "test", test_episodes, best)
     return {"n": n, "step": best, "minutes": mins[best], "val": {s: v["mean_max_iou"] for s, v in val.items() if v},
             "test": test}

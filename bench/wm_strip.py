@@ -13,12 +13,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from wm_studies_check import strip
-
 from iwsim.errors import reporting_errors
 from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch
 from iwsim.resources import set_threads
+from iwsim.yardstick.studies import strip
 
 
 def main(argv: list[str] | None = None) -> int:

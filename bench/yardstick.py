@@ -6,7 +6,7 @@
 For each model, on one thread by default (about 20 minutes a model on this CPU):
 
 1. Held-out play episodes (``--data``, never trained on), open loop from their first
-   frame for 192 steps under the recorded actions (``ablate_dynamics.score``): a T fits
+   frame for 192 steps under the recorded actions (:func:`iwsim.yardstick.fidelity.score`): a T fits
    the block (share of frames), pushers visible and their median error at step 32, the
    action gap at step 5 (another episode's actions over the true ones: 1 means ignored),
    PSNR over steps 1-192 beside repeating the first frame.
@@ -22,13 +22,13 @@ For each model, on one thread by default (about 20 minutes a model on this CPU):
 6. The codec's ceiling: the frames of MuJoCo's kept takes that score as a success (pixel
    IoU >= 0.9), encoded and decoded; the share whose reconstruction still scores >= 0.9.
    A take in the model can only be kept if its frames can be, so this bounds item 2.
-7. Generalisation (issue 41, ``bench/families.py``): operator families from first states
+7. Generalisation (issue 41, :mod:`iwsim.yardstick.families`): operator families from first states
    never used for training, scored in MuJoCo and in the model; per family the offset
    (model - MuJoCo) with its 95% interval, marked seen when the model's training data
    held its kind of motion (``--trained-on``); pooled r and MMRV over all (family,
    episode) pairs and over the unseen families'. And the idle measure: the pushers held
    still, the share of frames that keep the block crisp and in place.
-8. Contact, then rest (issue 64, ``bench/families.py``'s ``contact_rest``): the expert
+8. Contact, then rest (issue 64, :func:`iwsim.yardstick.families.contact_rest`): the expert
    pushes the block in MuJoCo, the pushers withdraw and rest; the model replays MuJoCo's
    commands. Over the episodes whose block moved: the T's fit in the model's last frame
    against the codec's rendering of MuJoCo's (the share back within 0.02 of it), and the
@@ -50,15 +50,10 @@ import argparse
 import time
 from pathlib import Path
 
-import families as fam
 import numpy as np
 import torch
-from ablate_dynamics import Episodes, score
-from wm_studies_check import TELEOP_SEED, strip, teleop
 
 from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
-from iwsim.data.store import EpisodeStore
-from iwsim.envs import pixels
 from iwsim.errors import InputError, check_positive, reporting_errors
 from iwsim.eval.policy import check_model_task
 from iwsim.eval.profiling import speed, stability
@@ -69,6 +64,10 @@ from iwsim.experiments.demos import PUSHT
 from iwsim.experiments.policy_eval import PolicyEvalConfig
 from iwsim.resources import set_threads
 from iwsim.world_model import WorldModel
+from iwsim.yardstick import families as fam
+from iwsim.yardstick.codec import codec_ceiling, goal_frames
+from iwsim.yardstick.fidelity import Episodes, score
+from iwsim.yardstick.studies import TELEOP_SEED, strip, teleop
 
 RANK_SEED = 100000
 STABILITY_EVERY = 10
@@ -98,33 +97,6 @@ def ranking(name: str, ckpt: str | None, work: Path, episodes: int, steps: int) 
     res = evaluate_policies(PolicyEvalConfig().scripted(), "pusht" if ckpt is None else "world-model", seeds=seeds,
                             steps=steps, world_model=ckpt, out=work / "eval" / name, progress=False)
     return {n: r["mean_max_iou"] for n, r in res.items()}
-
-
-@torch.inference_mode()
-def reconstruction_scores(wm: WorldModel, frames: np.ndarray) -> np.ndarray:
-    """The pixel IoU (N,) of each of ``frames`` (N, H, W, 3) uint8 encoded and decoded by
-    the model's codec."""
-    return pixels.pixel_iou(np.concatenate([wm.decode(wm.encode(frames[i:i + 256]))
-                                            for i in range(0, len(frames), 256)]))
-
-
-def codec_ceiling(wm: WorldModel, frames: np.ndarray | None) -> float | None:
-    """The share of ``frames`` (success frames, :func:`goal_frames`) whose reconstruction
-    by the model's codec still scores as a success (None without frames)."""
-    if frames is None:
-        return None
-    return float((reconstruction_scores(wm, frames) >= PUSHT.success_score).mean())
-
-
-def goal_frames(path: Path) -> np.ndarray | None:
-    """The frames of a store that score as a success (None when it has none, e.g. MuJoCo's
-    teleoperation store after a run whose takes were too short to succeed)."""
-    store = EpisodeStore.open(path, "r")
-    if store.n_episodes == 0:
-        return None
-    img = store.array("img")[:]
-    img = img[pixels.pixel_iou(img) >= PUSHT.success_score]
-    return img if len(img) else None
 
 
 PARTS = ("core", "families", "idle", "rest")  # core: items 1-6 of the docstring; rest: item 8

@@ -1,6 +1,6 @@
 """Record the shipped checkpoint's metrics.json (what tests/test_shipped_checkpoint.py checks).
 
-    MUJOCO_GL=egl .venv/bin/python bench/ship_checkpoint.py --checkpoint checkpoints/pusht-64 \
+    MUJOCO_GL=egl .venv/bin/python scripts/ship_checkpoint.py --checkpoint checkpoints/pusht-64 \
         [--bench bench/results/pusht-64/results.json --bench-model shipped]
 
 - ``mujoco_rollout``: 32-step rollouts from the MuJoCo initial frames of seeds 100000..100003

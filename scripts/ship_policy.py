@@ -3,7 +3,7 @@ normalisers and any other small tensors stay float32), its config with where it 
 and the scores of the shipped file itself, closed loop in MuJoCo on the test seeds, in
 ``metrics.json``. The README beside it is written by hand.
 
-    python bench/ship_policy.py --checkpoint runs/pol/dp-wide/checkpoints/00004000 \\
+    python scripts/ship_policy.py --checkpoint runs/pol/dp-wide/checkpoints/00004000 \\
         --out checkpoints/dp-pusht-64 --command "python bench/policy_runs.py ..." --train-minutes 25
 
 ``iwsim eval policy --checkpoint checkpoints/dp-pusht-64 --out outputs/dp`` then scores it
@@ -22,10 +22,10 @@ import torch
 from iwsim.checkpoint import load_model_dir, save_model_dir
 from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout, summarize
+from iwsim.eval.policy_runs import TEST_SEED  # bench/policy_runs.py's and iwsim eval policy's
 from iwsim.policies.factory import KIND, load_policy
 from iwsim.tasks import DEFAULT_TASK
 
-TEST_SEED = 100000  # as bench/policy_runs.py and iwsim eval policy
 SMALL = 4096  # tensors with fewer elements stay float32
 
 

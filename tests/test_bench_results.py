@@ -59,8 +59,8 @@ def _iwsim_command(words: list[str]) -> bool:
 
 def names_a_command(text: str) -> bool:
     """Whether ``text`` is a command line (or several joined by ``&&``) each of which runs
-    an existing ``bench/*.py`` script with python, or an ``iwsim`` subcommand; leading
-    ``NAME=value`` environment words aside."""
+    an existing ``bench/*.py`` (or ``scripts/*.py``) script with python, or an ``iwsim``
+    subcommand; leading ``NAME=value`` environment words aside."""
     try:
         words = shlex.split(text)
     except ValueError:
@@ -70,7 +70,8 @@ def names_a_command(text: str) -> bool:
         return False
     for part in parts:
         prog = list(itertools.dropwhile(lambda w: re.fullmatch(r"[A-Za-z_]\w*=\S*", w), part))
-        if len(prog) >= 2 and Path(prog[0]).name.startswith("python") and re.fullmatch(r"bench/[\w/]+\.py", prog[1]):
+        script = len(prog) >= 2 and re.fullmatch(r"(?:bench|scripts)/[\w/]+\.py", prog[1])
+        if script and Path(prog[0]).name.startswith("python"):
             if not (ROOT / prog[1]).is_file():
                 return False
         elif not (prog and Path(prog[0]).name == "iwsim" and _iwsim_command(prog[1:])):
@@ -119,6 +120,8 @@ def test_names_a_command_knows_scripts_and_subcommands():
     assert names_a_command("iwsim experiment datagen --preset act && python bench/bench_task.py")
     assert names_a_command("OMP_NUM_THREADS=1 .venv/bin/iwsim bench --checkpoint c --out o")
     assert not names_a_command("python bench/no_such_script.py")
+    assert names_a_command("python scripts/ship_checkpoint.py --checkpoint c")
+    assert not names_a_command("python bench/ship_checkpoint.py --checkpoint c")  # moved to scripts/
     assert not names_a_command("iwsim no-such-command --out o")
     assert not names_a_command("iwsim experiment")  # not a leaf: which study?
     assert not names_a_command("bench/yardstick.py")  # a title's mention is not a command

@@ -1,5 +1,5 @@
 """The README's commands, snippets and the names its prose gives, checked without running
-anything expensive (``bench/readme_run.py`` runs the commands, slowly). Each failure names
+anything expensive (``tests/tools/readme_run.py`` runs the commands, slowly). Each failure names
 its README line. The fenced shell blocks:
 
 - ``iwsim ...`` parses with the real parser (``iwsim.cli.build_parser``; parsing runs no
@@ -7,9 +7,9 @@ its README line. The fenced shell blocks:
   can make ambiguous), and the values a handler checks first are known: a preset, a
   ``--variant``, a collect ``--task``, ``--policy`` or ``--image-size``.
 - ``make X``: X is a Makefile target. ``bash FILE``: FILE exists.
-- ``python bench/X.py ...``: the script exists and the parser its ``main()`` builds accepts
-  the arguments (captured at ``parse_args``, so nothing after it runs; the bench scripts
-  have no parser-building function of their own). ``python -m M``: M exists (``iwsim.cli``
+- ``python bench/X.py ...`` (or ``scripts/X.py``): the script exists and the parser its
+  ``main()`` builds accepts the arguments (captured at ``parse_args``, so nothing after it
+  runs; the scripts have no parser-building function of their own). ``python -m M``: M exists (``iwsim.cli``
   parses as above).
 - Shell: continuation lines are joined, comments dropped, environment assignments
   (``MUJOCO_GL=egl``) and wrappers (``taskset -c 0``) set aside, ``&&``, ``;``, ``|`` and
@@ -37,9 +37,9 @@ its README line. The fenced shell blocks:
   they are not run.
 - The prose's inline code: ``iwsim ...`` names real subcommands and spells out their flags
   (spans are fragments: nothing else is parsed), ``make X`` is a target, ``bench/X.py
-  --flag`` is a flag of that script, a dotted ``iwsim.`` name resolves, and files of the
-  repository it names (``src/``, ``iwsim/``, ``bench/``, ``tests/``, ``checkpoints/``), as
-  its relative links, are committed.
+  --flag`` (or ``scripts/X.py --flag``) is a flag of that script, a dotted ``iwsim.`` name
+  resolves, and files of the repository it names (``src/``, ``iwsim/``, ``bench/``,
+  ``scripts/``, ``tests/``, ``checkpoints/``), as its relative links, are committed.
 """
 
 from __future__ import annotations
@@ -55,16 +55,16 @@ import io
 import json
 import logging
 import re
-import sys
 from pathlib import Path
 from types import ModuleType
 from unittest import mock
 
 import pytest
 
+from tests.tools.readme_run import FENCE, PLACEHOLDER, Command, Snippet, readme_items
+from tests.tools.scripts import load_script
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "bench"))
-from readme_run import FENCE, PLACEHOLDER, Command, Snippet, readme_items  # noqa: E402
 
 README = ROOT / "README.md"
 READS = {"data", "src", "path", "sources", "checkpoint", "ae", "init", "run", "world_model", "trust_model", "decoder",
@@ -92,15 +92,7 @@ class _Captured(Exception):
 @functools.cache
 def script_parser(path: Path) -> argparse.ArgumentParser:
     """The parser a bench script's ``main()`` builds, taken at its ``parse_args``."""
-    spec = importlib.util.spec_from_file_location(f"_readme_{path.stem}", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    saved = list(sys.path)
-    sys.path.insert(0, str(path.parent))  # as when run: its directory first (yardstick imports families)
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path[:] = saved
+    module = load_script(path, "_readme")
 
     def capture(self: argparse.ArgumentParser, *args: object, **kwargs: object) -> None:
         raise _Captured(self)
@@ -475,13 +467,13 @@ def prose_problems(text: str) -> list[str]:
         m = re.fullmatch(r"\s*make ([\w-]+)\s*", span)
         if m and m.group(1) not in make_targets():
             problems.append(f"{where}: no Makefile target {m.group(1)!r}")
-        m = re.match(r"\s*(bench/\w+\.py)\s+(.*)$", span, re.S)
+        m = re.match(r"\s*((?:bench|scripts)/\w+\.py)\s+(.*)$", span, re.S)
         if m and (ROOT / m.group(1)).is_file() and "--" in m.group(2):
             problems += flag_problems(script_parser(ROOT / m.group(1)), m.group(1), m.group(2).split(), where)
         for dotted in re.findall(r"(?<![\w./])iwsim(?:\.\w+)+", span):
             if not resolves(dotted):
                 problems.append(f"{where}: {dotted} does not exist")
-        for path in re.findall(r"(?<![\w./<~-])((?:src|bench|tests|checkpoints|iwsim)/[\w./-]*\w/?)", span):
+        for path in re.findall(r"(?<![\w./<~-])((?:src|bench|scripts|tests|checkpoints|iwsim)/[\w./-]*\w/?)", span):
             if re.match(r"iwsim/[A-Z]", path):  # an environment id
                 continue
             if not committed("src/" + path if path.startswith("iwsim/") else path):

@@ -1,5 +1,6 @@
-"""The world model's yardstick (``bench/yardstick.py``) runs end to end on a tiny model; no
-quality is asserted, only that every measure is there and in range."""
+"""The world model's yardstick (``bench/yardstick.py``, its measures in ``iwsim.yardstick``)
+runs end to end on a tiny model; no quality is asserted, only that every measure is there
+and in range."""
 
 import json
 import subprocess
@@ -10,10 +11,9 @@ import pytest
 from PIL import Image
 
 from iwsim.data.collect import collect
+from iwsim.yardstick.families import FAMILIES
 from tests.test_dynamics import tiny_world_model
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from families import FAMILIES  # noqa: E402
+from tests.tools.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -100,7 +100,7 @@ def test_yardstick_refuses_bad_input_in_one_line_before_any_work(tmp_path, capsy
     """Issue 65's smaller list: --episodes 0 and --steps -1 traced back, a name given twice
     kept one row, a pile-sweeping model was measured against T-push, a bad --trust-pairs
     was refused only after the work, and a bad --merge file was called a checkpoint file."""
-    import yardstick
+    yardstick = load_script(ROOT / "bench" / "yardstick.py")
 
     tpush, pile = str(ROOT / "checkpoints" / "pusht-64"), str(ROOT / "checkpoints" / "pilesweep-64")
     (tmp_path / "broken.json").write_text("{")
@@ -125,11 +125,12 @@ def test_yardstick_refuses_bad_input_in_one_line_before_any_work(tmp_path, capsy
 def test_contact_then_rest_on_a_tiny_model(tmp_path):
     """Issue 64's contact-then-rest measure runs on a tiny model (no quality asserted): the
     expert pushes, the pushers withdraw and hold still, the model replays MuJoCo's commands."""
-    import families as fam
     import numpy as np
-    import yardstick
 
     from iwsim.eval.policy import rollout
+    from iwsim.yardstick import families as fam
+
+    yardstick = load_script(ROOT / "bench" / "yardstick.py")
 
     run = rollout(fam.PushThenRest(push=6), "pusht", [fam.REST_SEED], 16, progress=False)
     held = run["action"][0, 6:]
@@ -142,3 +143,69 @@ def test_contact_then_rest_on_a_tiny_model(tmp_path):
         md = yardstick.contact_rest_markdown({"models": {"tiny": {"contact_rest": c}}, "mujoco": {}})
         assert "## Contact, then rest" in "\n".join(md) and any(line.startswith("| tiny |") for line in md)
     assert fam.contact_rest(str(ckpt), tmp_path / "work", 6, push=30, rest=4) == c  # cached
+
+
+def test_seen_families_and_the_learned_familys_checkpoints(tmp_path):
+    from iwsim.yardstick.families import TRAINING_FAMILIES, seen_families, zoo_sources
+
+    assert seen_families(["play", "expert-noisy"]) == ["expert", "jitter", "play"]
+    assert seen_families(["learned-zoo"]) == [] and set(TRAINING_FAMILIES) >= {"play", "expert-hands"}
+    with pytest.raises(ValueError, match="unknown training policies \\['nope'\\]"):
+        seen_families(["play", "nope"])
+    for step in ("00000010", "00000002", "last"):  # a run: its numbered checkpoints, in training order
+        (tmp_path / "run" / "checkpoints" / step).mkdir(parents=True)
+    single = tmp_path / "ckpt"
+    assert zoo_sources([str(tmp_path / "run"), str(single)]) == [
+        str(tmp_path / "run" / "checkpoints" / "00000002"), str(tmp_path / "run" / "checkpoints" / "00000010"),
+        str(single)]
+
+
+def test_compare_pools_the_families_and_ranks_episodes_by_novelty():
+    import numpy as np
+
+    from iwsim.yardstick.families import compare, ensemble_trust
+
+    mujoco = {"play": [0.2, 0.4, 0.6], "expert": [0.9, 0.8, 1.0]}
+    model = {"play": [0.3, 0.5, 0.7], "expert": [0.5, 0.9, 0.6]}
+    novelty = {"play": [0.0, 0.1, 0.2], "expert": [0.9, 0.3, 0.8]}  # high where the model is wrong
+    r = compare(mujoco, model, ["play"], novelty)
+    play, expert = r["families"]["play"], r["families"]["expert"]
+    assert play["offset"] == pytest.approx(0.1) and play["seen"] and not expert["seen"] and play["episodes"] == 3
+    lo, hi = expert["offset_interval"]
+    assert expert["offset"] == pytest.approx(-0.7 / 3) and lo <= expert["offset"] <= hi
+    assert r["pooled"]["unseen"]["families"] == ["expert"] and r["pooled"]["all"]["families"] == ["play", "expert"]
+    assert r["pooled"]["unseen"]["max_abs_offset"] == pytest.approx(0.7 / 3)
+    assert r["trust"]["episodes"] == 6 and r["trust"]["spearman_error"] > 0.5
+    assert play["novelty"] == pytest.approx(0.1)
+    t = ensemble_trust(mujoco, model, {"play": [0.3, 0.5, 0.7], "expert": [0.9, 0.8, 1.0]})
+    assert t["episodes"] == 6 and t["spearman_error"] > 0.5 and t["families"]["play"] == 0
+    assert np.isclose(t["families"]["expert"], np.mean([0.4, 0.1, 0.4]))
+
+
+@pytest.mark.filterwarnings("ignore:All-NaN slice")  # a tiny model draws no T to fit
+def test_open_loop_fidelity_and_the_codec_ceiling_on_a_tiny_model(tmp_path, one_thread):
+    """The yardstick's held-out play measure (the ablation table's) and the codec's ceiling
+    run on a tiny model; no quality asserted, only that each measure is there and in range."""
+    import numpy as np
+
+    from iwsim.errors import InputError
+    from iwsim.yardstick.codec import codec_ceiling, goal_frames, reconstruction_scores
+    from iwsim.yardstick.fidelity import STEPS, Episodes, score
+
+    data = tmp_path / "eval.zarr"
+    collect("pusht", "play", 2, out=data, steps=34, image_size=64, workers=1, seed=900000, progress=False)
+    wm = tiny_world_model()
+    ep = Episodes(str(data), 2)
+    assert ep.n == 2 and ep.img.shape[:2] == (2, ep.length) and ep.actions.shape[:2] == (2, ep.length)
+    with pytest.raises(InputError, match=f"at least {max(STEPS)} steps"):
+        score(wm, ep, max(STEPS) - 1)
+    r, (curve, first), frames = score(wm, ep, 32)
+    assert frames.shape == (2, 32, 64, 64, 3) and frames.dtype == np.uint8 and curve.shape == first.shape == (32,)
+    for key in ("t_found", "pusher_visible"):
+        assert 0 <= r[key] <= 1, key
+    assert r["action_gap_5"] > 0 and r["psnr_1_32"] > 0 and r["one_step"] >= 0 and r["copy_prev"] >= 0
+    assert {f"latent_err_{s}" for s in STEPS} <= set(r)
+    rec = reconstruction_scores(wm, ep.img[0, :3])
+    assert rec.shape == (3,) and ((0 <= rec) & (rec <= 1)).all()
+    assert goal_frames(data) is None or len(goal_frames(data))  # play rarely succeeds: None, or its success frames
+    assert codec_ceiling(wm, None) is None and 0 <= codec_ceiling(wm, ep.img[0, :2]) <= 1

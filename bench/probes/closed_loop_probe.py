@@ -1,6 +1,6 @@
 """Is a family's offset the model's dynamics or what the policy observes in it? (issue 41)
 
-For one operator family (``bench/families.py``) from its first states:
+For one operator family (:mod:`iwsim.yardstick.families`) from its first states:
 1. open loop: the motion MuJoCo executed in each episode (its speed-limited setpoints,
    what the model is conditioned on) replayed in the world model from the same first
    frame, scored beside MuJoCo (the dynamics alone);
@@ -17,21 +17,18 @@ For one operator family (``bench/families.py``) from its first states:
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import families  # noqa: E402  (bench/families.py)
-
-from iwsim.envs.pixels import pixel_iou, pusher_positions  # noqa: E402
-from iwsim.errors import reporting_errors  # noqa: E402
-from iwsim.eval.policy import rollout  # noqa: E402
-from iwsim.policies.factory import load_policy  # noqa: E402
-from iwsim.policies.scripted import ScriptedBatch  # noqa: E402
-from iwsim.world_model import WorldModel  # noqa: E402
+from iwsim.envs.pixels import pixel_iou, pusher_positions
+from iwsim.errors import reporting_errors
+from iwsim.eval.policy import rollout
+from iwsim.policies.factory import load_policy
+from iwsim.policies.scripted import ScriptedBatch
+from iwsim.world_model import WorldModel
+from iwsim.yardstick import families
 
 
 class Replay:

@@ -14,9 +14,9 @@ import time
 from pathlib import Path
 
 import torch
-from probe_scores import score_checkpoints
 from torch import nn
 
+from iwsim.eval.policy_runs import score_checkpoints
 from iwsim.policies import PRESETS
 from iwsim.policies.common import random_shift
 from iwsim.policies.data import parse_mixture
@@ -120,5 +120,7 @@ run = Path("runs/pol") / args.name
 t0 = time.time()
 trainer.train(task, cfg.train, run, task.config(), device=torch.device("cpu"), progress=False)
 print(f"trained in {(time.time() - t0) / 60:.1f} min", flush=True)
-score_checkpoints(task.module, run, args.name, [int(x) for x in args.eval_at.split(",") if x],
-                  out="proto_scores.jsonl")
+for step, r in score_checkpoints(task.module, run, [int(x) for x in args.eval_at.split(",") if x],
+                                 out="proto_scores.jsonl"):
+    print(f"{args.name} @{step}: mean max IoU {r['mean_max_iou']:.3f} success {r['success_rate']:.2f} "
+          f"({r['seconds']:.0f}s)", flush=True)

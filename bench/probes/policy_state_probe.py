@@ -20,17 +20,18 @@ train_scores.jsonl.
 import argparse
 import dataclasses
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import torch
-from probe_scores import score_checkpoints
 
 from iwsim.data.store import EpisodeStore
 from iwsim.envs import geometry as geo
 from iwsim.envs.pixels import estimate_block_pose
 from iwsim.envs.pusht import VIEW_HALF
 from iwsim.errors import reporting_errors
+from iwsim.eval.policy_runs import score_checkpoints
 from iwsim.policies import PRESETS
 from iwsim.policies.data import parse_mixture
 from iwsim.policies.diffusion.model import DiffusionPolicy
@@ -118,11 +119,19 @@ def main() -> None:
     trainer.train(task, cfg.train, run, task.config(), device=torch.device("cpu"), progress=False)
     print(f"trained in {(time.time() - t0) / 60:.1f} min", flush=True)
     steps = [int(x) for x in args.eval_at.split(",") if x]
-    score_checkpoints(task.module, run, args.name, steps, args.episodes)
+    report(args.name, score_checkpoints(task.module, run, steps, args.episodes))
     if args.on_train:
         src = parse_mixture(args.data)[0]
         seeds = EpisodeStore.open(src.path).attrs["seeds"][:min(src.episodes or 20, 20)]
-        score_checkpoints(task.module, run, f"{args.name} (own takes)", steps, out="train_scores.jsonl", seeds=seeds)
+        report(f"{args.name} (own takes)", score_checkpoints(task.module, run, steps, out="train_scores.jsonl",
+                                                             seeds=seeds))
+
+
+def report(name: str, scores: Iterator[tuple[int, dict]]) -> None:
+    """One line per checkpoint, as each is scored."""
+    for step, r in scores:
+        print(f"{name} @{step}: mean max IoU {r['mean_max_iou']:.3f} success {r['success_rate']:.2f} "
+              f"({r['seconds']:.0f}s)", flush=True)
 
 
 if __name__ == "__main__":

@@ -11,19 +11,15 @@ driven in MuJoCo.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import families  # noqa: E402  (bench/families.py)
-
-from iwsim.data.store import EpisodeStore  # noqa: E402
-from iwsim.errors import reporting_errors  # noqa: E402
-from iwsim.eval.policy import rollout  # noqa: E402
-from iwsim.policies.factory import load_policy  # noqa: E402
+from iwsim.data.store import EpisodeStore
+from iwsim.errors import reporting_errors
+from iwsim.eval.policy import rollout
+from iwsim.policies.factory import load_policy
+from iwsim.yardstick import families
 
 QUANTILES = (0.5, 0.9, 0.99)
 

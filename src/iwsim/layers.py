@@ -27,9 +27,11 @@ LAYERS: list[tuple[str, ...]] = [
     ("iwsim.world_model", "iwsim.policies"),
     # 4. Gymnasium envs over a world model
     ("iwsim.world_model_env",),
-    # 5. what uses all of it (policy training, evaluation, play), the studies, then the command line
+    # 5. what uses all of it (policy training, evaluation, play), the studies, the yardstick's
+    #    measures (a model against MuJoCo, over the studies' machinery), then the command line
     ("iwsim.training", "iwsim.eval", "iwsim.play", "iwsim.demo"),
     ("iwsim.experiments",),
+    ("iwsim.yardstick",),
     ("iwsim.cli", "iwsim.commands"),
 ]
 
@@ -51,6 +53,11 @@ GROUND_TRUTH_TOOLING = {
     "iwsim.policies.scripted": "the tasks' scripted policies behind the policy interface, degraded as the tabletop's "
                                "(iwsim.envs.scripting.Degraded)",
     "iwsim.eval.profiling": "the yardstick's measures of T-push's objects (block pose, pushers)",
+    "iwsim.yardstick.families": "the idle and contact-then-rest measures fit T-push's block in MuJoCo's frames and the "
+                                "model's (estimate_block_pose, the view's size)",
+    "iwsim.yardstick.fidelity": "open-loop fidelity reads T-push's pushers and block off the decoded frames "
+                                "(pusher_peaks, estimate_block_pose, the view's size)",
+    "iwsim.yardstick.codec": "the codec's ceiling scores frames with T-push's pixel IoU",
 }
 
 # T-push's defaults (frame size, evaluation horizon, shipped checkpoint) live on its Task

@@ -1,7 +1,7 @@
 """Run the README's commands in order in a fresh clone: does every one run as written?
 
-    OMP_NUM_THREADS=1 python bench/readme_run.py --list
-    OMP_NUM_THREADS=1 python bench/readme_run.py --venv .venv [--first N] [--skip "make test"]
+    OMP_NUM_THREADS=1 python tests/tools/readme_run.py --list
+    OMP_NUM_THREADS=1 python tests/tools/readme_run.py --venv .venv [--first N] [--skip "make test"]
 
 The commands are those of README.md's fenced shell blocks (continuation lines joined,
 comments dropped, ``[...]`` groups without placeholders kept: ``[tuned=runs/x]`` runs, the
@@ -42,17 +42,15 @@ import shutil
 import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 import urllib.request
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "src"))
+from iwsim.errors import InputError, reporting_errors
 
-from iwsim.errors import InputError, reporting_errors  # noqa: E402
+REPO = Path(__file__).resolve().parents[2]
 
 SHELL_LANGS = ("bash", "sh", "shell", "console", "zsh")
 FENCE = re.compile(r"^(\s*)```\s*([\w+-]*)\s*$")

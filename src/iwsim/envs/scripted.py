@@ -500,7 +500,7 @@ class BroadPlayPolicy(PlayPolicy):
     strokes along a line through the block's neighbourhood), or, as :class:`PlayPolicy`,
     each pusher on its own poking the block or wandering (50%). A hand that overshoots
     and commands that execute late are left out on purpose: the yardstick holds those
-    families out of training (``bench/families.py``).
+    families out of training (:mod:`iwsim.yardstick.families`).
     """
 
     def reset(self, obs: dict, info: dict) -> None:

@@ -308,7 +308,7 @@ def disagreement(scores: np.ndarray, partner_scores: np.ndarray) -> dict[str, An
     for the same policy from the same first state, their mean, and the share of episodes
     above :data:`DISAGREE_WARN`. Two world models trained differently agree where the data
     pins the outcome down and part where it does not (measured on the yardstick:
-    ``bench/families.py``)."""
+    :mod:`iwsim.yardstick.families`)."""
     gap = np.abs(np.asarray(scores, np.float64) - np.asarray(partner_scores, np.float64))
     return {"per_episode": np.round(gap, 4).tolist(), "mean": float(gap.mean()),
             "above_warn": float((gap > DISAGREE_WARN).mean()), "warn": DISAGREE_WARN}

@@ -91,7 +91,7 @@ from iwsim.world_model_env import score_key
 
 log = logging.getLogger(__name__)
 
-PUSHT = STUDY  # the studies' default task (bench/yardstick.py reads this name)
+PUSHT = STUDY  # the studies' default task (the yardstick reads this name: bench/yardstick.py, iwsim.yardstick.codec)
 # The store's policy and source: takes in the world model, or in a task's simulator.
 POLICY_NAMES = {WORLD_MODEL: "world-model-teleop", "simulator": "expert-pixels"}
 SOURCES = {WORLD_MODEL: "world_model", "simulator": "mujoco"}

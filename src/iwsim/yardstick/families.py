@@ -1,5 +1,7 @@
-"""The yardstick's generalisation part (issue 41): operator families scored in MuJoCo and in
-a world model from the same first states, and the idle measure.
+"""The yardstick's generalisation part: operator families scored in MuJoCo and in a world
+model from the same first states, the idle measure and contact-then-rest
+(``bench/yardstick.py``'s items 7 and 8; ``bench/pile_families.py`` runs the families on
+pile sweeping).
 
 A family is a kind of operator: the pixel expert, the expert through a human-like hand
 (:class:`iwsim.policies.scripted.Hand`: a slow lagging hand, a person's pauses, a tremor,
@@ -36,7 +38,7 @@ from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.policy_eval import mean_interval
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
-from iwsim.tasks import get_task
+from iwsim.tasks import DEFAULT_TASK, get_task
 from iwsim.world_model import WorldModel
 from iwsim.world_model_env import score_key
 
@@ -82,7 +84,7 @@ IDLE_STEPS = 50
 PUSH_STEPS, REST_STEPS, WITHDRAW_M = 40, 20, 0.08
 REST_SEED = 720000  # its first states (never used for training, the studies or the families)
 MOVED_PX, MOVED_DEG = 1.0, 5.0  # a block the push moved (in MuJoCo)
-CRISP = 0.9  # a T fits crisply (the codec's reconstructions of first frames fit ~0.92)
+CRISP = 0.9  # a T fits crisply: just below the shipped codec's reconstructions (bench/results/ablations.md)
 IN_PLACE_PX, IN_PLACE_DEG = 1.0, 5.0
 
 
@@ -107,7 +109,7 @@ def zoo_sources(zoo: list[str]) -> list[str]:
 
 
 def family_scores(model: str | None, work: Path, families: list[str], seeds: int, steps: int,
-                  zoo: list[str], jobs: int = 1, task: str = "pusht"
+                  zoo: list[str], jobs: int = 1, task: str = DEFAULT_TASK.kind
                   ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
     """Per family, the max score (T-push's IoU, ``task``'s score) of each episode (``seeds``
     of them) in ``task``'s MuJoCo (``model`` None) or in the world model ``model``, and (for
@@ -150,7 +152,7 @@ def compare(mujoco: dict[str, list[float]], model: dict[str, list[float]], seen:
     and MMRV over all (family, episode) pairs and over the unseen families' alone. With
     ``novelty`` (each episode's, per family): how well it ranks the episodes by their error
     |model - MuJoCo| (Spearman rho over all episodes), and each family's mean."""
-    rows = {}
+    rows: dict[str, dict[str, Any]] = {}
     for f in model:
         a, b = np.asarray(mujoco[f]), np.asarray(model[f])
         rows[f] = {"mujoco": float(a.mean()), "model": float(b.mean()), "offset": float((b - a).mean()),
@@ -242,6 +244,7 @@ class PushThenRest:
 
     def __init__(self, push: int = PUSH_STEPS, away: float = WITHDRAW_M) -> None:
         self.expert, self.push, self.away = ScriptedBatch("expert"), push, away
+        self.hold: np.ndarray | None = None  # the withdrawn pushers' setpoints (B, A), once the push is over
         self.reset()
 
     def reset(self) -> None:
@@ -282,7 +285,7 @@ class Replay:
 
 def contact_rest(model: str | None, work: Path, episodes: int, push: int = PUSH_STEPS,
                  rest: int = REST_STEPS) -> dict[str, Any]:
-    """Contact, then rest (issue 64): from ``episodes`` fresh starts the pixel expert pushes
+    """Contact, then rest: from ``episodes`` fresh starts the pixel expert pushes
     the block in MuJoCo for ``push`` steps, the pushers withdraw and rest (:class:`PushThenRest`);
     the model replays MuJoCo's commands from the same first frame. ``rest`` steps after the
     pushers stopped, over the episodes whose block the push moved (>= 1 px or 5 degrees in
