@@ -109,7 +109,7 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
 
     from iwsim.experiments.datagen import PRESETS, run_datagen
 
-    def numbers(flag: str, text: str | None, kind: type) -> tuple | None:
+    def given(flag: str, text: str | None, kind: type) -> tuple | None:
         return None if text is None else numbers(flag, text, kind)
 
     base = PRESETS[args.preset]
@@ -117,8 +117,8 @@ def _experiment_datagen(args: argparse.Namespace) -> int:
     report = "datagen" + ("-act" if args.preset == "act" else "")
     cfg, out = _study_config(
         args, PRESETS, report, policy=args.policy, episodes=args.episodes, steps=args.steps, total=args.total,
-        train_steps=args.train_steps, wm_fractions=numbers("--fractions", args.fractions, float),
-        sim_sizes=numbers("--sizes", args.sizes, int), wm_sizes=numbers("--wm-sizes", args.wm_sizes, int),
+        train_steps=args.train_steps, wm_fractions=given("--fractions", args.fractions, float),
+        sim_sizes=given("--sizes", args.sizes, int), wm_sizes=given("--wm-sizes", args.wm_sizes, int),
         recipe=dataclasses.replace(base.recipe, **{k: v for k, v in recipe.items() if v is not None}))
     run_datagen(cfg, out=out, work=args.work, preset=args.preset, jobs=args.jobs, progress=not args.no_progress)
     print(f"{out}/results.md")
