@@ -1,6 +1,8 @@
-"""The README's commands, snippets and the names its prose gives, checked without running
-anything expensive (``tests/tools/readme_run.py`` runs the commands, slowly). Each failure names
-its README line. The fenced shell blocks:
+"""The documentation's commands, snippets and the names its prose gives (README.md, then the
+pages of docs/ in the order of ``DOCUMENTS``, one reader's session: a page may read what an
+earlier one wrote), checked without running anything expensive
+(``tests/tools/readme_run.py`` runs the commands, slowly). Each failure names its file and
+line. The fenced shell blocks:
 
 - ``iwsim ...`` parses with the real parser (``iwsim.cli.build_parser``; parsing runs no
   handler), every flag spelled out (argparse would take an abbreviation, which a new flag
@@ -54,6 +56,7 @@ import importlib.util
 import io
 import json
 import logging
+import os
 import re
 from pathlib import Path
 from types import ModuleType
@@ -61,7 +64,7 @@ from unittest import mock
 
 import pytest
 
-from tests.tools.readme_run import FENCE, PLACEHOLDER, Command, Snippet, readme_items
+from tests.tools.readme_run import DOCUMENTS, FENCE, PLACEHOLDER, Command, Snippet, documentation_items, readme_items
 from tests.tools.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -267,7 +270,7 @@ class Paths:
 
 def check_command(cmd: Command, paths: Paths) -> list[str]:
     words = cmd.words
-    where = f"README.md:{cmd.line}: {' '.join(words)}"
+    where = f"{cmd.source}:{cmd.line}: {' '.join(words)}"
     if words[0] == "make":
         return [f"{where}: no Makefile target {t!r}" for t in words[1:] if not t.startswith("-")
                 and "=" not in t and t not in make_targets()]
@@ -336,13 +339,13 @@ def _chain(node: ast.AST) -> list[str] | None:
 
 def check_snippet(snippet: Snippet, bound: dict[str, ModuleType | object], paths: Paths) -> list[str]:
     def where(node: ast.AST) -> str:
-        return f"README.md:{snippet.line + getattr(node, 'lineno', 1) - 1}"
+        return f"{snippet.source}:{snippet.line + getattr(node, 'lineno', 1) - 1}"
 
     try:
         tree = ast.parse(snippet.code)
-        compile(tree, str(README), "exec")
+        compile(tree, snippet.source, "exec")
     except SyntaxError as e:
-        return [f"README.md:{snippet.line + (e.lineno or 1) - 1}: the Python snippet does not compile: {e.msg}"]
+        return [f"{snippet.source}:{snippet.line + (e.lineno or 1) - 1}: the Python snippet does not compile: {e.msg}"]
     problems = []
     for node in ast.walk(tree):  # imports first: they bind the names the chains below start from
         if isinstance(node, ast.Import):
@@ -399,7 +402,7 @@ def check_snippet(snippet: Snippet, bound: dict[str, ModuleType | object], paths
 @functools.cache
 def readme_problems() -> tuple[str, ...]:
     paths, bound, problems = Paths(), {}, []
-    for item in readme_items(README):
+    for item in documentation_items(ROOT):
         if isinstance(item, Command):
             problems += check_command(item, paths)
         else:
@@ -457,10 +460,12 @@ def flag_problems(parser: argparse.ArgumentParser, name: str, tokens: list[str],
                        if t.startswith("--") and t.split("=")[0] not in known]
 
 
-def prose_problems(text: str) -> list[str]:
+def prose_problems(text: str, source: str = "README.md") -> list[str]:
+    """What the prose of ``text`` (the file ``source``, relative to the repository) names
+    that does not exist; its relative links are relative to its folder."""
     problems = []
     for line, span in prose_spans(text):
-        where = f"README.md:{line}: `{' '.join(span.split())}`"
+        where = f"{source}:{line}: `{' '.join(span.split())}`"
         m = re.search(r"(?:^|\s|/)iwsim(?:\.cli)?\s+(.*)$", span, re.S)
         if m:
             problems += flag_problems(iwsim_parser(), "iwsim", m.group(1).split(), where)
@@ -479,19 +484,33 @@ def prose_problems(text: str) -> list[str]:
             if not committed("src/" + path if path.startswith("iwsim/") else path):
                 problems.append(f"{where}: no {path} in the repository")
     for m in re.finditer(r"\]\(([^)\s#]+)[^)]*\)", text):
-        if "://" not in m.group(1) and not committed(m.group(1)):
-            problems.append(f"README.md:{text.count(chr(10), 0, m.start()) + 1}: the link to {m.group(1)} is broken")
+        if "://" in m.group(1):
+            continue
+        target = os.path.normpath(Path(source).parent / m.group(1))
+        if target.startswith("..") or not committed(target):
+            problems.append(f"{source}:{text.count(chr(10), 0, m.start()) + 1}: the link to {m.group(1)} is broken")
     return problems
 
 
-def test_readme_prose_names_what_exists():
-    problems = prose_problems(README.read_text())
+@pytest.mark.parametrize("doc", DOCUMENTS)
+def test_documentation_prose_names_what_exists(doc):
+    problems = prose_problems((ROOT / doc).read_text(), doc)
     assert not problems, "\n" + "\n".join(problems)
+
+
+def test_the_readme_is_a_few_screens_and_links_every_page():
+    """The README says what iwsim is and links the pages that say the rest; a page of docs/
+    that the README does not link (or DOCUMENTS does not list) is read by nobody."""
+    text = README.read_text()
+    assert len(text.splitlines()) <= 300
+    pages = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").glob("*.md"))
+    assert sorted(DOCUMENTS[1:]) == pages
+    assert [p for p in pages if f"]({p}" not in text] == []
 
 
 def test_readme_has_what_the_checks_look_for():
     """A parser that found nothing would pass everything."""
-    items = readme_items(README)
+    items = documentation_items(ROOT)
     words = [i.words for i in items if isinstance(i, Command)]
     assert sum(w[0] == "iwsim" for w in words) > 20 and ("make", "demo") in words
     assert any(w[:2] == ("python", "bench/yardstick.py") for w in words)

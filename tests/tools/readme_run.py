@@ -1,9 +1,10 @@
-"""Run the README's commands in order in a fresh clone: does every one run as written?
+"""Run the documentation's commands in order in a fresh clone: does every one run as written?
 
     OMP_NUM_THREADS=1 python tests/tools/readme_run.py --list
     OMP_NUM_THREADS=1 python tests/tools/readme_run.py --venv .venv [--first N] [--skip "make test"]
 
-The commands are those of README.md's fenced shell blocks (continuation lines joined,
+The commands are those of the fenced shell blocks of README.md, then of the pages of docs/
+in the order of ``DOCUMENTS`` (continuation lines joined,
 comments dropped, ``[...]`` groups without placeholders kept: ``[tuned=runs/x]`` runs, the
 ``[--flag N]`` lists in comments do not). They run one after another in a clone of this
 repository (``git clone`` of the checkout this script sits in: what is committed, not what
@@ -20,7 +21,7 @@ made (``SUBSTITUTE``). The Python snippets are fragments (they use frames and ac
 they do not define); ``tests/test_readme.py`` compiles them and checks their imports and
 paths, and checks every command's flags, without running anything.
 
-One line per command: PASS / FAIL, seconds, its README line and the command as run; a
+One line per command: PASS / FAIL, seconds, its file and line and the command as run; a
 failure prints the end of its log (kept under the clone's ``readme_logs/``) and stops the
 run (``--keep-going`` goes on). Exit status 1 when any command failed. ``--venv DIR``
 skips the installation ``make`` would do: ``.venv/bin/python`` and ``.venv/bin/iwsim`` of
@@ -82,6 +83,7 @@ class Command:
     commented: tuple[tuple[str, ...], ...] = ()
     alternatives: tuple[str, ...] = ()
     background: bool = False
+    source: str = "README.md"  # the file it is in, relative to the repository
 
     @property
     def words(self) -> tuple[str, ...]:
@@ -107,6 +109,7 @@ class Snippet:
 
     line: int
     code: str
+    source: str = "README.md"
 
 
 @dataclass(frozen=True)
@@ -232,15 +235,28 @@ def shell_commands(block: Block) -> list[Command]:
     return commands
 
 
-def readme_items(path: Path) -> list[Command | Snippet]:
-    """The README's shell commands and Python snippets, in the order they appear."""
+def readme_items(path: Path, source: str | None = None) -> list[Command | Snippet]:
+    """A markdown file's shell commands and Python snippets, in the order they appear;
+    ``source``: the file's name in their reports (default: its name)."""
+    source = source or path.name
     items: list[Command | Snippet] = []
     for block in fenced_blocks(path.read_text()):
         if block.lang in SHELL_LANGS:
-            items += shell_commands(block)
+            items += [replace(c, source=source) for c in shell_commands(block)]
         elif block.lang == "python" and block.lines:
-            items.append(Snippet(block.lines[0][0], "\n".join(text for _, text in block.lines) + "\n"))
+            items.append(Snippet(block.lines[0][0], "\n".join(text for _, text in block.lines) + "\n", source))
     return items
+
+
+# The documentation, in the order a reader runs it: the README, then the pages it links. A
+# page's commands may read what an earlier page's wrote (the data page's stores, say).
+DOCUMENTS = ("README.md", "docs/tasks.md", "docs/data.md", "docs/training.md", "docs/play.md", "docs/policies.md",
+             "docs/own-robot.md", "docs/benchmarks.md", "docs/studies.md", "docs/yardstick.md", "docs/layout.md")
+
+
+def documentation_items(root: Path = REPO) -> list[Command | Snippet]:
+    """The commands and snippets of every file of :data:`DOCUMENTS`, in that order."""
+    return [item for doc in DOCUMENTS for item in readme_items(root / doc, doc)]
 
 
 # -- shrinking ---------------------------------------------------------------------------------
@@ -541,11 +557,11 @@ def listing(items: list[Command | Snippet], skip: list[str]) -> list[str]:
         elif is_play(cmd):
             note = "  (served on a free port; page loaded" + (", two takes recorded" if "--record-to" in cmd.argv
                                                           else "") + ", then stopped)"
-        lines.append(f"README:{cmd.line:<5d} {cmd.text}{note}")
+        lines.append(f"{cmd.source}:{cmd.line:<5d} {cmd.text}{note}")
         if describe(small) != describe(replace(cmd, argv=cmd.with_optional())):
             lines.append(f"{'':12s}-> {describe(small)}")
     snippets = [i for i in items if isinstance(i, Snippet)]
-    lines.append(f"({len(snippets)} Python snippets, README lines {', '.join(str(s.line) for s in snippets)}: "
+    lines.append(f"({len(snippets)} Python snippets, at {', '.join(f'{s.source}:{s.line}' for s in snippets)}: "
                  "fragments, not run; tests/test_readme.py compiles them)")
     return lines
 
@@ -565,7 +581,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     if args.list:
-        print("\n".join(listing(readme_items(REPO / "README.md"), args.skip)))
+        print("\n".join(listing(documentation_items(), args.skip)))
         return 0
     from tqdm import tqdm
 
@@ -573,17 +589,17 @@ def main(argv: list[str] | None = None) -> int:
     root = work / "iwsim"
     (work / "iwsim-token").write_text(secrets.token_urlsafe(16) + "\n")
     prepare(root, args.copy, args.venv)
-    commands = [i for i in readme_items(root / "README.md") if isinstance(i, Command)][:args.first]
+    commands = [i for i in documentation_items(root) if isinstance(i, Command)][:args.first]
     # PYTHONPATH is the wrappers' business: an inherited one would run another checkout's sources
     run = Run(root, work, {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, args.timeout)
     print(f"{'clone' if not args.copy else 'copy'} of {REPO} in {root}", flush=True)
     failed = 0
     pending: list[tuple[Command, subprocess.Popen, str, float]] = []  # background jobs (`... &`)
-    bar = tqdm(total=len(commands), desc="README", unit="cmd", disable=None)  # no bar when not a terminal
+    bar = tqdm(total=len(commands), desc="docs", unit="cmd", disable=None)  # no bar when not a terminal
 
     def report(cmd: Command, passed: bool, log: str, seconds: float) -> None:
         nonlocal failed
-        bar.write(f"{'PASS' if passed else 'FAIL'}  {seconds:6.1f}s  README:{cmd.line:<5d} {describe(cmd)}")
+        bar.write(f"{'PASS' if passed else 'FAIL'}  {seconds:6.1f}s  {cmd.source}:{cmd.line:<5d} {describe(cmd)}")
         if not passed:
             failed += 1
             tail = Path(log).read_text().splitlines()[-15:]
@@ -604,7 +620,7 @@ def main(argv: list[str] | None = None) -> int:
         for i, cmd in enumerate(commands):
             small = shrink(cmd, str(work))
             if any(_matches(cmd.words, s) for s in args.skip):
-                bar.write(f"SKIP  {'':>7s}  README:{cmd.line:<5d} {describe(small)}")
+                bar.write(f"SKIP  {'':>7s}  {cmd.source}:{cmd.line:<5d} {describe(small)}")
             elif small.background:
                 pending.append((small, *start_background(small, run, i), time.perf_counter()))
             else:
