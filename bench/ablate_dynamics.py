@@ -32,8 +32,8 @@ import numpy as np
 import torch
 
 from iwsim import WorldModel
-from iwsim.checkpoint import resolve_checkpoint, write_text_atomic
-from iwsim.errors import InputError, reporting_errors
+from iwsim.core.checkpoint import resolve_checkpoint, write_text_atomic
+from iwsim.core.errors import InputError, reporting_errors
 from iwsim.eval.records import command_line, with_command
 from iwsim.world_model.presets import DYNAMICS_PRESETS, variant
 from iwsim.world_model.train_dynamics import train_dynamics

@@ -20,15 +20,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from iwsim.checkpoint import resolve_checkpoint
+from iwsim.core.checkpoint import resolve_checkpoint
+from iwsim.core.errors import reporting_errors
+from iwsim.core.metrics import psnr, ssim
 from iwsim.data.frames import FrameSource, to_model, to_uint8
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import reporting_errors
 from iwsim.eval.profiling import latency_ms
 from iwsim.eval.records import command_line, with_command
-from iwsim.metrics import psnr, ssim
-from iwsim.world_model.codec import Codec, reconstruct
 from iwsim.world_model.codecs import load_codec
+from iwsim.world_model.codecs.base import Codec, reconstruct
 
 RESULTS = Path(__file__).parent / "results"
 

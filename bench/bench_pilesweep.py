@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
 from iwsim.eval.records import command_line, with_command
 
 RESULTS = Path(__file__).parent / "results"
@@ -42,8 +42,8 @@ DEGRADED = {"noise 5 mm": {"noise": 0.005}, "noise 10 mm": {"noise": 0.01}, "noi
 
 def stress(seeds: int, segments: int) -> dict:
     """Pushers driven at their speed limit through the pile, into walls and corners."""
-    from iwsim.envs.pilesweep import PIECE_RADIUS, PileSweepEnv
-    from iwsim.envs.tabletop import PUSHER_RADIUS, WALL_INNER, WORKSPACE
+    from iwsim.envs.pilesweep.sim import PIECE_RADIUS, PileSweepEnv
+    from iwsim.envs.tabletop.scene import PUSHER_RADIUS, WALL_INNER, WORKSPACE
 
     fastest = lift = wall = overlap = pusher = 0.0
     steps, t0 = 0, time.perf_counter()
@@ -82,7 +82,7 @@ def stress(seeds: int, segments: int) -> dict:
 def episodes(policy: object, seeds: range, steps: int, keep_every: int = 0) -> dict:
     """Scores of ``policy`` (a name or a factory of a seed) over ``seeds``; with
     ``keep_every``, every so many frames with their exact counts."""
-    from iwsim.envs.pilesweep_scripted import run_scripted
+    from iwsim.envs.pilesweep.scripted import run_scripted
 
     final, best, frames, counts = [], [], [], []
     t0, n = time.perf_counter(), 0
@@ -110,9 +110,9 @@ def scorer_errors(frames: np.ndarray, counts: np.ndarray) -> dict:
     """The pixel scorer's errors against MuJoCo's counts, and two simpler estimators'."""
     from scipy import ndimage
 
-    from iwsim.envs.palette import pixel_centers
-    from iwsim.envs.pilesweep import in_tray
-    from iwsim.envs.pilesweep_pixels import MIN_FRACTION, count_pieces, piece_area, piece_fraction
+    from iwsim.envs.pilesweep.pixels import MIN_FRACTION, count_pieces, piece_area, piece_fraction
+    from iwsim.envs.pilesweep.sim import in_tray
+    from iwsim.envs.tabletop.palette import pixel_centers
 
     t0 = time.perf_counter()
     inside, seen = count_pieces(frames)
@@ -143,7 +143,7 @@ def scorer_errors(frames: np.ndarray, counts: np.ndarray) -> dict:
 
 
 def collect_throughput(episodes: int) -> dict:
-    from iwsim.data.collect import collect
+    from iwsim.envs.collect import collect
 
     with tempfile.TemporaryDirectory() as tmp:
         stats = collect("pilesweep", "play", episodes, out=Path(tmp) / "play.zarr", steps=200, image_size=64,
@@ -157,7 +157,7 @@ def strip(seed: int, steps: int, every: int, path: Path) -> None:
     """An expert episode as one row of frames (every ``every`` steps, 3x enlarged)."""
     import imageio.v3 as iio
 
-    from iwsim.envs.pilesweep_scripted import run_scripted
+    from iwsim.envs.pilesweep.scripted import run_scripted
 
     frames = []
     for t, tr in enumerate(run_scripted("expert", seed, steps)):
@@ -178,7 +178,7 @@ def main() -> None:
     n = 3 if args.quick else args.seeds
     seeds = range(HELD_OUT, HELD_OUT + n)
     args.out.mkdir(parents=True, exist_ok=True)
-    from iwsim.envs.pilesweep_scripted import degraded_expert
+    from iwsim.envs.pilesweep.scripted import degraded_expert
 
     results: dict = {"machine": f"{platform.processor() or platform.machine()}", "python": sys.version.split()[0],
                      "quick": args.quick}

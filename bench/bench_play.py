@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
 from iwsim.eval.records import command_line
 from iwsim.play.client import Server, client, summary
 

@@ -30,16 +30,16 @@ from pathlib import Path
 
 import numpy as np
 
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
+from iwsim.envs.registry import get_task
 from iwsim.eval.policy import evaluate, summarize
 from iwsim.eval.policy_runs import training_minutes
 from iwsim.eval.records import command_line
 from iwsim.policies.factory import load_policy
-from iwsim.tasks import get_task
 
 
 def _expert_episode(seed_steps: tuple[int, int]) -> float:
-    from iwsim.envs.scripted import record_episode
+    from iwsim.envs.pusht.scripted import record_episode
 
     seed, steps = seed_steps
     return float(np.max(record_episode("pusht", "expert", seed, steps)["iou"]))

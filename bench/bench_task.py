@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
 from iwsim.eval.records import command_line, with_command
 
 RESULTS = Path(__file__).parent / "results"
@@ -32,9 +32,9 @@ EVAL_SEEDS = range(100000, 100050)  # Diffusion Policy's evaluation-seed convent
 
 
 def scorer_errors(n_states: int) -> dict:
-    from iwsim.envs import geometry as geo
-    from iwsim.envs import pixels
-    from iwsim.envs.pusht import GOAL_POSE, BimanualPushTEnv
+    from iwsim.envs.pusht import geometry as geo
+    from iwsim.envs.pusht import pixels
+    from iwsim.envs.pusht.sim import GOAL_POSE, BimanualPushTEnv
 
     env = BimanualPushTEnv(64)
     rng = np.random.default_rng(0)
@@ -74,7 +74,7 @@ def scorer_errors(n_states: int) -> dict:
 
 
 def _expert_episode(job: tuple[int, str, int]) -> list[float]:
-    from iwsim.envs.scripted import ExpertPolicy, run_scripted
+    from iwsim.envs.pusht.scripted import ExpertPolicy, run_scripted
 
     seed, source, steps = job
     return [tr.next_info["iou"] for tr in run_scripted(ExpertPolicy(pose_source=source), seed, steps)]
@@ -104,7 +104,7 @@ def expert_scores(seeds: range, steps: int, workers: int) -> dict:
 
 
 def collect_throughput(episodes: int) -> dict:
-    from iwsim.data.collect import collect
+    from iwsim.envs.collect import collect
 
     with tempfile.TemporaryDirectory() as tmp:
         stats = collect("pusht", "play", episodes, out=Path(tmp) / "play.zarr", steps=200, image_size=64,

@@ -14,10 +14,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from iwsim.envs import pixels
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
+from iwsim.core.resources import set_threads
+from iwsim.envs.pusht import pixels
 from iwsim.experiments.demos import PUSHT
-from iwsim.resources import set_threads
 from iwsim.world_model import WorldModel
 from iwsim.yardstick.codec import goal_frames, reconstruction_scores
 

@@ -4,7 +4,7 @@
         --data data/pile_play_eval.zarr data/pile_expert_eval.zarr --out bench/results/pilesweep/codec.md
 
 Each codec (a stage-1 run, or a world model's codec) encodes and decodes every ``--every``-th
-frame of the stores; the pixel scorer (:mod:`iwsim.envs.pilesweep_pixels`) then counts the
+frame of the stores; the pixel scorer (:mod:`iwsim.envs.pilesweep.pixels`) then counts the
 pieces on the reconstruction and on the original. Printed per codec and store: PSNR, the
 share of frames whose reconstruction shows the original's number of pieces within +-1
 (the world-model target's "pieces kept"), the mean absolute error of the pieces seen and of
@@ -20,16 +20,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from iwsim.checkpoint import resolve_checkpoint
+from iwsim.core.checkpoint import resolve_checkpoint
+from iwsim.core.errors import reporting_errors
+from iwsim.core.metrics import psnr
+from iwsim.core.resources import set_threads
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.pilesweep_pixels import count_pieces
-from iwsim.errors import reporting_errors
+from iwsim.envs.pilesweep.pixels import count_pieces
 from iwsim.eval.records import command_line
-from iwsim.metrics import psnr
-from iwsim.resources import set_threads
-from iwsim.world_model.codec import reconstruct
 from iwsim.world_model.codecs import load_codec
+from iwsim.world_model.codecs.base import reconstruct
 
 
 def held_frames(path: Path, every: int) -> np.ndarray:

@@ -37,16 +37,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
-from iwsim.envs.pilesweep_pixels import count_pieces, piece_fraction
-from iwsim.errors import InputError, check_positive, reporting_errors
+from iwsim.core.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
+from iwsim.core.errors import InputError, check_positive, reporting_errors
+from iwsim.core.resources import set_threads
+from iwsim.envs.pilesweep.pixels import count_pieces, piece_fraction
+from iwsim.envs.registry import get_task
 from iwsim.eval.policy import check_model_task, rollout
 from iwsim.eval.records import command_line, with_command
 from iwsim.eval.rollout import frame_scores
 from iwsim.experiments.common import fingerprint
 from iwsim.policies.scripted import ScriptedBatch
-from iwsim.resources import set_threads
-from iwsim.tasks import get_task
 from iwsim.world_model import WorldModel
 from iwsim.yardstick import families as fam
 

@@ -8,7 +8,7 @@ by default, over the task's horizon H (200 steps):
 1. Held-out play (``--data``, never trained on): ``--episodes`` episodes open loop from
    their first frame under the recorded executed actions (:func:`iwsim.eval.rollout.open_loop`).
    Pieces kept: the share of frames whose visible piece count (the pixel scorer,
-   :func:`~iwsim.envs.pilesweep_pixels.count_pieces`) is within one of the first frame's;
+   :func:`~iwsim.envs.pilesweep.pixels.count_pieces`) is within one of the first frame's;
    PSNR over steps 1-H. Beside them, repeating the first frame (it keeps every piece
    trivially, which is why it is shown) and MuJoCo's own frames (the scorer's miscounts).
 2. The expert's recorded actions (``--expert-data``), open loop for H steps: the tray count
@@ -35,10 +35,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
+from iwsim.core.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
+from iwsim.core.errors import InputError, check_positive, reporting_errors
+from iwsim.core.resources import set_threads
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.pilesweep_pixels import count_pieces
-from iwsim.errors import InputError, check_positive, reporting_errors
+from iwsim.envs.pilesweep.pixels import count_pieces
+from iwsim.envs.registry import get_task, task_from_store
 from iwsim.eval.policy import WORLD_MODEL, check_model_task
 from iwsim.eval.profiling import speed
 from iwsim.eval.ranking import agreement
@@ -47,10 +49,8 @@ from iwsim.eval.rollout import frame_scores, open_loop
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.policy_eval import PolicyEvalConfig
 from iwsim.policies.scripted import ScriptedConfig
-from iwsim.resources import set_threads
-from iwsim.tasks import get_task, task_from_store
 from iwsim.world_model import WorldModel
-from iwsim.world_model_env import score_key
+from iwsim.world_model.env import score_key
 
 TASK = get_task("pilesweep")
 STUDY = PolicyEvalConfig(task=TASK.kind)  # its scripted zoo and seeds are the ranking's

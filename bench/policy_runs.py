@@ -28,17 +28,17 @@ from pathlib import Path
 
 import torch
 
-from iwsim.checkpoint import load_json, write_json_atomic
-from iwsim.config import from_dict, to_dict
+from iwsim.core.checkpoint import load_json, write_json_atomic
+from iwsim.core.config import from_dict, to_dict
+from iwsim.core.errors import reporting_errors
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout, summarize
 from iwsim.eval.policy_runs import TEST_SEED, VAL_SEED, eval_path
 from iwsim.experiments.common import checkpoints
 from iwsim.policies import POLICIES, PRESETS, PolicyStageConfig
 from iwsim.policies.data import parse_mixture
 from iwsim.policies.factory import load_policy
-from iwsim.training.policy import train_policy
+from iwsim.policies.train import train_policy
 
 
 def _value(text: str):

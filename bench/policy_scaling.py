@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from iwsim.checkpoint import load_json, write_text_atomic
-from iwsim.errors import reporting_errors
+from iwsim.core.checkpoint import load_json, write_text_atomic
+from iwsim.core.errors import reporting_errors
 from iwsim.eval.figures import pyplot, save_figure
 from iwsim.eval.policy_runs import eval_path, training_minutes
 from iwsim.eval.records import command_line

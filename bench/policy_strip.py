@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
 from iwsim.eval.policy import rollout
 from iwsim.policies.factory import load_policy
 
@@ -23,7 +23,7 @@ SEEDS = (200001, 200002, 200005, 200007, 200013, 200003)  # validation seeds, fa
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("checkpoint")
-    p.add_argument("--start", default="random", help="MuJoCo's initial states (iwsim.envs.pusht.STARTS)")
+    p.add_argument("--start", default="random", help="MuJoCo's initial states (iwsim.envs.pusht.sim.STARTS)")
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--every", type=int, default=25)
     p.add_argument("--out", required=True)

@@ -29,11 +29,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from iwsim.checkpoint import named_checkpoints, write_json_atomic, write_text_atomic
+from iwsim.core.checkpoint import named_checkpoints, write_json_atomic, write_text_atomic
+from iwsim.core.errors import IwsimError, one_line
 from iwsim.data.store import EpisodeStore, StoreError
-from iwsim.errors import IwsimError, one_line
 from iwsim.world_model import WorldModel
-from iwsim.world_model_env import WorldModelVectorEnv, predicts_agent_pos
+from iwsim.world_model.env import WorldModelVectorEnv, predicts_agent_pos
 
 
 def episodes_of(path: str, steps: int) -> dict[str, np.ndarray]:

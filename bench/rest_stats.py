@@ -18,9 +18,9 @@ import numpy as np
 import torch
 from safetensors.torch import load_file
 
-from iwsim.checkpoint import load_json
+from iwsim.core.checkpoint import load_json
+from iwsim.core.errors import reporting_errors
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import reporting_errors
 
 
 def main() -> None:

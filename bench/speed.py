@@ -26,7 +26,7 @@ The steps (shapes as the shipped models and presets run them):
 Modes: ``fp32`` (float32, the standard layout), ``bf16`` (bf16 autocast, the standard
 layout: the trainer's ``--bf16`` before issue 63), ``bf16-cl`` (bf16 autocast with
 channels-last activations) and ``fast``: what iwsim itself runs on this machine
-(:mod:`iwsim.precision`; the trainer's path for a training step under ``--bf16``,
+(:mod:`iwsim.core.precision`; the trainer's path for a training step under ``--bf16``,
 ``WorldModel.bf16`` at inference; the policies run float32, where bf16 did not pay) and
 ``fast+compile`` (a training step with ``--compile``). Each row: the median time per step, its
 FLOPs (``torch.utils.flop_counter``: convolutions, matrix products and attention, forward
@@ -51,8 +51,8 @@ from torch.profiler import ProfilerActivity, profile
 from torch.utils.flop_counter import FlopCounterMode
 from tqdm import tqdm
 
-from iwsim.checkpoint import load_json, write_json_atomic, write_text_atomic
-from iwsim.config import from_dict
+from iwsim.core.checkpoint import load_json, write_json_atomic, write_text_atomic
+from iwsim.core.config import from_dict
 from iwsim.eval.profiling import latency_ms
 from iwsim.eval.records import command_line
 from iwsim.policies.common import PolicyBatch
@@ -168,11 +168,11 @@ COMPILE = False  # set by build() for the "fast+compile" mode
 
 
 def train_step(module: nn.Module, batch: object, bf16: bool, cl: bool, fast: bool) -> Step:
-    """forward, backward, gradient clipping and AdamW, as :mod:`iwsim.training.trainer` does."""
+    """forward, backward, gradient clipping and AdamW, as :mod:`iwsim.core.trainer` does."""
     ctx: Callable[[], contextlib.AbstractContextManager]
     if fast:
-        from iwsim.precision import Precision, bf16_available
-        from iwsim.training.trainer import compile_networks, training_precision
+        from iwsim.core.precision import Precision, bf16_available
+        from iwsim.core.trainer import compile_networks, training_precision
 
         precision = training_precision(torch.device("cpu"), bf16_available(torch.device("cpu")))
         ctx = lambda: precision.autocast(torch.device("cpu"))  # noqa: E731
@@ -287,8 +287,8 @@ def build(name: str, mode: str) -> Step:
 
 def fast_path(name: str) -> tuple[bool, bool]:
     """(bf16, channels_last) of what iwsim runs for step ``name`` on this machine."""
-    from iwsim.precision import bf16_available
-    from iwsim.training.trainer import training_precision
+    from iwsim.core.precision import bf16_available
+    from iwsim.core.trainer import training_precision
     from iwsim.world_model.model import inference_precision
 
     cpu = torch.device("cpu")
@@ -404,7 +404,7 @@ def main() -> None:
         step()
         print(f"{args.time} {args.mode}: {latency_ms(step, args.repeat, warmup=1):.1f} ms")
         return
-    from iwsim.precision import cpu_info
+    from iwsim.core.precision import cpu_info
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -13,10 +13,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
+from iwsim.core.resources import set_threads
 from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch
-from iwsim.resources import set_threads
 from iwsim.yardstick.studies import strip
 
 

@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
+from iwsim.core.resources import set_threads
 from iwsim.eval.ranking import agreement
 from iwsim.eval.records import command_line
 from iwsim.experiments.common import evaluate_policies
 from iwsim.experiments.policy_eval import PolicyEvalConfig
-from iwsim.resources import set_threads
 from iwsim.yardstick.studies import TELEOP_SEED, strip, teleop
 
 

@@ -53,8 +53,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from iwsim.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
-from iwsim.errors import InputError, check_positive, reporting_errors
+from iwsim.core.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
+from iwsim.core.errors import InputError, check_positive, reporting_errors
+from iwsim.core.resources import set_threads
 from iwsim.eval.policy import check_model_task
 from iwsim.eval.profiling import speed, stability
 from iwsim.eval.ranking import agreement
@@ -62,7 +63,6 @@ from iwsim.eval.records import command_line, with_command
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.demos import PUSHT
 from iwsim.experiments.policy_eval import PolicyEvalConfig
-from iwsim.resources import set_threads
 from iwsim.world_model import WorldModel
 from iwsim.yardstick import families as fam
 from iwsim.yardstick.codec import codec_ceiling, goal_frames

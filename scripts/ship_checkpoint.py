@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from iwsim.checkpoint import write_json_atomic
-from iwsim.errors import reporting_errors
+from iwsim.core.checkpoint import write_json_atomic
+from iwsim.core.errors import reporting_errors
 from iwsim.eval.benchmark import training_info
 from iwsim.eval.rollout import against_mujoco
 from iwsim.world_model import WorldModel

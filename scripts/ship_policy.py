@@ -19,12 +19,12 @@ from pathlib import Path
 
 import torch
 
-from iwsim.checkpoint import load_model_dir, save_model_dir
-from iwsim.errors import reporting_errors
+from iwsim.core.checkpoint import load_model_dir, save_model_dir
+from iwsim.core.errors import reporting_errors
+from iwsim.envs.registry import DEFAULT_TASK
 from iwsim.eval.policy import rollout, summarize
 from iwsim.eval.policy_runs import TEST_SEED  # bench/policy_runs.py's and iwsim eval policy's
 from iwsim.policies.factory import KIND, load_policy
-from iwsim.tasks import DEFAULT_TASK
 
 SMALL = 4096  # tensors with fewer elements stay float32
 

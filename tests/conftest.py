@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from iwsim.data.collect import collect
+from iwsim.envs.collect import collect
 
 # Files whose every test is end to end (a demo run, the shipped checkpoint against MuJoCo).
 SLOW_FILES = ("test_demo.py", "test_shipped_checkpoint.py")

@@ -8,8 +8,8 @@ from pathlib import Path
 import torch.distributed as dist
 from safetensors.torch import save_file
 
-from iwsim.config import to_dict
-from iwsim.training import trainer
+from iwsim.core import trainer
+from iwsim.core.config import to_dict
 from iwsim.world_model.presets import AE_PRESETS
 from iwsim.world_model.train_codec import AETask
 

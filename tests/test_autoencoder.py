@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from iwsim.config import from_dict, to_dict
+from iwsim.core.config import from_dict, to_dict
+from iwsim.core.metrics import psnr, ssim
 from iwsim.data.frames import to_model, to_uint8
-from iwsim.metrics import psnr, ssim
-from iwsim.world_model.autoencoder import Autoencoder
-from iwsim.world_model.autoencoder_net import DecoderUNet, Encoder
-from iwsim.world_model.codec import Codec
+from iwsim.world_model.codecs.base import Codec
+from iwsim.world_model.codecs.consistency import Autoencoder
+from iwsim.world_model.codecs.consistency_net import DecoderUNet, Encoder
 from iwsim.world_model.presets import AE_PRESETS, AEConfig
 
 

@@ -11,10 +11,10 @@ import torch
 from safetensors.torch import save_file
 
 from iwsim.cli import main
+from iwsim.core.metrics import mse, psnr, ssim, uiqi
 from iwsim.eval import features as ft
 from iwsim.eval import report
 from iwsim.eval import scores as sc
-from iwsim.metrics import mse, psnr, ssim, uiqi
 from tests.test_dynamics import tiny_world_model
 from tests.test_features import _random_state
 

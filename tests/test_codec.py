@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from iwsim.checkpoint import load_json, load_tensors, save_model_dir
 from iwsim.cli import main
-from iwsim.config import to_dict
-from iwsim.errors import InputError
+from iwsim.core.checkpoint import load_json, load_tensors, save_model_dir
+from iwsim.core.config import to_dict
+from iwsim.core.errors import InputError
 from iwsim.world_model import Codec, WorldModel
 from iwsim.world_model.codecs import build_codec, kind_of, load_codec
 from iwsim.world_model.presets import AE_PRESETS

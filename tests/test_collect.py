@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from iwsim.cli import main
-from iwsim.data.collect import collect, store_attrs
-from iwsim.data.lock import LOCK_NAME, is_locked
+from iwsim.core.lock import LOCK_NAME, is_locked
 from iwsim.data.store import EpisodeStore, StoreLockedError
-from iwsim.envs.scripted import record_episode
+from iwsim.envs.collect import collect, store_attrs
+from iwsim.envs.pusht.scripted import record_episode
 from iwsim.eval.policy import recorder
 from iwsim.policies.factory import load_policy
 

@@ -3,7 +3,7 @@ import json
 import imageio.v2 as imageio
 
 from iwsim.cli import main
-from iwsim.envs.pilesweep_task import PileSweepTask
+from iwsim.envs.pilesweep.task import PileSweepTask
 from tests.test_shipped_checkpoint import SHIPPED
 
 

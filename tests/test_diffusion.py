@@ -2,7 +2,7 @@ import torch
 
 from iwsim.diffusion.consistency import JumpModel, jump_levels, sample_jumps, sample_levels, two_jump_loss
 from iwsim.diffusion.schedule import NOISE_CLIP, Schedule, gaussian
-from iwsim.world_model.autoencoder_net import DecoderConfig, DecoderUNet, Encoder, EncoderConfig
+from iwsim.world_model.codecs.consistency_net import DecoderConfig, DecoderUNet, Encoder, EncoderConfig
 
 
 def random_net(x, t, s, cond):

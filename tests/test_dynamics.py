@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from iwsim.core.errors import InputError
 from iwsim.diffusion.edm import training_sigmas
-from iwsim.errors import InputError
 from iwsim.world_model import WorldModel
-from iwsim.world_model.autoencoder import Autoencoder
+from iwsim.world_model.codecs.consistency import Autoencoder
 from iwsim.world_model.dynamics import Dynamics, DynamicsConfig, blobs, widen_window
 from iwsim.world_model.dynamics_data import DynBatch
 from iwsim.world_model.presets import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant

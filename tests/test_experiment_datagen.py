@@ -13,11 +13,12 @@ import torch
 import zarr
 
 from iwsim.cli import main
-from iwsim.data.collect import store_attrs
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.geometry import wrap_angle
-from iwsim.envs.pixels import estimate_block_pose
-from iwsim.envs.pusht import GOAL_POSE
+from iwsim.envs.collect import store_attrs
+from iwsim.envs.pusht.geometry import wrap_angle
+from iwsim.envs.pusht.pixels import estimate_block_pose
+from iwsim.envs.pusht.sim import GOAL_POSE
+from iwsim.envs.registry import get_task
 from iwsim.eval.policy import rollout, seed_sampling
 from iwsim.experiments.common import fingerprint
 from iwsim.experiments.datagen import PRESETS, DatagenConfig, command, demo_paths, plan
@@ -27,7 +28,6 @@ from iwsim.experiments.policy_eval import command as policy_eval_command
 from iwsim.play.engine import EPISODE_KEYS
 from iwsim.policies.factory import checkpoint_dir, load_policy
 from iwsim.policies.scripted import ScriptedBatch
-from iwsim.tasks import get_task
 from tests.test_dynamics import tiny_world_model
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -272,7 +272,7 @@ def test_tiny_study_end_to_end(wm_path, tmp_path):
 @pytest.mark.parametrize("study", ["datagen", "policy-eval"])
 def test_a_second_study_on_a_work_directory_in_use_is_refused(wm_path, tmp_path, capsys, study):
     """Issue 26: two studies on one --work trained the same run directories at once."""
-    from iwsim.data.lock import DirLock
+    from iwsim.core.lock import DirLock
 
     work = tmp_path / "work"
     work.mkdir()

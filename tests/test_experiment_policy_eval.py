@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from iwsim.cli import main
-from iwsim.data.collect import collect
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.pilesweep_task import PileSweepTask
+from iwsim.envs.collect import collect
+from iwsim.envs.pilesweep.task import PileSweepTask
 from iwsim.eval.policy import make_vector_env
 from iwsim.eval.ranking import mmrv, pearson, spearman
 from iwsim.experiments.policy_eval import PRESETS, PolicyEvalConfig, _demos, mean_interval

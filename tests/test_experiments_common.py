@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 from iwsim.experiments.common import PolicyRun, checkpoints, evaluate_policies, train_runs
 from iwsim.policies.scripted import ScriptedConfig
 
@@ -112,11 +112,11 @@ def test_stores_policies_and_models_are_known_by_content_not_path(play_store, tm
 def test_a_study_on_another_task_has_its_horizon_its_directories_and_its_policies(tmp_path):
     """Issue 45: the presets are written for T-push; on pile sweeping a study evaluates over
     its horizon, keeps apart from T-push's work, and its scripted policies are its own."""
+    from iwsim.envs.registry import get_task
     from iwsim.experiments.common import STUDY, on_task, study_dir, study_task
     from iwsim.experiments.datagen import PRESETS as DATAGEN
     from iwsim.experiments.policy_eval import PRESETS as POLICY_EVAL
     from iwsim.policies.scripted import ScriptedBatch
-    from iwsim.tasks import get_task
 
     pile = get_task("pilesweep")
     for presets in (DATAGEN, POLICY_EVAL):

@@ -11,8 +11,8 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from iwsim.checkpoint import CheckpointError
-from iwsim.errors import IwsimError
+from iwsim.core.checkpoint import CheckpointError
+from iwsim.core.errors import IwsimError
 from iwsim.eval import features as ft
 
 

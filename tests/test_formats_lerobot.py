@@ -14,10 +14,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from iwsim.cli import main
+from iwsim.core.lock import DirLock
 from iwsim.data.formats import FormatError, export, import_, validate
 from iwsim.data.formats.lerobot import QUANTILES, PathTemplate, read_v3
 from iwsim.data.formats.video import probe, write_episode_video
-from iwsim.data.lock import DirLock
 from iwsim.data.store import EpisodeStore
 
 FRAME_TOLERANCE = 4.0  # mean absolute error of a frame after H.264 in yuv420p (0..255)

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from iwsim.envs import geometry as geo
+from iwsim.envs.pusht import geometry as geo
 
 
 def test_t_parts_area_and_centroid():

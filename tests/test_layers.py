@@ -1,7 +1,7 @@
 """The layers run one way: every module of ``src/iwsim`` imports (at module or function
-level) only from its own layer or those below (``iwsim.layers.LAYERS``), and no imports
+level) only from its own layer or those below (``iwsim.core.layers.LAYERS``), and no imports
 form a cycle. A task's modules are imported only by ``envs/`` and the Task registry (and
-the ground-truth tooling, named in ``iwsim.layers.GROUND_TRUTH_TOOLING``)."""
+the ground-truth tooling, named in ``iwsim.core.layers.GROUND_TRUTH_TOOLING``)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from iwsim.layers import (
+from iwsim.core.layers import (
     GROUND_TRUTH_TOOLING,
     LAYERS,
     T_PUSH_DEFAULTS_SPELLED,
@@ -104,19 +104,19 @@ def test_scripted_policies_and_the_studies_reach_a_task_through_the_seam():
     (``Task.pixel_policy``, ``Task.ground_truth_env``, ``Task.score``), so that they run on
     any task with a ground truth: the scripted policies import only what every tabletop task
     shares (their degradations), and evaluation and the studies no task module at all."""
-    shared = ("iwsim.envs.scripting",)
+    shared = ("iwsim.envs.tabletop.scripting",)
     assert [d for d in GRAPH["iwsim.policies.scripted"] if within(d, TASK_MODULES) and d not in shared] == []
     seam_users = [m for m in GRAPH if within(m, ("iwsim.experiments", "iwsim.eval.policy"))]
     assert "iwsim.experiments.demos" in seam_users
     assert [f"{m} imports {d}" for m in seam_users for d in sorted(GRAPH[m]) if within(d, TASK_MODULES)] == []
 
 
-def test_the_store_layer_does_not_reach_the_task_registry():
-    """Issue 43: data/ imported tasks.py through collection; collection now sits above the
-    registry, and the rest of data/ stays below it."""
-    assert layer_of("iwsim.data.collect") > layer_of("iwsim.tasks") == layer_of("iwsim.data")
-    assert [m for m in GRAPH if within(m, ("iwsim.data",)) and not within(m, ("iwsim.data.collect",))
-            and any(within(d, ("iwsim.tasks", "iwsim.data.collect")) for d in GRAPH[m])] == []
+def test_the_store_layer_does_not_reach_the_tasks():
+    """Issue 43: data/ imported the task registry through collection; collection is the
+    tasks' own tool now (envs/), and data/ sits below every task."""
+    assert layer_of("iwsim.data") < layer_of("iwsim.envs.registry") == layer_of("iwsim.envs.collect")
+    assert [f"{m} imports {d}" for m in GRAPH if within(m, ("iwsim.data",))
+            for d in GRAPH[m] if within(d, ("iwsim.envs",))] == []
 
 
 def test_the_package_root_reaches_up_only_for_the_lazy_world_model():
@@ -157,7 +157,7 @@ def test_the_t_push_defaults_have_one_home():
     """Issue 43: the shipped checkpoint and the module-level T-push task are spelled only by
     T-push's own modules and the task registry (the list of the others only shrinks)."""
     spelled = {name for name in MODULES if spells_t_push_defaults(name)}
-    home = ("iwsim.tasks", *TASK_MODULES)
+    home = ("iwsim.envs.registry", *TASK_MODULES)
     assert sorted(m for m in spelled if not within(m, home) and m not in T_PUSH_DEFAULTS_SPELLED) == []
     assert sorted(m for m in T_PUSH_DEFAULTS_SPELLED if m not in spelled) == []
 
@@ -212,18 +212,20 @@ def test_t_push_literals_finds_each_form():
 
 def test_no_frame_size_or_task_defaults_to_t_push_outside_its_homes():
     """Issue 43: generic modules take a frame size from the task (``image_size=None``: the
-    task's own) or ``iwsim.tasks.DEFAULT_TASK``, never T-push's 64 pixels or "pusht"; only
+    task's own) or ``iwsim.envs.registry.DEFAULT_TASK``, never T-push's 64 pixels or "pusht"; only
     T-push's modules, the task registry and the presets (``config.py``, ``presets.py``) spell them."""
-    home = ("iwsim.tasks", *TASK_MODULES)
+    home = ("iwsim.envs.registry", *TASK_MODULES)
     found = {name: lines for name in MODULES if not within(name, home) and name.rpartition(".")[2] not in
              ("config", "presets") and (lines := t_push_literals(MODULES[name].read_text()))}
     assert found == {}
 
 
-@pytest.mark.parametrize("module, layer", [("iwsim.checkpoint", 0), ("iwsim.envs.scripted", 1),
-                                           ("iwsim.data.store", 2), ("iwsim.tasks", 2), ("iwsim.data.collect", 3),
-                                           ("iwsim.world_model", 4), ("iwsim.world_model_env", 5),
-                                           ("iwsim.cli", len(LAYERS) - 1)])
+@pytest.mark.parametrize("module, layer", [("iwsim.core.checkpoint", 0), ("iwsim.models.blocks", 0),
+                                           ("iwsim.data.store", 1), ("iwsim.envs.pusht.scripted", 2),
+                                           ("iwsim.envs.registry", 2), ("iwsim.envs.collect", 2),
+                                           ("iwsim.world_model", 3), ("iwsim.world_model.env", 3),
+                                           ("iwsim.policies.train", 3), ("iwsim.eval.demo", 4),
+                                           ("iwsim.cli", len(LAYERS) - 1), ("iwsim.commands.train", len(LAYERS) - 1)])
 def test_layer_of(module, layer):
     assert layer_of(module) == layer
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 from iwsim.eval.paired import paired_estimate, paired_rate, power_tuned_lambda
 
 

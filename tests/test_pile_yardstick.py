@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from iwsim.data.collect import collect
+from iwsim.envs.collect import collect
 from tests.test_dynamics import tiny_world_model
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 
 from iwsim.cli import main
+from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore
 from iwsim.envs import make_env
-from iwsim.envs.pilesweep import MAX_PIECES, PIECE_RADIUS, STATE_SIZE, TRAY, PileSweepEnv, in_tray
-from iwsim.envs.pilesweep_pixels import count_pieces, pieces_kept, tray_share
-from iwsim.envs.pilesweep_scripted import SweepExpert, degraded_expert, make_policy, record_episode, run_scripted
-from iwsim.envs.pilesweep_task import PileSweepTask
-from iwsim.envs.tabletop import WALL_INNER
-from iwsim.errors import InputError
-from iwsim.tasks import get_task, task_from_store
+from iwsim.envs.pilesweep.pixels import count_pieces, pieces_kept, tray_share
+from iwsim.envs.pilesweep.scripted import SweepExpert, degraded_expert, make_policy, record_episode, run_scripted
+from iwsim.envs.pilesweep.sim import MAX_PIECES, PIECE_RADIUS, STATE_SIZE, TRAY, PileSweepEnv, in_tray
+from iwsim.envs.pilesweep.task import PileSweepTask
+from iwsim.envs.registry import get_task, task_from_store
+from iwsim.envs.tabletop.scene import WALL_INNER
 
 
 @pytest.fixture(scope="module")

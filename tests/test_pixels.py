@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from iwsim.envs import geometry as geo
-from iwsim.envs import pixels
-from iwsim.envs.pusht import GOAL_POSE, PALETTE, BimanualPushTEnv
+from iwsim.envs.pusht import geometry as geo
+from iwsim.envs.pusht import pixels
+from iwsim.envs.pusht.sim import GOAL_POSE, PALETTE, BimanualPushTEnv
 
 
 @pytest.fixture(scope="module")

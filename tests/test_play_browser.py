@@ -213,9 +213,9 @@ def wide_world_model(store: Path, action_dim: int = 14):
 
     import torch
 
-    from iwsim.tasks import task_from_store
+    from iwsim.envs.registry import task_from_store
     from iwsim.world_model import WorldModel
-    from iwsim.world_model.autoencoder import Autoencoder
+    from iwsim.world_model.codecs.consistency import Autoencoder
     from iwsim.world_model.dynamics import Dynamics
     from iwsim.world_model.presets import AE_PRESETS
     from tests.test_dynamics import randomise, tiny_cfg

@@ -8,7 +8,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from iwsim.config import from_dict, to_dict
+from iwsim.core.config import from_dict, to_dict
 from iwsim.policies.act.config import ACTConfig
 from iwsim.policies.act.model import ACTPolicy, TemporalEnsemble
 from iwsim.policies.common import Normalizer, PolicyBatch

@@ -14,7 +14,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from iwsim.cli import build_parser, main
-from iwsim.config import TrainConfig
+from iwsim.core.config import TrainConfig
 from iwsim.policies import POLICIES, PRESETS, PolicyStageConfig, config_class, register_policy
 from iwsim.policies.common import Policy, PolicyBatch, prepare_obs
 from iwsim.policies.factory import load_policy

@@ -11,11 +11,11 @@ import pytest
 import torch
 from scipy import stats
 
-from iwsim.checkpoint import CheckpointError
 from iwsim.cli import main
-from iwsim.data.collect import collect
+from iwsim.core.checkpoint import CheckpointError
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.pilesweep_task import PileSweepTask
+from iwsim.envs.collect import collect
+from iwsim.envs.pilesweep.task import PileSweepTask
 from iwsim.eval.policy import evaluate, rollout
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.policies import PRESETS
@@ -311,7 +311,7 @@ def test_statistics_match_scipy(k, n):
 def test_a_policys_initial_weights_come_from_its_seed_not_the_global_rng(play_store, policy):
     """Issue 26: the initial weights came from the global RNG, so two runs of one study
     trained different policies."""
-    from iwsim.training.policy import PolicyTask
+    from iwsim.policies.train import PolicyTask
 
     cfg = PRESETS[policy]
     sources = [Source(play_store, None)]

@@ -10,11 +10,11 @@ import pytest
 import torch
 from torch.nn import functional as F
 
-from iwsim import precision
 from iwsim.cli import main
-from iwsim.errors import InputError
-from iwsim.precision import CpuInfo, Precision, bf16_available
-from iwsim.training.trainer import compile_networks, training_precision
+from iwsim.core import precision
+from iwsim.core.errors import InputError
+from iwsim.core.precision import CpuInfo, Precision, bf16_available
+from iwsim.core.trainer import compile_networks, training_precision
 from iwsim.world_model.dynamics import Dynamics, DynamicsConfig, SpatialAttention
 
 CPU = torch.device("cpu")
@@ -138,7 +138,7 @@ def test_fast_world_model_is_refused_without_bf16(no_bf16_cpu):
 def test_export_model_bf16_is_an_inference_setting(tmp_path, monkeypatch):
     """``export-model --bf16``: the checkpoint asks for bf16 inference (the weights
     unchanged); it runs so where the CPU has the instructions and in float32 elsewhere."""
-    from iwsim.checkpoint import load_json
+    from iwsim.core.checkpoint import load_json
     from iwsim.world_model import WorldModel
     from tests.test_dynamics import tiny_world_model
 

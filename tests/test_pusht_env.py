@@ -4,9 +4,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import iwsim  # noqa: F401  (registers the ids)
-from iwsim.envs import geometry as geo
-from iwsim.envs import pixels
-from iwsim.envs.pusht import GOAL_POSE, MAX_STEP, PUSHER_RADIUS, WORKSPACE, BimanualPushTEnv, limit_targets
+from iwsim.envs.pusht import geometry as geo
+from iwsim.envs.pusht import pixels
+from iwsim.envs.pusht.sim import GOAL_POSE, MAX_STEP, PUSHER_RADIUS, WORKSPACE, BimanualPushTEnv, limit_targets
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 from iwsim.eval.ranking import agreement, mmrv, pearson, rank_violations, spearman
 
 

@@ -179,7 +179,7 @@ def semantic_problems(words: tuple[str, ...], ns: argparse.Namespace) -> list[st
             problems.append(f"--preset {preset}: not one of {', '.join(presets)}")
     variants = getattr(ns, "variant", None) or getattr(ns, "variants", None)
     if variants:
-        from iwsim.errors import InputError
+        from iwsim.core.errors import InputError
         from iwsim.world_model.presets import DYNAMICS_PRESETS, variant
 
         for name in variants.split(","):

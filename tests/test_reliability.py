@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from iwsim.checkpoint import load_json
 from iwsim.cli import main
-from iwsim.resources import choose_threads
+from iwsim.core.checkpoint import load_json
+from iwsim.core.resources import choose_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_COLLECT = ["--task", "pusht", "--policy", "play", "--steps", "3", "--no-progress", "--workers", "1"]
@@ -293,7 +293,7 @@ def test_row14_a_lock_that_cannot_be_opened_is_one_error_only(tmp_path, monkeypa
     import gc
     import sys
 
-    from iwsim.data import lock as lockmod
+    from iwsim.core import lock as lockmod
     from iwsim.data.store import EpisodeStore, StoreError
 
     store = tmp_path / "s.zarr"
@@ -473,7 +473,7 @@ def _policy_args(store: Path, out: Path, *extra: str) -> list[str]:
 
 def test_row7_one_training_per_run_directory(play_store, tmp_path, capsys):
     """Issue 42 row 7: two trainings into one --out ran at once and mixed their checkpoints."""
-    from iwsim.data.lock import DirLock
+    from iwsim.core.lock import DirLock
 
     out = tmp_path / "pol"
     out.mkdir()
@@ -515,9 +515,9 @@ def test_row11_a_damaged_latent_cache_is_rebuilt_and_a_wrong_one_refused(play_st
     """Issue 42 row 11: a truncated cache gave a SafetensorError; a directory left a 1.3 MB temp."""
     import torch
 
-    from iwsim.config import to_dict
+    from iwsim.core.config import to_dict
+    from iwsim.core.errors import InputError
     from iwsim.data.store import EpisodeStore
-    from iwsim.errors import InputError
     from iwsim.world_model.codecs import build_codec
     from iwsim.world_model.dynamics_data import encode_store
     from iwsim.world_model.presets import AE_PRESETS
@@ -555,13 +555,13 @@ def test_row12_a_full_disk_while_training_is_one_line(play_store, tmp_path, caps
         raise safetensors.SafetensorError("Error while serializing: I/O error: No space left on device "
                                           "(os error 28)")
 
-    monkeypatch.setattr("iwsim.checkpoint.save_file", full)
+    monkeypatch.setattr("iwsim.core.checkpoint.save_file", full)
     assert main(_policy_args(play_store, out)) == 1
     line = error_line(capsys)
     assert "cannot write checkpoint 00000002" in line and os_strerror(errno.ENOSPC) in line, line
     assert "resumes from the start" in line
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == []  # no temporary left
-    monkeypatch.setattr("iwsim.checkpoint.save_file", real)
+    monkeypatch.setattr("iwsim.core.checkpoint.save_file", real)
     assert main(_policy_args(play_store, out)) == 0
 
 
@@ -575,8 +575,8 @@ def test_row13_a_config_of_another_shape_is_one_line(tmp_path, capsys):
     """Issue 42 row 13: provenance.data as a list (a policy's) gave a TypeError in task_from_config."""
     import json
 
-    from iwsim.errors import InputError
-    from iwsim.tasks import task_from_config
+    from iwsim.core.errors import InputError
+    from iwsim.envs.registry import task_from_config
 
     low, high = [-0.2] * 4, [0.2] * 4
     config = {"kind": "world_model", "action_norm": {"low": low, "high": high},
@@ -818,7 +818,7 @@ def test_probe_a_latent_cache_shorter_than_its_hashes_is_rebuilt(play_store, tmp
     from safetensors import safe_open
     from safetensors.torch import save_file
 
-    from iwsim.config import to_dict
+    from iwsim.core.config import to_dict
     from iwsim.data.store import EpisodeStore
     from iwsim.world_model.codecs import build_codec
     from iwsim.world_model.dynamics_data import encode_store
@@ -867,7 +867,7 @@ def test_a_model_with_non_finite_weights_is_refused_in_one_line(tmp_path, capsys
     scores); every command that loads a model now names the broken tensor."""
     from safetensors.torch import load_file, save_file
 
-    from iwsim.checkpoint import CheckpointError
+    from iwsim.core.checkpoint import CheckpointError
     from iwsim.policies.factory import load_policy
     from iwsim.world_model import WorldModel
     from tests.test_dynamics import tiny_world_model
@@ -1028,7 +1028,7 @@ def test_row2_a_model_whose_finite_weights_overflow_is_refused_at_its_first_step
     written."""
     from safetensors.torch import load_file, save_file
 
-    from iwsim.checkpoint import CheckpointError
+    from iwsim.core.checkpoint import CheckpointError
     from iwsim.eval.policy import rollout
     from iwsim.world_model import WorldModel
     from tests.test_dynamics import tiny_world_model
@@ -1087,7 +1087,7 @@ def test_collect_runs_a_learned_policy_on_its_own_task(tmp_path, capsys):
     was refused in eval's words ("evaluate it on 'pilesweep'"); it now collects on its own
     task, and a --task naming another is refused in collect's words."""
     from iwsim.data.store import EpisodeStore
-    from iwsim.tasks import task_from_store
+    from iwsim.envs.registry import task_from_store
 
     pile = tmp_path / "pile.zarr"
     assert main(["collect", "--task", "pilesweep", "--policy", "play", "--episodes", "1", "--steps", "4",

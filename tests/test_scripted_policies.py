@@ -2,8 +2,7 @@ import numpy as np
 import pytest
 
 from iwsim.envs import POLICIES
-from iwsim.envs.pusht import MAX_STEP, BimanualPushTEnv
-from iwsim.envs.scripted import (
+from iwsim.envs.pusht.scripted import (
     CLEARANCE,
     PAUSE_STEPS,
     PRE_GRIP_X,
@@ -16,6 +15,7 @@ from iwsim.envs.scripted import (
     run_scripted,
     wide_pinch,
 )
+from iwsim.envs.pusht.sim import MAX_STEP, BimanualPushTEnv
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
 
 
@@ -228,7 +228,7 @@ def test_the_imprecise_expert_carries_blind_by_dead_reckoning(blind):
     """Once pinched, a blind carry's actions no longer depend on where the block is."""
     import copy
 
-    from iwsim.envs.scripted import ImpreciseExpertPolicy
+    from iwsim.envs.pusht.scripted import ImpreciseExpertPolicy
 
     env = BimanualPushTEnv(64)
     seed = next(s for s in range(100) if _drawn_blind(s) == blind)
@@ -247,7 +247,7 @@ def test_the_imprecise_expert_carries_blind_by_dead_reckoning(blind):
 
 
 def _drawn_blind(seed: int) -> bool:
-    from iwsim.envs.scripted import ImpreciseExpertPolicy
+    from iwsim.envs.pusht.scripted import ImpreciseExpertPolicy
 
     p = ImpreciseExpertPolicy(seed)
     p.reset({"agent_pos": np.zeros(4, np.float32)}, {})

@@ -23,7 +23,7 @@ def test_shipped_checkpoint_is_complete_and_small():
 
 
 def test_the_shipped_checkpoint_is_found_from_any_working_directory(tmp_path, monkeypatch):
-    from iwsim.checkpoint import CheckpointError, resolve_checkpoint
+    from iwsim.core.checkpoint import CheckpointError, resolve_checkpoint
 
     monkeypatch.chdir(tmp_path)
     assert resolve_checkpoint("checkpoints/pusht-64") == SHIPPED
@@ -87,7 +87,7 @@ PILE = SHIPPED.parent / "pilesweep-64"
 
 
 def test_the_shipped_pile_model_is_complete_small_and_the_tasks_default():
-    from iwsim.tasks import get_task
+    from iwsim.envs.registry import get_task
 
     files = {p.name for p in PILE.iterdir()}
     assert {"model.safetensors", "config.json", "metrics.json", "README.md", "recipe.sh"} <= files

@@ -17,11 +17,11 @@ import torch
 from test_dynamics import batch_for, randomise, tiny_cfg
 
 from iwsim.cli import main
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 from iwsim.world_model import StreamState, WorldModel
 from iwsim.world_model.dynamics import Dynamics, add_state
+from iwsim.world_model.env import WorldModelVectorEnv, predicts_agent_pos
 from iwsim.world_model.train_dynamics import DynamicsTrainModule
-from iwsim.world_model_env import WorldModelVectorEnv, predicts_agent_pos
 
 
 def test_the_state_head_learns_where_the_pushers_go(one_thread):

@@ -255,8 +255,8 @@ def test_open_not_a_store(tmp_path: Path, kind: str, mode: str) -> None:
 
 
 def test_merge_concatenates_stores_and_refuses_mismatches(tmp_path: Path) -> None:
+    from iwsim.core.errors import InputError
     from iwsim.data.formats import merge
-    from iwsim.errors import InputError
 
     def make(name: str, episodes: range, **attrs) -> Path:
         store = EpisodeStore.create(tmp_path / name, {"task": "pusht", "fps": 10, "image_size": 16, **attrs})

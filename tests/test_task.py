@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 
 from iwsim.cli import main
+from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.pusht import limit_targets
-from iwsim.envs.pusht_task import PushTTask
+from iwsim.envs.pusht.sim import limit_targets
+from iwsim.envs.pusht.task import PushTTask
+from iwsim.envs.registry import DatasetTask, get_task, task_from_config, task_from_dict, task_from_store, task_of
 from iwsim.envs.task import Bindings, Task
-from iwsim.errors import InputError
 from iwsim.play import protocol as proto
 from iwsim.play.engine import Engine, PlayConfig
-from iwsim.tasks import DatasetTask, get_task, task_from_config, task_from_dict, task_from_store, task_of
 from iwsim.world_model import WorldModel
-from iwsim.world_model_env import WorldModelEnv, WorldModelVectorEnv
+from iwsim.world_model.env import WorldModelEnv, WorldModelVectorEnv
 from tests.conftest import render_point
 from tests.test_dynamics import tiny_world_model
 

@@ -9,13 +9,13 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from iwsim.checkpoint import CheckpointError, last_checkpoint
 from iwsim.cli import main
-from iwsim.config import TrainConfig, to_dict
-from iwsim.data.collect import collect
+from iwsim.core import trainer
+from iwsim.core.checkpoint import CheckpointError, last_checkpoint
+from iwsim.core.config import TrainConfig, to_dict
+from iwsim.core.precision import bf16_available
 from iwsim.data.store import StoreError
-from iwsim.precision import bf16_available
-from iwsim.training import trainer
+from iwsim.envs.collect import collect
 from iwsim.world_model.codecs import load_codec
 from iwsim.world_model.presets import AE_PRESETS
 from iwsim.world_model.train_codec import AETask, train_autoencoder
@@ -311,9 +311,9 @@ def test_bf16_autocast_on_the_cpu_trains_reproducibly(play_store, tmp_path, one_
 def test_a_run_from_before_the_task_entry_resumes(tmp_path):
     """Configs gained a "task" entry (issue 24); runs started before it resume, and a
     real difference is still refused."""
-    from iwsim.checkpoint import load_json, write_json_atomic
-    from iwsim.errors import InputError
-    from iwsim.training.trainer import prepare_run_dir
+    from iwsim.core.checkpoint import load_json, write_json_atomic
+    from iwsim.core.errors import InputError
+    from iwsim.core.trainer import prepare_run_dir
 
     old = {"kind": "world_model", "train": {"steps": 10, "lr": 1e-3}}
     write_json_atomic(tmp_path / "config.json", old)
@@ -369,8 +369,8 @@ def test_the_latent_cache_serves_a_store_that_extends_its_own(play_store, tmp_pa
 def test_a_world_model_run_started_before_a_new_config_field_resumes(play_store, tmp_path, one_thread):
     """A stage's config that gains a field resumes the runs started before it (their
     defaults are what they trained with); a field that really changed is still refused."""
-    from iwsim.checkpoint import load_json, write_json_atomic
-    from iwsim.errors import InputError
+    from iwsim.core.checkpoint import load_json, write_json_atomic
+    from iwsim.core.errors import InputError
     from iwsim.world_model.model import complete_run_config
     from iwsim.world_model.presets import DYNAMICS_PRESETS
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from iwsim.cli import main
-from iwsim.errors import InputError
-from iwsim.training.wip import restore_wip, save_wip
+from iwsim.core.errors import InputError
+from iwsim.core.wip import restore_wip, save_wip
 from iwsim.world_model.train_codec import train_autoencoder
 from tests.test_training import assert_same, state, tiny
 
@@ -50,7 +50,7 @@ def test_a_dynamics_run_resumes_from_latents_encoded_on_another_cpu(play_store, 
     a different config)."""
     from safetensors import safe_open
 
-    from iwsim.checkpoint import save_tensors
+    from iwsim.core.checkpoint import save_tensors
     from iwsim.world_model import WorldModel
 
     ae, run, cache = tmp_path / "ae", tmp_path / "dyn", tmp_path / "latents.safetensors"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from iwsim.checkpoint import CheckpointError, load_tensors, save_model_dir
+from iwsim.core.checkpoint import CheckpointError, load_tensors, save_model_dir
 from iwsim.data.frames import to_uint8
 from iwsim.world_model import StreamState, WorldModel
 from iwsim.world_model.presets import VARIANTS

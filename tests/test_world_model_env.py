@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 
 from iwsim.cli import main
 from iwsim.world_model import WorldModel
-from iwsim.world_model_env import WorldModelEnv, WorldModelVectorEnv
+from iwsim.world_model.env import WorldModelEnv, WorldModelVectorEnv
 from tests.test_dynamics import tiny_world_model
 
 

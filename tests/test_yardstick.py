@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from iwsim.data.collect import collect
+from iwsim.envs.collect import collect
 from iwsim.yardstick.families import FAMILIES
 from tests.test_dynamics import tiny_world_model
 from tests.tools.scripts import load_script
@@ -188,7 +188,7 @@ def test_open_loop_fidelity_and_the_codec_ceiling_on_a_tiny_model(tmp_path, one_
     run on a tiny model; no quality asserted, only that each measure is there and in range."""
     import numpy as np
 
-    from iwsim.errors import InputError
+    from iwsim.core.errors import InputError
     from iwsim.yardstick.codec import codec_ceiling, goal_frames, reconstruction_scores
     from iwsim.yardstick.fidelity import STEPS, Episodes, score
 

@@ -13,7 +13,7 @@ import torch
 
 from iwsim.policies import PRESETS
 from iwsim.policies.data import parse_mixture
-from iwsim.training.policy import train_policy
+from iwsim.policies.train import train_policy
 
 
 def main() -> None:

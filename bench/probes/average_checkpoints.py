@@ -20,8 +20,8 @@ from pathlib import Path
 
 import torch
 
-from iwsim.checkpoint import load_json, load_tensors, save_model_dir
-from iwsim.errors import reporting_errors
+from iwsim.core.checkpoint import load_json, load_tensors, save_model_dir
+from iwsim.core.errors import reporting_errors
 from iwsim.experiments.common import checkpoints
 
 

@@ -22,7 +22,7 @@ import argparse
 import numpy as np
 import torch
 
-from iwsim.errors import InputError, reporting_errors
+from iwsim.core.errors import InputError, reporting_errors
 from iwsim.policies.data import PolicyData, parse_mixture
 from iwsim.policies.factory import load_policy
 

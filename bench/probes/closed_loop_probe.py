@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from iwsim.envs.pixels import pixel_iou, pusher_positions
-from iwsim.errors import reporting_errors
+from iwsim.core.errors import reporting_errors
+from iwsim.envs.pusht.pixels import pixel_iou, pusher_positions
 from iwsim.eval.policy import rollout
 from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch

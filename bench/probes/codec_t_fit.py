@@ -1,6 +1,6 @@
 """A probe of issue 64 (not a feature): how crisply does a codec render the T? Frames of a
 held-out store (every 20th of each episode), encoded and decoded by each codec; the T's
-outline fit (``iwsim.envs.pixels.estimate_block_pose``) on the reconstructions against the
+outline fit (``iwsim.envs.pusht.pixels.estimate_block_pose``) on the reconstructions against the
 frames' own, and the share that still fits crisply (>= 0.9, the yardstick's CRISP). It
 bounds what a world model on that codec can show after contact.
 
@@ -12,10 +12,10 @@ import argparse
 import numpy as np
 import torch
 
-from iwsim.checkpoint import resolve_checkpoint
+from iwsim.core.checkpoint import resolve_checkpoint
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.data.store import EpisodeStore
-from iwsim.envs import pixels
+from iwsim.envs.pusht import pixels
 from iwsim.world_model.codecs import load_codec
 
 p = argparse.ArgumentParser()

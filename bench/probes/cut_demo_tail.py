@@ -9,8 +9,8 @@ import argparse
 
 import numpy as np
 
+from iwsim.core.errors import reporting_errors
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import reporting_errors
 
 
 def main() -> None:

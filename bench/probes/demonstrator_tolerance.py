@@ -1,5 +1,5 @@
 """Which T-push demonstrator tolerates the errors an imitation policy makes (issue 44, "The
-demonstrator")? Each expert of :data:`iwsim.envs.scripted.EXPERTS` (``expert``, the precise
+demonstrator")? Each expert of :data:`iwsim.envs.pusht.scripted.EXPERTS` (``expert``, the precise
 pinch; ``expert-wide``, the forgiving one) drives MuJoCo from pixels (the block pose
 estimated from the 64 px frame, as ``ScriptedBatch`` and the demonstrations do), on held-out
 seeds 600000 + i x 300 steps, clean and under imitation-like perturbations:
@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from iwsim.envs.geometry import to_world
-from iwsim.envs.pusht import GOAL_POSE, SUCCESS_IOU, WORKSPACE, BimanualPushTEnv
-from iwsim.envs.scripted import EXPERTS, ExpertPolicy, Pinch
-from iwsim.errors import InputError, reporting_errors
+from iwsim.core.errors import InputError, reporting_errors
+from iwsim.envs.pusht.geometry import to_world
+from iwsim.envs.pusht.scripted import EXPERTS, ExpertPolicy, Pinch
+from iwsim.envs.pusht.sim import GOAL_POSE, SUCCESS_IOU, WORKSPACE, BimanualPushTEnv
 from iwsim.eval.records import command_line
 
 OUT = Path(__file__).resolve().parents[1] / "results" / "policies" / "demonstrators.md"

@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from iwsim.envs.pilesweep_pixels import count_pieces
+from iwsim.core.resources import set_threads
+from iwsim.envs.pilesweep.pixels import count_pieces
 from iwsim.eval.policy import rollout
 from iwsim.eval.ranking import agreement
 from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
-from iwsim.resources import set_threads
 from iwsim.world_model import WorldModel
 
 ENVS = ("pilesweep", "world-model")

@@ -11,11 +11,11 @@ import sys
 
 import torch
 
-from iwsim.envs.pilesweep_pixels import count_pieces
+from iwsim.core.resources import set_threads
+from iwsim.envs.pilesweep.pixels import count_pieces
 from iwsim.eval.policy import rollout
 from iwsim.policies.factory import load_policy
 from iwsim.policies.scripted import KINDS, ScriptedBatch
-from iwsim.resources import set_threads
 from iwsim.world_model import WorldModel
 
 SEEDS = list(range(100000, 100006))

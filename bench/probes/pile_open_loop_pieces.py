@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from iwsim.data.store import EpisodeStore
-from iwsim.envs.palette import pixel_centers
-from iwsim.envs.pilesweep_pixels import count_pieces, piece_fraction
+from iwsim.envs.pilesweep.pixels import count_pieces, piece_fraction
+from iwsim.envs.tabletop.palette import pixel_centers
 from iwsim.eval.rollout import open_loop
 from iwsim.world_model import WorldModel
 

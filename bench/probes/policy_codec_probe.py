@@ -16,14 +16,14 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from iwsim.core import trainer
 from iwsim.eval.policy_runs import score_checkpoints
 from iwsim.policies import PRESETS
 from iwsim.policies.common import random_shift
 from iwsim.policies.data import parse_mixture
 from iwsim.policies.diffusion.config import DiffusionConfig
 from iwsim.policies.diffusion.model import DiffusionPolicy
-from iwsim.training import trainer
-from iwsim.training.policy import PolicyTask
+from iwsim.policies.train import PolicyTask
 from iwsim.world_model.model import WorldModel
 
 p = argparse.ArgumentParser()

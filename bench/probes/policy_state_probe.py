@@ -26,17 +26,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from iwsim.core import trainer
+from iwsim.core.errors import reporting_errors
 from iwsim.data.store import EpisodeStore
-from iwsim.envs import geometry as geo
-from iwsim.envs.pixels import estimate_block_pose
-from iwsim.envs.pusht import VIEW_HALF
-from iwsim.errors import reporting_errors
+from iwsim.envs.pusht import geometry as geo
+from iwsim.envs.pusht.pixels import estimate_block_pose
+from iwsim.envs.pusht.sim import VIEW_HALF
 from iwsim.eval.policy_runs import score_checkpoints
 from iwsim.policies import PRESETS
 from iwsim.policies.data import parse_mixture
 from iwsim.policies.diffusion.model import DiffusionPolicy
-from iwsim.training import trainer
-from iwsim.training.policy import PolicyTask
+from iwsim.policies.train import PolicyTask
 
 CORNERS = np.concatenate(geo.T_PARTS)  # (8, 2): the T's corners in the block frame
 FEATURES = {"pose": 4, "keypoints": 16}

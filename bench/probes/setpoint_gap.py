@@ -15,8 +15,8 @@ import argparse
 import numpy as np
 import torch
 
+from iwsim.core.errors import reporting_errors
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import reporting_errors
 from iwsim.eval.policy import rollout
 from iwsim.policies.factory import load_policy
 from iwsim.yardstick import families

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 import iwsim  # noqa: F401  (registers the environments)
-from iwsim.checkpoint import named_checkpoints
+from iwsim.core.checkpoint import named_checkpoints
 from iwsim.eval.profiling import speed
 from iwsim.world_model import WorldModel
 

@@ -9,8 +9,8 @@ import os
 import sys
 from collections.abc import Sequence
 
-from iwsim.errors import reporting_errors
-from iwsim.resources import set_threads
+from iwsim.core.errors import reporting_errors
+from iwsim.core.resources import set_threads
 
 
 def build_parser() -> argparse.ArgumentParser:

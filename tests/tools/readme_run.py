@@ -49,7 +49,7 @@ import urllib.request
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from iwsim.errors import InputError, reporting_errors
+from iwsim.core.errors import InputError, reporting_errors
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from iwsim.commands.common import check_frames_memory
-from iwsim.errors import InputError, check_positive
+from iwsim.core.errors import InputError, check_positive
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,9 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _rollout(args: argparse.Namespace) -> int:
+    from iwsim.core.trainer import resolve_device
     from iwsim.data.store import EpisodeStore
     from iwsim.eval.rollout import open_loop, write_side_by_side
-    from iwsim.training.trainer import resolve_device
     from iwsim.world_model import WorldModel
 
     if not str(args.out).endswith(".mp4"):
@@ -69,9 +69,9 @@ def _rollout(args: argparse.Namespace) -> int:
 def _bench(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from iwsim.core.trainer import resolve_device
     from iwsim.eval.benchmark import run_benchmark
     from iwsim.eval.records import command_line
-    from iwsim.training.trainer import resolve_device
 
     models = {args.name: args.checkpoint}
     for item in filter(None, (x.strip() for x in args.baselines.split(","))):

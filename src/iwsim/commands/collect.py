@@ -7,11 +7,11 @@ import argparse
 from typing import Any
 
 from iwsim.commands.common import check_frames_memory, numbers, wait_for_lock_flag
+from iwsim.core.errors import InputError
+from iwsim.core.resources import available_cores
 from iwsim.envs import IMAGE_SIZES, POLICIES, TASKS
-from iwsim.errors import InputError
-from iwsim.resources import available_cores
-from iwsim.tasks import DEFAULT_TASK as TASK
-from iwsim.tasks import REGISTRY as TASK_REGISTRY
+from iwsim.envs.registry import DEFAULT_TASK as TASK
+from iwsim.envs.registry import REGISTRY as TASK_REGISTRY
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -89,15 +89,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _collect(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from iwsim.data.collect import collect
     from iwsim.envs import POLICIES
-    from iwsim.tasks import DEFAULT_TASK
+    from iwsim.envs.collect import collect
+    from iwsim.envs.registry import DEFAULT_TASK
 
     recorder, policy = None, args.policy
     if policy not in POLICIES.get(args.task or DEFAULT_TASK.kind, ()) and Path(policy).is_dir():  # a learned policy
+        from iwsim.envs.registry import REGISTRY
         from iwsim.eval.policy import recorder as learned
         from iwsim.policies.factory import load_policy
-        from iwsim.tasks import REGISTRY
 
         if args.out is None:
             raise InputError("collecting a learned policy's episodes needs --out STORE.")
@@ -131,9 +131,9 @@ def _collect(args: argparse.Namespace) -> int:
 
 
 def _demos(args: argparse.Namespace) -> int:
+    from iwsim.envs.registry import DEFAULT_TASK, get_task
     from iwsim.eval.policy import WORLD_MODEL
     from iwsim.experiments.demos import record_demos
-    from iwsim.tasks import DEFAULT_TASK, get_task
 
     handover: dict[str, Any] = {}  # --takeover-steps, else record_demos's default
     if args.takeover_steps is not None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 
 
 def numbers(flag: str, text: str, kind: type, expected: str | None = None, count: int | None = None) -> tuple:
@@ -22,8 +22,8 @@ def numbers(flag: str, text: str, kind: type, expected: str | None = None, count
 def check_frames_memory(what: str, frames: int, copies: int = 1) -> None:
     """Refuse flags that keep more frames in memory than fit: a lower bound, counted as RGB
     frames of the smallest image size (the model's may be larger)."""
+    from iwsim.core.resources import require_memory
     from iwsim.envs import SMALLEST_FRAME_BYTES
-    from iwsim.resources import require_memory
 
     require_memory(frames * copies * SMALLEST_FRAME_BYTES, f"{what} (at least {frames * copies} frames in memory)")
 
@@ -36,7 +36,7 @@ def wait_for_lock_flag(p: argparse.ArgumentParser) -> None:
 def read_json(path: str, flag: str) -> object:
     import json
 
-    from iwsim.resources import read_capped
+    from iwsim.core.resources import read_capped
 
     try:
         return json.loads(read_capped(path, 16 << 20))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from iwsim.errors import EXIT_USER_ERROR, InputError, check_positive
-from iwsim.resources import human_bytes
-from iwsim.tasks import DEFAULT_TASK as TASK
+from iwsim.core.errors import EXIT_USER_ERROR, InputError, check_positive
+from iwsim.core.resources import human_bytes
+from iwsim.envs.registry import DEFAULT_TASK as TASK
 
 
 def register(sub: argparse._SubParsersAction) -> None:

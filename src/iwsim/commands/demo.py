@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 
 from iwsim.commands.common import check_frames_memory
+from iwsim.core.errors import check_seed
 from iwsim.envs import TASKS
-from iwsim.errors import check_seed
-from iwsim.tasks import DEFAULT_TASK as TASK
+from iwsim.envs.registry import DEFAULT_TASK as TASK
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from iwsim import demo
+    from iwsim.eval import demo
 
     check_seed(args, "seed")
     check_frames_memory(f"--steps {args.steps}", args.steps + 1, 2)  # MuJoCo's frames and the model's

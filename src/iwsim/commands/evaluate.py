@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from iwsim.core.errors import InputError
 from iwsim.envs import TASKS
-from iwsim.errors import InputError
-from iwsim.tasks import DEFAULT_TASK as TASK
+from iwsim.envs.registry import DEFAULT_TASK as TASK
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -45,14 +45,14 @@ def _eval_policy(args: argparse.Namespace) -> int:
 
     import torch
 
-    from iwsim.checkpoint import load_json
+    from iwsim.core.checkpoint import load_json
+    from iwsim.core.trainer import resolve_device
+    from iwsim.envs.registry import DEFAULT_TASK, shipped_world_model
     from iwsim.eval.policy import WORLD_MODEL, check_args, check_model_task, check_paired, choose_task, evaluate
     from iwsim.eval.records import command_line
     from iwsim.experiments.common import fingerprint
     from iwsim.policies.factory import checkpoint_dir, load_policy, recorded_task
-    from iwsim.tasks import DEFAULT_TASK, shipped_world_model
-    from iwsim.training.trainer import resolve_device
-    from iwsim.world_model_env import score_key
+    from iwsim.world_model.env import score_key
 
     env, task = choose_task(args.env, args.task, recorded_task(args.checkpoint))
     steps = args.steps if args.steps is not None else (task or DEFAULT_TASK()).horizon or DEFAULT_TASK.horizon
@@ -76,7 +76,7 @@ def _eval_policy(args: argparse.Namespace) -> int:
         if args.trust_model is not None:
             partner = WorldModel.load(args.trust_model, device)
             check_model_task(partner, task, f"--trust-model {args.trust_model}")
-            from iwsim.checkpoint import same_weights
+            from iwsim.core.checkpoint import same_weights
 
             if same_weights(partner, wm):
                 raise InputError(f"--trust-model {args.trust_model} holds the same weights as --world-model "

@@ -6,8 +6,8 @@ import argparse
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from iwsim.commands.common import numbers
+from iwsim.envs.registry import DEFAULT_TASK as TASK
 from iwsim.policies import POLICIES as LEARNED_POLICIES
-from iwsim.tasks import DEFAULT_TASK as TASK
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -61,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _study_task_flags(q: argparse.ArgumentParser, default: Any) -> None:
     """A study's --task, --world-model and --demonstrator (``default``: the default task)."""
     from iwsim.envs import TASKS
-    from iwsim.tasks import ANY_EXPERTS
+    from iwsim.envs.registry import ANY_EXPERTS
 
     q.add_argument("--task", default=default.kind, choices=tuple(TASKS),
                    help="the task, its MuJoCo simulator the ground truth and its pixel expert the demonstrator "
@@ -76,7 +76,7 @@ def _study_task_flags(q: argparse.ArgumentParser, default: Any) -> None:
 def _study_run_flags(q: argparse.ArgumentParser, report: str) -> None:
     """A study's --jobs, --out (``report``: its default under bench/results/experiments),
     --work and --no-progress."""
-    from iwsim.resources import available_cores
+    from iwsim.core.resources import available_cores
 
     q.add_argument("--jobs", type=int, default=min(2, available_cores()),
                    help="trainings/evaluations at once, one thread each (default: %(default)s)")
@@ -94,8 +94,8 @@ def _study_config(args: argparse.Namespace, presets: dict[str, C], report: str, 
     import dataclasses
     from pathlib import Path
 
+    from iwsim.envs.registry import get_task, shipped_world_model
     from iwsim.experiments.common import on_task, study_dir
-    from iwsim.tasks import get_task, shipped_world_model
 
     task = get_task(args.task)
     cfg: Any = on_task(presets[args.preset], task)  # a study's config dataclass

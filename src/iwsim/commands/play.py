@@ -6,8 +6,8 @@ import argparse
 import logging
 
 from iwsim.commands.common import read_json, wait_for_lock_flag
-from iwsim.errors import check_positive
-from iwsim.tasks import DEFAULT_TASK as TASK
+from iwsim.core.errors import check_positive
+from iwsim.envs.registry import DEFAULT_TASK as TASK
 
 log = logging.getLogger("iwsim")
 
@@ -53,9 +53,9 @@ def _play(args: argparse.Namespace) -> int:
         access = Access.create(token, args.host, sock.getsockname()[1], args.allow_origin)
         from pathlib import Path
 
+        from iwsim.core.trainer import resolve_device
         from iwsim.play.engine import Engine, PlayConfig
         from iwsim.play.server import serve
-        from iwsim.training.trainer import resolve_device
         from iwsim.world_model import WorldModel
 
         port = access.port

@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _export_model(args: argparse.Namespace) -> int:
-    from iwsim.checkpoint import resolve_checkpoint
+    from iwsim.core.checkpoint import resolve_checkpoint
     from iwsim.world_model import WorldModel, export_model
     from iwsim.world_model.model import INFERENCE_SETTINGS, check_inference
 
@@ -61,8 +61,8 @@ def _export_model(args: argparse.Namespace) -> int:
 
 
 def _wip_save(args: argparse.Namespace) -> int:
+    from iwsim.core.wip import save_wip
     from iwsim.eval.records import command_line
-    from iwsim.training.wip import save_wip
 
     info = save_wip(args.run, args.out, command=command_line("iwsim", args.argv))
     print(f"{args.out}: {args.run} at step {info['step']} (restore it with iwsim wip restore --wip {args.out} "
@@ -71,7 +71,7 @@ def _wip_save(args: argparse.Namespace) -> int:
 
 
 def _wip_restore(args: argparse.Namespace) -> int:
-    from iwsim.training.wip import restore_wip
+    from iwsim.core.wip import restore_wip
 
     info = restore_wip(args.wip, args.out)
     print(f"{args.out}: restored at step {info['step']}; rerun the run's command to resume it")

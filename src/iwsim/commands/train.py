@@ -9,10 +9,10 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from iwsim.commands.common import numbers
-from iwsim.errors import InputError, check_positive
+from iwsim.core.errors import InputError, check_positive
+from iwsim.envs.registry import DEFAULT_TASK as TASK
 from iwsim.policies import POLICIES as LEARNED_POLICIES
 from iwsim.policies import PRESETS as POLICY_PRESETS
-from iwsim.tasks import DEFAULT_TASK as TASK
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -100,7 +100,7 @@ def _resolve_preset(args: argparse.Namespace, presets: dict[str, C],
     import dataclasses
     import json
 
-    from iwsim.config import to_dict
+    from iwsim.core.config import to_dict
 
     if args.preset not in presets:
         raise InputError(f"unknown preset {args.preset!r}; expected one of {sorted(presets)}.")
@@ -126,10 +126,10 @@ def _resolve_preset(args: argparse.Namespace, presets: dict[str, C],
 
 def _check_batch_memory(stage: str, batch_size: int, data: str) -> None:
     """Refuse a global batch that cannot fit in memory at the largest frame size of the
-    training stores (:func:`iwsim.training.trainer.check_batch_memory`)."""
+    training stores (:func:`iwsim.core.trainer.check_batch_memory`)."""
+    from iwsim.core.trainer import check_batch_memory
     from iwsim.data.store import EpisodeStore, StoreError
-    from iwsim.tasks import DEFAULT_TASK
-    from iwsim.training.trainer import check_batch_memory
+    from iwsim.envs.registry import DEFAULT_TASK
 
     if stage == "policy":
         from iwsim.policies.data import parse_mixture
@@ -157,7 +157,7 @@ def _train_ae(args: argparse.Namespace) -> int:
     cfg = _resolve_preset(args, AE_PRESETS)
     if cfg is None:
         return 0
-    from iwsim.training.trainer import resolve_device
+    from iwsim.core.trainer import resolve_device
     from iwsim.world_model.train_codec import train_autoencoder
 
     _print_metrics(train_autoencoder(cfg, args.data, args.out, device=resolve_device(args.device),
@@ -182,7 +182,7 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     cfg = _resolve_preset(args, DYNAMICS_PRESETS, trained)
     if cfg is None:
         return 0
-    from iwsim.training.trainer import resolve_device
+    from iwsim.core.trainer import resolve_device
 
     _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
                                   force=args.force, progress=not args.no_progress, latent_cache=args.latent_cache,
@@ -199,9 +199,9 @@ def _train_policy(args: argparse.Namespace) -> int:
         return 0
     if cfg.policy != args.policy:
         raise InputError(f"preset {args.preset!r} is a {cfg.policy!r} policy, not {args.policy!r}.")
+    from iwsim.core.trainer import resolve_device
     from iwsim.policies.data import parse_mixture
-    from iwsim.training.policy import train_policy
-    from iwsim.training.trainer import resolve_device
+    from iwsim.policies.train import train_policy
 
     _print_metrics(train_policy(cfg, parse_mixture(args.data), args.out, device=resolve_device(args.device),
                                 force=args.force, progress=not args.no_progress))
@@ -209,7 +209,7 @@ def _train_policy(args: argparse.Namespace) -> int:
 
 
 def _train_decoder_finetune(args: argparse.Namespace) -> int:
-    from iwsim.training.trainer import resolve_device
+    from iwsim.core.trainer import resolve_device
     from iwsim.world_model.train_codec import finetune_decoder
 
     check_positive(args, "steps", "batch_size")

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import InputError
 
 
 def to_model(frames: np.ndarray | torch.Tensor) -> torch.Tensor:

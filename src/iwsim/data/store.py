@@ -21,7 +21,7 @@ and writer refuses the store with a StoreError naming it, and nothing is changed
 chunk is written, even one of fill values, so a missing chunk file is always damage.
 
 One writer at a time: mode ``"a"`` holds the store's lock (``root/.iwsim.lock``, see
-:mod:`iwsim.data.lock`) until :meth:`EpisodeStore.close`; a second writer is refused, or
+:mod:`iwsim.core.lock`) until :meth:`EpisodeStore.close`; a second writer is refused, or
 waits with ``wait=True``. Readers take no lock.
 """
 
@@ -42,9 +42,9 @@ from numcodecs import Blosc
 from numcodecs.compat import ensure_contiguous_ndarray
 from numcodecs.registry import register_codec
 
-from iwsim.data.lock import DirLock, LockedError, remove_stale_temps, temp_sibling
-from iwsim.errors import InputError
-from iwsim.resources import read_capped
+from iwsim.core.errors import InputError
+from iwsim.core.lock import DirLock, LockedError, remove_stale_temps, temp_sibling
+from iwsim.core.resources import read_capped
 
 log = logging.getLogger(__name__)
 
@@ -242,7 +242,7 @@ def attrs_mismatch(store: EpisodeStore, attrs: Mapping[str, Any], keys: Iterable
 
 
 def lock_store(path: str | os.PathLike, wait: bool = False) -> DirLock:
-    """The writer's lock of the store at ``path`` (see :mod:`iwsim.data.lock`); raises
+    """The writer's lock of the store at ``path`` (see :mod:`iwsim.core.lock`); raises
     StoreLockedError naming the holder, or waits for it with ``wait``."""
     try:
         return DirLock(path, wait=wait, what="appending")

@@ -19,8 +19,8 @@ from collections.abc import Callable
 import torch
 from tqdm import tqdm
 
+from iwsim.core.errors import InputError
 from iwsim.diffusion.schedule import Schedule
-from iwsim.errors import InputError
 
 JumpNet = Callable[..., torch.Tensor]  # net(x_t, t, s, **extra_args) -> v
 SNR_MIN, SNR_MAX = 1.0, 5.0  # loss weight: the SNR of the input level, clipped to [1, 5]

@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import torch
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 
 SIGMA_DATA = 1.0
 P_MEAN, P_STD = -0.4, 1.2

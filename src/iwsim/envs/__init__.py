@@ -1,8 +1,10 @@
-"""Tasks (MuJoCo ground truth), their scripted policies and pixel scorers: the ground truth
-only. Two tasks share one tabletop (:mod:`iwsim.envs.tabletop`): T-push (:mod:`iwsim.envs.pusht`,
-:mod:`iwsim.envs.pixels`, :mod:`iwsim.envs.scripted`) and pile sweeping
-(:mod:`iwsim.envs.pilesweep` and its ``_pixels`` and ``_scripted`` modules). The Gymnasium
-envs over a learned world model live above the models, in :mod:`iwsim.world_model_env`."""
+"""The tasks: their MuJoCo ground truth, scripted policies and pixel scorers, one folder
+each (:mod:`iwsim.envs.pusht`, :mod:`iwsim.envs.pilesweep`, over the shared
+:mod:`iwsim.envs.tabletop`); the Task seam every other layer reaches them through
+(:mod:`iwsim.envs.task`), the registry of tasks (:mod:`iwsim.envs.registry`, also the generic
+task of any robot's store) and collection into a store (:mod:`iwsim.envs.collect`). The
+Gymnasium envs over a learned world model live with the model, in
+:mod:`iwsim.world_model.env`."""
 
 from __future__ import annotations
 
@@ -13,26 +15,26 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # before any task module imports mujo
 import gymnasium as gym  # noqa: E402
 from gymnasium.envs.registration import register, registry  # noqa: E402
 
-from iwsim.errors import InputError  # noqa: E402
+from iwsim.core.errors import InputError  # noqa: E402
 
 if "iwsim/BimanualPushT-v0" not in registry:
     register(
         id="iwsim/BimanualPushT-v0",
-        entry_point="iwsim.envs.pusht:BimanualPushTEnv",
+        entry_point="iwsim.envs.pusht.sim:BimanualPushTEnv",
         max_episode_steps=600,  # the paper's evaluation horizon
     )
 
 if "iwsim/PileSweep-v0" not in registry:
     register(
         id="iwsim/PileSweep-v0",
-        entry_point="iwsim.envs.pilesweep:PileSweepEnv",
+        entry_point="iwsim.envs.pilesweep.sim:PileSweepEnv",
         max_episode_steps=200,  # the paper's pile-sweeping horizon
     )
 
 if "iwsim/WorldModel-v0" not in registry:
     register(
         id="iwsim/WorldModel-v0",
-        entry_point="iwsim.world_model_env:WorldModelEnv",
+        entry_point="iwsim.world_model.env:WorldModelEnv",
         max_episode_steps=600,
     )
 

@@ -14,9 +14,9 @@ that they run inside a world model too: :meth:`Task.pixel_policy`) and its defau
 the commands and the studies (frame size, evaluation horizon, shipped world model).
 
 This base class is the generic task of any robot's data; a built-in task (T-push,
-:mod:`iwsim.envs.pusht_task`) subclasses it and registers itself by name. The registry,
+:mod:`iwsim.envs.pusht.task`) subclasses it and registers itself by name. The registry,
 and the generic task whose initial frames come from a dataset, live one layer up in
-:mod:`iwsim.tasks` (they read episode stores).
+:mod:`iwsim.envs.registry` (they read episode stores).
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 import gymnasium as gym
 import numpy as np
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 
 if TYPE_CHECKING:
-    from iwsim.envs.scripting import ScriptedPolicy
+    from iwsim.envs.tabletop.scripting import ScriptedPolicy
 
 # Keys the play page keeps for itself (record, discard, restart, store start, side by side; Shift+S / Enter save).
 RESERVED_KEYS = ("c", "q", "r", "t", "b")
@@ -171,7 +171,7 @@ class Task:
     The base class is the generic task: commands are executed as given (clipped to the
     bounds), there is no scorer, ``agent_pos`` is the executed command (the model predicts
     pixels only; for a position-controlled robot its setpoint is the best proprioception
-    there is), and initial frames come from a dataset (:class:`iwsim.tasks.DatasetTask`).
+    there is), and initial frames come from a dataset (:class:`iwsim.envs.registry.DatasetTask`).
     """
 
     name: str
@@ -341,7 +341,7 @@ class Task:
 
     # -- descriptions ------------------------------------------------------------------------------
     def describe(self) -> dict[str, Any]:
-        """The JSON form a checkpoint records (:func:`iwsim.tasks.task_from_dict` reads it)."""
+        """The JSON form a checkpoint records (:func:`iwsim.envs.registry.task_from_dict` reads it)."""
         out: dict[str, Any] = {"kind": self.kind}
         for f in fields(self):
             v = getattr(self, f.name)
@@ -351,7 +351,7 @@ class Task:
 
     def store_attrs(self) -> dict[str, Any]:
         """The root attributes a store of this task's episodes carries (what
-        :func:`iwsim.tasks.task_from_store` reads back)."""
+        :func:`iwsim.envs.registry.task_from_store` reads back)."""
         out: dict[str, Any] = {"task": self.name, "fps": self.fps, "action_low": list(self.action_low),
                                "action_high": list(self.action_high), "action_names": list(self.action_names)}
         if self.action_points and self.view_half is not None:

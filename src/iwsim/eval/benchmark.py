@@ -27,17 +27,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from iwsim.checkpoint import check_output_dir, load_json, resolve_checkpoint, write_json_atomic
+from iwsim.core.checkpoint import check_output_dir, load_json, resolve_checkpoint, write_json_atomic
+from iwsim.core.errors import InputError
 from iwsim.data.frames import split_episodes
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import InputError
+from iwsim.envs.registry import task_of
 from iwsim.eval import features as feats
 from iwsim.eval.figures import curves_figure, frames_figure, stability_figure
 from iwsim.eval.profiling import speed, stability
 from iwsim.eval.report import COPY, markdown
 from iwsim.eval.rollout import open_loop
 from iwsim.eval.scores import FeatureNets, frame_metrics, i3d_features, inception_features, set_metrics, summarize
-from iwsim.tasks import task_of
 from iwsim.world_model import WorldModel
 
 log = logging.getLogger(__name__)

@@ -39,8 +39,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from iwsim.checkpoint import CheckpointError, load_tensors, save_tensors
-from iwsim.errors import InputError, IwsimError
+from iwsim.core.checkpoint import CheckpointError, load_tensors, save_tensors
+from iwsim.core.errors import InputError, IwsimError
 
 WEIGHTS_ENV = "IWSIM_WEIGHTS"
 LPIPS_FILE = "lpips_alex.safetensors"

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 
 METHOD = ("prediction-powered (PPI; PPI++ power tuning from 5 pairs, lam in [0, 1]); Student t on the paired "
           "term's degrees of freedom")

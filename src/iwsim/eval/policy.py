@@ -11,7 +11,7 @@ is the maximum of the task's pixel score it reaches (T-push's: the IoU, the pape
 T-pushing score; pile sweeping's: the share of the pieces in the tray), success is a score
 at or above the task's ``success_score`` (0.9 for both); the success rate comes with a Beta
 posterior (uniform prior) and a Clopper-Pearson interval. The results name the score as
-the world model's ``info`` does (:func:`iwsim.world_model_env.score_key`): T-push's
+the world model's ``info`` does (:func:`iwsim.world_model.env.score_key`): T-push's
 ``max_iou``, ``mean_max_iou`` and ``iou.json``, as ever; another task's ``max_score``,
 ``mean_max_score`` and ``score.json``.
 """
@@ -32,18 +32,18 @@ from gymnasium import spaces
 from gymnasium.vector import SyncVectorEnv, VectorEnv
 from tqdm import tqdm
 
-from iwsim.checkpoint import check_finite_output, check_output_dir, write_json_atomic
-from iwsim.data.collect import Recorder
+from iwsim.core.checkpoint import check_finite_output, check_output_dir, write_json_atomic
+from iwsim.core.errors import InputError
+from iwsim.core.resources import require_memory
 from iwsim.envs import SMALLEST_FRAME_BYTES
+from iwsim.envs.collect import Recorder
+from iwsim.envs.registry import DEFAULT_TASK, REGISTRY, get_task, task_of
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
 from iwsim.eval.paired import paired_estimate, paired_rate
 from iwsim.eval.stats import beta_posterior, clopper_pearson
 from iwsim.eval.video import upscale, write_video
 from iwsim.policies.common import PolicyLike
-from iwsim.resources import require_memory
-from iwsim.tasks import DEFAULT_TASK, REGISTRY, get_task, task_of
-from iwsim.world_model_env import WorldModelVectorEnv, score_key
+from iwsim.world_model.env import WorldModelVectorEnv, score_key
 
 WORLD_MODEL = "world-model"
 MUJOCO = "mujoco"  # iwsim eval policy --env: the task's simulator
@@ -63,7 +63,7 @@ def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, im
     """``n`` environments in lockstep as a Gymnasium vector env: task ``env``'s simulator
     in a :class:`~gymnasium.vector.SyncVectorEnv` (its initial states from the distribution
     ``start``, one of the task's ``starts``), or for ``env="world-model"`` the world model's
-    batched :class:`~iwsim.world_model_env.WorldModelVectorEnv` (one forward pass per step).
+    batched :class:`~iwsim.world_model.env.WorldModelVectorEnv` (one forward pass per step).
     ``image_size``: the policy's frame size, which the environment must render (None: the
     environment's own, the task's frame size in MuJoCo, the world model's)."""
     if env not in ENVS:
@@ -217,12 +217,12 @@ def seed_sampling(seeds: list[int]) -> None:
 
 def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int | None = None,
              batch: int = RECORD_BATCH) -> Recorder:
-    """``policy``'s episodes in MuJoCo, as :func:`iwsim.data.collect.collect` records them
+    """``policy``'s episodes in MuJoCo, as :func:`iwsim.envs.collect.collect` records them
     (``iwsim collect --policy RUN``): the seeds ``batch`` at a time in lockstep, each batch's
     sampling noise seeded by its first seed: the same command records the same store, and a
     store extended in whole batches holds the episodes one recorded at once holds.
     Step t holds the observation before action t, as a scripted episode does
-    (:func:`iwsim.envs.scripted.record_episode`). Frames of ``image_size`` (None: the task's size)."""
+    (:func:`iwsim.envs.pusht.scripted.record_episode`). Frames of ``image_size`` (None: the task's size)."""
 
     kind = get_task(task)  # its episodes' own arrays: the objects' state, contacts, the score
     keep, score = (*kind.state_keys, "n_contacts"), kind.episode_score or "score"
@@ -244,7 +244,7 @@ def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int | Non
 
 def summarize(max_score: np.ndarray, seeds: list[int], success_score: float, key: str = "iou") -> dict[str, Any]:
     """Per-episode scores and the statistics over episodes, the score named ``key`` (the
-    task's :func:`~iwsim.world_model_env.score_key`: ``max_iou``, ``mean_max_iou``, ... for T-push)."""
+    task's :func:`~iwsim.world_model.env.score_key`: ``max_iou``, ``mean_max_iou``, ... for T-push)."""
     success = max_score >= success_score
     k, n = int(success.sum()), len(success)
     return {

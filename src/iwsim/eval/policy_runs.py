@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from iwsim.checkpoint import load_tensors
+from iwsim.core.checkpoint import load_tensors
 from iwsim.eval.policy import rollout, summarize
 
 VAL_SEED, TEST_SEED = 200_000, 100_000  # validation seeds choose a checkpoint; test seeds score the chosen one

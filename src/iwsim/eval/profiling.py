@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from iwsim.core.errors import InputError
 from iwsim.data.frames import to_uint8
-from iwsim.envs.pixels import block_fraction, estimate_block_pose
-from iwsim.envs.scripted import run_scripted
-from iwsim.errors import InputError
+from iwsim.envs.pusht.pixels import block_fraction, estimate_block_pose
+from iwsim.envs.pusht.scripted import run_scripted
 from iwsim.world_model import WorldModel
 
 

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import rankdata
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 
 MIN_POLICIES_CORRELATION = 3  # with 2 points any two non-constant score lists correlate perfectly
 MIN_POLICIES_MMRV = 2

@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from iwsim.checkpoint import PROJECT_ROOT
+from iwsim.core.checkpoint import PROJECT_ROOT
 
 
 def command_line(program: str, args: Sequence[str] | None = None) -> str:

@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
+from iwsim.core.errors import InputError
+from iwsim.core.metrics import psnr, ssim
 from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
-from iwsim.errors import InputError
+from iwsim.envs.registry import foreign_task, task_of
 from iwsim.eval.figures import plot_psnr
 from iwsim.eval.video import score_bar, upscale, write_video
-from iwsim.metrics import psnr, ssim
-from iwsim.tasks import foreign_task, task_of
 from iwsim.world_model import WorldModel
 
 

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from iwsim.core.errors import InputError
+from iwsim.core.metrics import mse, psnr, ssim, uiqi
 from iwsim.data.frames import to_model
-from iwsim.errors import InputError
 from iwsim.eval import features as feats
-from iwsim.metrics import mse, psnr, ssim, uiqi
 
 log = logging.getLogger(__name__)
 

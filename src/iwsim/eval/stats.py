@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from scipy import stats
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 
 
 def beta_posterior(successes: int, trials: int, level: float = 0.95) -> dict[str, float]:

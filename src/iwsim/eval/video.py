@@ -8,7 +8,7 @@ from pathlib import Path
 import imageio.v2 as imageio
 import numpy as np
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 
 
 def upscale(frames: np.ndarray, factor: int) -> np.ndarray:

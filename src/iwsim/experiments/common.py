@@ -30,24 +30,24 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from iwsim.checkpoint import check_output_dir, load_json, locate, write_json_atomic
-from iwsim.config import from_dict, to_dict
-from iwsim.data.lock import DirLock, LockedError
+from iwsim.core.checkpoint import check_output_dir, load_json, locate, write_json_atomic
+from iwsim.core.config import from_dict, to_dict
+from iwsim.core.errors import InputError
+from iwsim.core.lock import DirLock, LockedError
+from iwsim.core.resources import torch_threads
+from iwsim.core.trainer import data_by_content
 from iwsim.data.store import EpisodeStore
+from iwsim.envs.registry import DEFAULT_TASK, get_task, task_from_config, task_of
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
 from iwsim.eval.policy import WORLD_MODEL, rollout, summarize, trust
 from iwsim.eval.records import command_line
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class
 from iwsim.policies.data import Source
 from iwsim.policies.factory import checkpoint_dir, load_policy
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
-from iwsim.resources import torch_threads
-from iwsim.tasks import DEFAULT_TASK, get_task, task_from_config, task_of
-from iwsim.training.policy import train_policy
-from iwsim.training.trainer import data_by_content
+from iwsim.policies.train import train_policy
 from iwsim.world_model import WorldModel
-from iwsim.world_model_env import OBSERVATION_VERSION
+from iwsim.world_model.env import OBSERVATION_VERSION
 
 log = logging.getLogger(__name__)
 # The studies' default task, in one place: MuJoCo's T-push, whose success threshold, scorer,
@@ -177,7 +177,7 @@ def check_study_model(world_model: str | os.PathLike | None, task: Task = STUDY)
 def fingerprint(world_model: str | os.PathLike) -> str:
     """A short content hash of a world-model checkpoint (its weights and config; or of a
     policy checkpoint, the same files) and of the environment's
-    :data:`~iwsim.world_model_env.OBSERVATION_VERSION`, so that demonstrations and
+    :data:`~iwsim.world_model.env.OBSERVATION_VERSION`, so that demonstrations and
     evaluations of a retrained model at the same path, or of an environment that observes
     otherwise, are told apart."""
     h = hashlib.sha256(f"observation {OBSERVATION_VERSION}".encode())

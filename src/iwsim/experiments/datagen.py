@@ -37,9 +37,10 @@ from typing import Any
 
 import numpy as np
 
-from iwsim.checkpoint import write_json_atomic, write_text_atomic
+from iwsim.core.checkpoint import write_json_atomic, write_text_atomic
+from iwsim.core.errors import InputError
+from iwsim.envs.registry import get_task
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
 from iwsim.eval.policy import WORLD_MODEL
 from iwsim.experiments.common import (
@@ -63,8 +64,7 @@ from iwsim.experiments.common import (
 from iwsim.experiments.demos import DemoRecipe, DemoStats, record_with, simulator_demos, simulator_store
 from iwsim.policies import policy_type
 from iwsim.policies.scripted import ScriptedConfig
-from iwsim.tasks import get_task
-from iwsim.world_model_env import score_key
+from iwsim.world_model.env import score_key
 
 log = logging.getLogger(__name__)
 

@@ -73,21 +73,21 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from iwsim.checkpoint import check_finite_output
-from iwsim.data.collect import store_attrs
+from iwsim.core.checkpoint import check_finite_output
+from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.envs import IMAGE_SIZES
+from iwsim.envs.collect import store_attrs
+from iwsim.envs.registry import ANY_EXPERTS, REGISTRY, get_task
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
 from iwsim.eval.policy import ENVS, MAX_SEED, WORLD_MODEL, check_model_task, rollout, seed_sampling
 from iwsim.experiments.common import STUDY, fingerprint
 from iwsim.play.engine import episode_keys
 from iwsim.policies.common import Policy
 from iwsim.policies.factory import checkpoint_dir, load_policy
 from iwsim.policies.scripted import ScriptedBatch
-from iwsim.tasks import ANY_EXPERTS, REGISTRY, get_task
 from iwsim.world_model import WorldModel
-from iwsim.world_model_env import score_key
+from iwsim.world_model.env import score_key
 
 log = logging.getLogger(__name__)
 

@@ -39,11 +39,12 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from iwsim.checkpoint import write_json_atomic, write_text_atomic
-from iwsim.config import to_dict
+from iwsim.core.checkpoint import write_json_atomic, write_text_atomic
+from iwsim.core.config import to_dict
+from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore
+from iwsim.envs.registry import foreign_task, get_task
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
 from iwsim.eval.figures import pyplot, save_figure
 from iwsim.eval.paired import METHOD, paired_estimate
 from iwsim.eval.policy import WORLD_MODEL, check_args
@@ -69,8 +70,7 @@ from iwsim.experiments.common import (
 )
 from iwsim.experiments.demos import DemoRecipe, simulator_demos
 from iwsim.policies.scripted import ScriptedConfig
-from iwsim.tasks import foreign_task, get_task
-from iwsim.world_model_env import score_key
+from iwsim.world_model.env import score_key
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +237,7 @@ def mean_interval(values: np.ndarray, level: float = LEVEL, resamples: int = BOO
 
 def _scores(result: dict[str, Any], key: str) -> dict[str, Any]:
     """One policy's scores in one environment, for the report (the score named ``key``: the
-    task's :func:`~iwsim.world_model_env.score_key`)."""
+    task's :func:`~iwsim.world_model.env.score_key`)."""
     best = np.array([e[f"max_{key}"] for e in result["episodes"]])
     return {f"mean_max_{key}": result[f"mean_max_{key}"], f"mean_max_{key}_interval": list(mean_interval(best)),
             f"std_max_{key}": result[f"std_max_{key}"], "success_rate": result["success_rate"],

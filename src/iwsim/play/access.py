@@ -27,8 +27,8 @@ import socket
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from iwsim.errors import InputError, IwsimError
-from iwsim.resources import read_capped
+from iwsim.core.errors import InputError, IwsimError
+from iwsim.core.resources import read_capped
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 WILDCARD = ("0.0.0.0", "::", "")

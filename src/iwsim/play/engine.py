@@ -12,7 +12,7 @@ states of all sessions into one batch, takes one functional step
 The task (:class:`iwsim.envs.task.Task`, the world model's unless the config names one)
 decides the rest. Motion: a session's action is a command; the task maps it to the
 executed motion (:meth:`~iwsim.envs.task.Task.executed`; for T-push the pushers approach
-it at the speed limit, :func:`iwsim.envs.tabletop.limit_targets`, the function MuJoCo runs
+it at the speed limit, :func:`iwsim.envs.tabletop.scene.limit_targets`, the function MuJoCo runs
 too), and the world model is conditioned on that executed motion, as it was trained.
 A command outside the task's bounds is refused with one line (T-push clips it, as MuJoCo
 does); the session goes on.
@@ -39,14 +39,14 @@ import numpy as np
 import torch
 
 import iwsim
+from iwsim.core.errors import InputError
+from iwsim.core.resources import MiB, human_bytes, require_memory
 from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.task import Bindings, Start, Task
-from iwsim.errors import InputError
 from iwsim.play import protocol as proto
-from iwsim.resources import MiB, human_bytes, require_memory
 from iwsim.world_model import StreamState, WorldModel
-from iwsim.world_model_env import STORE, Starts, predicted_agent_pos, predicts_agent_pos, resolve_task, score_key
+from iwsim.world_model.env import STORE, Starts, predicted_agent_pos, predicts_agent_pos, resolve_task, score_key
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 
 MAX_MESSAGE_BYTES = 4096
 RESET_SOURCES = ("mujoco", "dataset", "store")  # the task's own starts (T-push: mujoco; others: dataset), or a store's

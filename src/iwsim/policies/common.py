@@ -23,9 +23,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from iwsim.core.errors import InputError
+from iwsim.core.normalize import Normalizer
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
-from iwsim.normalize import Normalizer
 from iwsim.policies.registry import policy_name
 
 

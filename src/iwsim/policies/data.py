@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import InputError
 from iwsim.policies.common import Normalizer, PolicyBatch
 
 

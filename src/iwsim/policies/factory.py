@@ -7,13 +7,13 @@ from typing import Any
 
 import torch
 
-from iwsim.checkpoint import CheckpointError, build_within_memory, load_json, load_model_dir, locate
-from iwsim.config import TrainConfig, from_dict, to_dict
+from iwsim.core.checkpoint import CheckpointError, build_within_memory, load_json, load_model_dir, locate
+from iwsim.core.config import TrainConfig, from_dict, to_dict
+from iwsim.core.errors import InputError
+from iwsim.envs.registry import DEFAULT_TASK, task_from_config
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
 from iwsim.policies.common import Normalizer, Policy
 from iwsim.policies.registry import POLICIES, config_class, policy_type
-from iwsim.tasks import DEFAULT_TASK, task_from_config
 
 KIND = "policy"
 

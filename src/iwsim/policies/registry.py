@@ -19,8 +19,8 @@ import importlib
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from iwsim.config import TrainConfig
-from iwsim.errors import InputError
+from iwsim.core.config import TrainConfig
+from iwsim.core.errors import InputError
 
 C = TypeVar("C", bound=type)
 ACTION_KEYS = ("action", "target")  # what a policy may learn to output (PolicyStageConfig.actions)

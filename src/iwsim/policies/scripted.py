@@ -14,7 +14,7 @@ a scripted policy behaves the same in MuJoCo and inside a world model. Degradati
 policies of graded skill:
 ``noise`` adds Gaussian noise (metres, per coordinate) to every command, ``latency``
 executes each command that many steps late (holding the pushers' first positions until
-then). A human-like hand (:class:`iwsim.envs.scripting.Hand`) between the policy and the robot: ``lag`` (a
+then). A human-like hand (:class:`iwsim.envs.tabletop.scripting.Hand`) between the policy and the robot: ``lag`` (a
 slow hand that follows the policy's commands with that time constant, in steps),
 ``pause`` (the chance per step of holding the command still for 5-20 steps),
 ``jitter`` (a tremor: smooth noise of that std, correlated over ~5 steps) and
@@ -32,10 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from iwsim.envs.scripting import Degraded, ScriptedPolicy
+from iwsim.core.errors import InputError
+from iwsim.envs.registry import DEFAULT_TASK, REGISTRY, get_task
+from iwsim.envs.tabletop.scripting import Degraded, ScriptedPolicy
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
-from iwsim.tasks import DEFAULT_TASK, REGISTRY, get_task
 
 STILL = "still"  # holds the pushers where they start: a policy of every task
 # Every scripted policy of a registered task, and the still one.

@@ -42,7 +42,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 from iwsim.models.blocks import ResBlock, group_norm, sinusoidal, zero_init
 
 

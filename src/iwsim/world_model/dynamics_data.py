@@ -22,18 +22,18 @@ import torch
 from safetensors import SafetensorError, safe_open
 from tqdm import tqdm
 
-from iwsim.checkpoint import resolve_checkpoint, save_tensors
+from iwsim.core.checkpoint import resolve_checkpoint, save_tensors
+from iwsim.core.errors import InputError
+from iwsim.core.normalize import scale, widen
+from iwsim.core.resources import available_cores, torch_threads
 from iwsim.data.frames import split_episodes, to_model
 from iwsim.data.store import EpisodeStore, StoreError, conditioning_key
 from iwsim.diffusion import edm
 from iwsim.diffusion.consistency import sample_levels
 from iwsim.diffusion.schedule import gaussian
-from iwsim.errors import InputError
-from iwsim.normalize import scale, widen
-from iwsim.resources import available_cores, torch_threads
-from iwsim.tasks import foreign_task
-from iwsim.world_model.codec import Codec
+from iwsim.envs.registry import foreign_task
 from iwsim.world_model.codecs import load_codec
+from iwsim.world_model.codecs.base import Codec
 from iwsim.world_model.model import WorldModel
 from iwsim.world_model.novelty import Novelty, fit_novelty, novelty_features
 from iwsim.world_model.presets import DynamicsStageConfig

@@ -22,10 +22,10 @@ latent instead of the predicted one, in either mode.
 A step predicts the next latent from a sliding window of the last K latents (older ones
 are dropped), so a step costs the same at step 10 and at step 10,000, and memory stays
 flat. The actions are the motion the robot executes: for a task with a speed limit,
-the rate-limited targets (``iwsim.envs.tabletop.limit_targets``), which the task-aware
+the rate-limited targets (``iwsim.envs.tabletop.scene.limit_targets``), which the task-aware
 callers (``iwsim/WorldModel-v0``, ``iwsim play``) compute from commands.
 
-The codec is any :class:`~iwsim.world_model.codec.Codec` (frames <-> latents of its
+The codec is any :class:`~iwsim.world_model.codecs.base.Codec` (frames <-> latents of its
 ``latent_shape``); the dynamics network is called through a
 :class:`~iwsim.world_model.denoiser.Denoiser`. Objectives: a new latent comes from one
 consistency jump from noise (ours), or, for the benchmark's baselines, Euler steps of an
@@ -53,7 +53,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.checkpoint import (
+from iwsim.core.checkpoint import (
     CheckpointError,
     build_within_memory,
     check_finite_output,
@@ -63,16 +63,16 @@ from iwsim.checkpoint import (
     resolve_checkpoint,
     save_model_dir,
 )
-from iwsim.config import from_dict, to_dict
+from iwsim.core.config import from_dict, to_dict
+from iwsim.core.errors import InputError
+from iwsim.core.normalize import scale, unscale
+from iwsim.core.precision import Precision, bf16_available, require_bf16
 from iwsim.data.frames import to_model, to_uint8
 from iwsim.diffusion.schedule import gaussian
+from iwsim.envs.registry import task_from_config
 from iwsim.envs.task import Task
-from iwsim.errors import InputError
-from iwsim.normalize import scale, unscale
-from iwsim.precision import Precision, bf16_available, require_bf16
-from iwsim.tasks import task_from_config
-from iwsim.world_model.codec import DEFAULT_KIND, Codec
 from iwsim.world_model.codecs import WM_KIND, build_codec, codec_class, world_model_codec
+from iwsim.world_model.codecs.base import DEFAULT_KIND, Codec
 from iwsim.world_model.denoiser import ACTION_STILL, Denoiser
 from iwsim.world_model.dynamics import Dynamics
 from iwsim.world_model.novelty import Novelty
@@ -207,7 +207,7 @@ class WorldModel(nn.Module):
         self.novelty: Novelty | None = None
         self._state: StreamState | None = None
         # The robot task (iwsim.envs.task.Task) the checkpoint records, set by load; None
-        # for a model built in code (its callers then take iwsim.tasks.task_of's default).
+        # for a model built in code (its callers then take iwsim.envs.registry.task_of's default).
         self.task: Task | None = None
         self.name = "the world model"  # what errors call it (load: "world model PATH")
 

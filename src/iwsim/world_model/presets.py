@@ -10,12 +10,12 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from iwsim.config import TrainConfig
+from iwsim.core.config import TrainConfig
+from iwsim.core.errors import InputError
 from iwsim.diffusion.schedule import ScheduleConfig
-from iwsim.errors import InputError
 from iwsim.world_model import objectives
-from iwsim.world_model.autoencoder_net import DecoderConfig, EncoderConfig
-from iwsim.world_model.conv_codec import ConvCodecConfig
+from iwsim.world_model.codecs.consistency_net import DecoderConfig, EncoderConfig
+from iwsim.world_model.codecs.conv import ConvCodecConfig
 from iwsim.world_model.dynamics import DynamicsConfig
 
 
@@ -61,7 +61,7 @@ AE_PRESETS: dict[str, AEConfig | ConvCodecConfig] = {
     # Paper scale (128 px, 64 base channels), for GPUs.
     "pusht-128": _ae(128, (64, 128, 256), 2, 256, steps=200_000, batch_size=64, lr=2e-4, warmup_steps=2000,
                      eval_every=5000, checkpoint_every=5000, ema_decay=0.9999),
-    # The deterministic conv-ae codec (iwsim.world_model.conv_codec), x2 downsampling: 4 x 32 x 32
+    # The deterministic conv-ae codec (iwsim.world_model.codecs.conv), x2 downsampling: 4 x 32 x 32
     # latents at 64 px. "tiny-conv" is for tests.
     "tiny-conv": ConvCodecConfig(64, channels=(8, 8), eval_images=8, train=TrainConfig(
         steps=6, batch_size=4, warmup_steps=2, log_every=1, eval_every=3, checkpoint_every=3, ema_decay=0.9)),

@@ -1,6 +1,6 @@
 """Stage 1 training: any codec (``iwsim train ae``) and stage 3, a world model's decoder
 fine-tuned on noised latents (``iwsim train decoder-finetune``), for the generic loop.
-The codec supplies its own loss and per-step randomness (:mod:`iwsim.world_model.codec`)."""
+The codec supplies its own loss and per-step randomness (:mod:`iwsim.world_model.codecs.base`)."""
 
 from __future__ import annotations
 
@@ -14,16 +14,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.checkpoint import resolve_checkpoint
-from iwsim.config import to_dict
+from iwsim.core import trainer
+from iwsim.core.checkpoint import resolve_checkpoint
+from iwsim.core.config import to_dict
+from iwsim.core.errors import InputError
+from iwsim.core.metrics import psnr, ssim
 from iwsim.data.frames import FrameSource, split_episodes, to_model, to_uint8
 from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.diffusion.schedule import gaussian
-from iwsim.errors import InputError
-from iwsim.metrics import psnr, ssim
-from iwsim.training import trainer
-from iwsim.world_model.codec import KIND, Codec, reconstruct
 from iwsim.world_model.codecs import build_codec, kind_of
+from iwsim.world_model.codecs.base import KIND, Codec, reconstruct
 from iwsim.world_model.model import WorldModel, complete_run_config
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ latent cells that change ``1 + cfg.changed_weight`` times more than static ones.
 The gradient flows through the fed-back predictions (back-propagation through the whole
 unroll, or truncated every ``cfg.unroll_grad_every`` predictions) unless ``cfg.unroll_grad``
 is off. The benchmark's baselines train in the same
-way with another ``objective`` (see ``iwsim.config.VARIANTS``); the "edm" objective's
+way with another ``objective`` (see ``iwsim.core.config.VARIANTS``); the "edm" objective's
 fed-back context is a real sample (Euler steps, no gradient), since its one-pass
 estimate is not what inference produces.
 
@@ -39,13 +39,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.checkpoint import last_checkpoint, load_json, load_tensors, resolve_checkpoint
+from iwsim.core import trainer
+from iwsim.core.checkpoint import last_checkpoint, load_json, load_tensors, resolve_checkpoint
+from iwsim.core.errors import InputError
+from iwsim.core.metrics import psnr
+from iwsim.core.normalize import unscale
 from iwsim.data.frames import to_model, to_uint8
-from iwsim.errors import InputError
-from iwsim.metrics import psnr
-from iwsim.normalize import unscale
-from iwsim.tasks import task_from_store
-from iwsim.training import trainer
+from iwsim.envs.registry import task_from_store
 from iwsim.world_model.denoiser import Denoiser
 from iwsim.world_model.dynamics import Dynamics, add_state, widen_window
 from iwsim.world_model.dynamics_data import DynamicsData, DynBatch

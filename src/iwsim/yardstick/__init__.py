@@ -13,5 +13,5 @@ and ``bench/codec_ceiling.py`` share them):
 
 They sit above the studies (they run the studies' evaluations and teleoperation) and, where
 they read T-push's objects off the frames, are ground-truth tooling
-(``iwsim.layers.GROUND_TRUTH_TOOLING``).
+(``iwsim.core.layers.GROUND_TRUTH_TOOLING``).
 """

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from iwsim.data.store import EpisodeStore
-from iwsim.envs import pixels
+from iwsim.envs.pusht import pixels
 from iwsim.experiments.demos import PUSHT
 from iwsim.world_model import WorldModel
 

@@ -17,7 +17,7 @@ A family is *seen* by a model when its kind of motion was in the model's trainin
 only the unseen ones.
 
 The idle measure: from fresh MuJoCo starts the pushers are held still; in each frame of the
-model the T is fitted (:func:`iwsim.envs.pixels.estimate_block_pose`) and compared with
+model the T is fitted (:func:`iwsim.envs.pusht.pixels.estimate_block_pose`) and compared with
 MuJoCo's frame of the same step. A frame keeps the block when the T fits crisply (fit >=
 :data:`CRISP`) and in place (<= 1 px, <= 5 degrees).
 """
@@ -31,16 +31,16 @@ import numpy as np
 import torch
 from scipy.stats import spearmanr
 
-from iwsim.checkpoint import load_json, write_json_atomic
-from iwsim.envs import pixels
+from iwsim.core.checkpoint import load_json, write_json_atomic
+from iwsim.envs.pusht import pixels
+from iwsim.envs.registry import DEFAULT_TASK, get_task
 from iwsim.eval.policy import rollout
 from iwsim.eval.ranking import agreement
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.policy_eval import mean_interval
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
-from iwsim.tasks import DEFAULT_TASK, get_task
 from iwsim.world_model import WorldModel
-from iwsim.world_model_env import score_key
+from iwsim.world_model.env import score_key
 
 SEED = 700000  # first states of the families: MuJoCo seeds SEED, SEED + 1, ...
 LEARNED = "learned"

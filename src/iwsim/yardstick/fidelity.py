@@ -11,12 +11,12 @@ from typing import TypeVar
 import numpy as np
 import torch
 
+from iwsim.core.errors import InputError
+from iwsim.core.metrics import psnr
 from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
-from iwsim.envs import pixels
-from iwsim.envs.pusht import VIEW_HALF
-from iwsim.errors import InputError
-from iwsim.metrics import psnr
+from iwsim.envs.pusht import pixels
+from iwsim.envs.pusht.sim import VIEW_HALF
 from iwsim.world_model import WorldModel
 
 STEPS = (1, 5, 10, 20, 32)

@@ -13,7 +13,7 @@ import imageio.v2 as imageio
 import numpy as np
 import torch
 
-from iwsim.checkpoint import load_json, write_json_atomic
+from iwsim.core.checkpoint import load_json, write_json_atomic
 from iwsim.eval.policy import rollout
 from iwsim.experiments.common import fingerprint
 from iwsim.experiments.datagen import DatagenConfig

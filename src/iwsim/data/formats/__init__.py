@@ -21,9 +21,9 @@ import logging
 import os
 from pathlib import Path
 
+from iwsim.core.errors import InputError
 from iwsim.data.formats.common import FormatError, check_resize_memory, output_dir, read_meta, write_store
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from iwsim.data.lock import LOCK_NAME, DirLock, remove_stale_temps, temp_sibling
+from iwsim.core.errors import InputError
+from iwsim.core.lock import LOCK_NAME, DirLock, remove_stale_temps, temp_sibling
+from iwsim.core.resources import read_capped, require_memory
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import InputError
-from iwsim.resources import read_capped, require_memory
 
 REQUIRED = ("img", "state", "action")
 
@@ -145,7 +145,7 @@ def output_dir(out: str | os.PathLike, force: bool = False) -> Iterator[Path]:
     """A temporary directory next to ``out``, renamed to ``out`` when the block succeeds and
     removed when it fails, so ``out`` never holds a half-written result.
 
-    The temporary directory is locked while it is written (see :mod:`iwsim.data.lock`), so
+    The temporary directory is locked while it is written (see :mod:`iwsim.core.lock`), so
     the next run for ``out`` can tell those of killed runs from live ones and removes them."""
     out = Path(out)
     if out.exists() and not force:

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from iwsim.core.errors import InputError
 from iwsim.data.formats.common import (
     FormatError,
     check_episode,
@@ -49,7 +50,6 @@ from iwsim.data.formats.common import (
 )
 from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video, write_episode_video
 from iwsim.data.store import EpisodeStore
-from iwsim.errors import InputError
 
 V3, V21 = "v3.0", "v2.1"
 CHUNKS_SIZE = 1000  # files per chunk directory

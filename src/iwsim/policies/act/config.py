@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from iwsim.config import TrainConfig
-from iwsim.errors import InputError
+from iwsim.core.config import TrainConfig
+from iwsim.core.errors import InputError
 from iwsim.policies.registry import TINY_TRAIN, PolicyStageConfig, register_policy
 
 # The paper-sized-down defaults, and a tiny one for tests.

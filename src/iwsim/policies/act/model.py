@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from iwsim.errors import InputError
+from iwsim.core.errors import InputError
 from iwsim.policies.act.config import ACTConfig
 from iwsim.policies.common import (
     ImageEncoder,

@@ -1,1 +1,0 @@
-"""One generic training loop, checkpoints and distributed helpers, shared by every stage."""
