@@ -27,13 +27,16 @@ $(CHROMIUM):
 	$(SUDO) apt-get update -q
 	DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q chromium
 
-# Everything: unit tests, end-to-end runs, the browser and the two-process DDP tests.
+# Everything: unit tests, end-to-end runs, the browser and the two-process DDP tests. Two
+# workers (pytest-xdist), a file's tests on one of them, each on one torch thread: two
+# threads per worker would oversubscribe two cores.
+XDIST := -n 2 --dist loadfile
 test: $(STAMP) $(CHROMIUM)
-	MUJOCO_GL=egl $(PY) -m pytest -q
+	MUJOCO_GL=egl OMP_NUM_THREADS=1 $(PY) -m pytest -q $(XDIST)
 
 # The inner loop: without the tests marked slow, browser or ddp (pyproject.toml).
 test-fast: $(STAMP)
-	MUJOCO_GL=egl $(PY) -m pytest -q -m "not slow and not browser and not ddp"
+	MUJOCO_GL=egl OMP_NUM_THREADS=1 $(PY) -m pytest -q $(XDIST) -m "not slow and not browser and not ddp"
 
 # The shipped world model's whole recipe (about 7.2 core-hours), resumable across sessions:
 # rerun it after an interruption. It ends with the rebuilt model's yardstick row.
