@@ -120,16 +120,19 @@ def test_the_store_layer_does_not_reach_the_tasks():
 
 
 def test_the_package_root_reaches_up_only_for_the_lazy_world_model():
-    """``import iwsim`` registers the Gymnasium ids; ``iwsim.WorldModel`` (public) is the one
-    upward import, inside a function so that ``import iwsim`` does not import torch."""
+    """``import iwsim`` registers the Gymnasium ids by name (importing no task);
+    ``iwsim.WorldModel`` (public) is the one upward import, inside a function so that
+    ``import iwsim`` does not import torch."""
     tree = ast.parse(MODULES[ROOT].read_text())
     top = {a.name if isinstance(n, ast.Import) else n.module for stmt in tree.body
            if not isinstance(stmt, ast.FunctionDef) for n in ast.walk(stmt)
            if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
     lazy = {n.module for stmt in tree.body if isinstance(stmt, ast.FunctionDef) for n in ast.walk(stmt)
             if isinstance(n, ast.ImportFrom)}
-    assert top == {"iwsim.envs"} and lazy == {"iwsim.world_model"}
-    code = ("import sys, iwsim; assert 'torch' not in sys.modules; "
+    assert top == {"gymnasium.envs.registration"} and lazy == {"iwsim.world_model"}
+    code = ("import sys, iwsim, gymnasium; assert 'torch' not in sys.modules; "
+            "assert {'iwsim/BimanualPushT-v0', 'iwsim/PileSweep-v0', 'iwsim/WorldModel-v0'} <= "
+            "set(gymnasium.registry); "
             "assert iwsim.WorldModel.load and 'torch' in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
 

@@ -1,8 +1,18 @@
 """iwsim: an interactive world simulator for robot learning."""
 
-import iwsim.envs  # noqa: F401  (registers the Gymnasium ids)
+from gymnasium.envs.registration import register, registry
 
 __version__ = "0.1.0"
+
+# The Gymnasium ids, registered by name: gym.make imports each env's module when it is made
+# (importing the tasks here would make the package root reach up into them).
+for _id, _entry, _steps in (
+    ("iwsim/BimanualPushT-v0", "iwsim.envs.pusht.sim:BimanualPushTEnv", 600),  # the paper's evaluation horizon
+    ("iwsim/PileSweep-v0", "iwsim.envs.pilesweep.sim:PileSweepEnv", 200),  # the paper's pile-sweeping horizon
+    ("iwsim/WorldModel-v0", "iwsim.world_model.env:WorldModelEnv", 600),
+):
+    if _id not in registry:
+        register(id=_id, entry_point=_entry, max_episode_steps=_steps)
 
 
 def __getattr__(name: str):

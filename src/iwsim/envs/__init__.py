@@ -13,30 +13,8 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")  # before any task module imports mujoco: headless rendering
 
 import gymnasium as gym  # noqa: E402
-from gymnasium.envs.registration import register, registry  # noqa: E402
 
 from iwsim.core.errors import InputError  # noqa: E402
-
-if "iwsim/BimanualPushT-v0" not in registry:
-    register(
-        id="iwsim/BimanualPushT-v0",
-        entry_point="iwsim.envs.pusht.sim:BimanualPushTEnv",
-        max_episode_steps=600,  # the paper's evaluation horizon
-    )
-
-if "iwsim/PileSweep-v0" not in registry:
-    register(
-        id="iwsim/PileSweep-v0",
-        entry_point="iwsim.envs.pilesweep.sim:PileSweepEnv",
-        max_episode_steps=200,  # the paper's pile-sweeping horizon
-    )
-
-if "iwsim/WorldModel-v0" not in registry:
-    register(
-        id="iwsim/WorldModel-v0",
-        entry_point="iwsim.world_model.env:WorldModelEnv",
-        max_episode_steps=600,
-    )
 
 TASKS = {"pusht": "iwsim/BimanualPushT-v0", "pilesweep": "iwsim/PileSweep-v0"}
 IMAGE_SIZES = (64, 96, 128)  # what the MuJoCo tasks render
