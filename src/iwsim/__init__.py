@@ -13,6 +13,7 @@ for _id, _entry, _steps in (
 ):
     if _id not in registry:
         register(id=_id, entry_point=_entry, max_episode_steps=_steps)
+del _id, _entry, _steps  # the loop's names are not the package's
 
 
 def __getattr__(name: str):
