@@ -60,6 +60,7 @@ from iwsim.eval.policy import check_model_task
 from iwsim.eval.profiling import speed, stability
 from iwsim.eval.ranking import agreement
 from iwsim.eval.records import command_line, with_command
+from iwsim.eval.trust import calibration_figure
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.demos import PUSHT
 from iwsim.experiments.policy_eval import PolicyEvalConfig
@@ -106,10 +107,10 @@ def generalisation(name: str, ckpt: str, args: argparse.Namespace, work: Path, m
                    ) -> dict:
     """Item 7 for one model: its families beside MuJoCo's (:func:`families.compare`)."""
     t0 = time.perf_counter()
-    scores, novelty = fam.family_scores(ckpt, work, args.families, args.family_seeds, args.steps, args.zoo,
-                                        args.jobs)
-    result = fam.compare(mujoco["families"], scores, seen, novelty)
-    result.update(seen=seen, scores=scores, minutes=(time.perf_counter() - t0) / 60)
+    scores, signals = fam.family_scores(ckpt, work, args.families, args.family_seeds, args.steps, args.zoo,
+                                        args.jobs, samples=args.trust_samples)
+    result = fam.compare(mujoco["families"], scores, seen, signals)
+    result.update(seen=seen, scores=scores, signals=signals, minutes=(time.perf_counter() - t0) / 60)
     return result
 
 
@@ -246,8 +247,7 @@ def generalisation_markdown(report: dict) -> list[str]:
         cells += [f"{a['pearson']:.2f}", f"{a['mmrv']:.3f}"] if a else ["-"] * 2
         cells += [f"{i['kept']:.0%}", f"{i['fit_10']:.3f} / {i['fit_20']:.3f} / {i[f'fit_{fam.IDLE_STEPS}']:.3f}"] \
             if i else ["-"] * 2
-        rho = (g or {}).get("trust", {}).get("spearman_error")
-        cells.append("no signal" if rho is None else f"{rho:.2f}")
+        cells.append(novelty_rho((g or {}).get("trust", {})))
         lines.append(f"| {n} | " + " | ".join(cells) + f" | {(g or {}).get('minutes', 0):.0f} |")
     pairs = report.get("trust_pairs", {})
     if pairs:
@@ -258,6 +258,7 @@ def generalisation_markdown(report: dict) -> list[str]:
         for pair, t in pairs.items():
             rho = "undefined" if t["spearman_error"] is None else f"{t['spearman_error']:.2f}"
             lines.append(f"| {pair} | {rho} | {t['episodes']} |")
+    lines += trust_markdown(rows)
     for n, r in rows.items():
         g = r.get("generalisation")
         if not g:
@@ -271,6 +272,64 @@ def generalisation_markdown(report: dict) -> list[str]:
                          f"{row['offset']:+.3f} [{lo:+.2f}, {hi:+.2f}] | {'seen' if row['seen'] else 'unseen'} "
                          f"| {nov} |")
     return lines
+
+
+def novelty_rho(trust: dict) -> str:
+    """The novelty column: its rho over all family episodes (a report from before the
+    other signals kept it as ``spearman_error``)."""
+    rho = trust.get("spearman_error") if "spearman_error" in trust else \
+        trust.get("spearman", {}).get("novelty", {}).get("all")
+    return "no signal" if rho is None else f"{rho:.2f}"
+
+
+def trust_markdown(rows: dict) -> list[str]:
+    """The per-episode trust signals (:mod:`iwsim.eval.trust`) of each model with them: how
+    well each ranks the family episodes by their error, and the error predictor fitted on
+    the seen families and judged on the unseen ones."""
+    lines: list[str] = []
+    for n, r in rows.items():
+        t = (r.get("generalisation") or {}).get("trust", {})
+        if "spearman" not in t:
+            continue
+        eps = t["episodes"]
+        lines += ["", f"Trust signals of `{n}`: Spearman rho of each episode's signal against its error "
+                  f"|model - MuJoCo| over the seen families' {eps['seen']} episodes, the unseen ones' "
+                  f"{eps['unseen']} and all (target on the unseen: >= 0.5); the predictor (a ridge regression of "
+                  "the error on the standardised signals and the model's score) is fitted on the seen families' "
+                  "episodes only. Flagged: the mean error of the unseen episodes each flags first (its top 20%), "
+                  f"against {np.mean(t['error_unseen']):.3f} over all of them.", "",
+                  "| signal | rho seen | rho unseen | rho all | unseen error of the flagged 20% |",
+                  "|---|---|---|---|---|"]
+
+        def f(x: float | None) -> str:
+            return "-" if x is None else f"{x:.2f}"
+
+        for name, rho in t["spearman"].items():
+            flagged = next(c["flagged_error"] for c in t["calibration"][name] if c["share"] == 0.2)
+            lines.append(f"| {name} | {f(rho['seen'])} | {f(rho['unseen'])} | {f(rho['all'])} | {flagged:.3f} |")
+        if "predictor" in t:
+            pr = t["predictor"]
+            flagged = next(c["flagged_error"] for c in pr["calibration"] if c["share"] == 0.2)
+            weights = ", ".join(f"{k} {v:+.3f}" for k, v in pr["weights"].items())
+            lines.append(f"| predictor ({weights}) | (fitted) | {f(pr['spearman_unseen'])} | - | {flagged:.3f} |")
+    return lines
+
+
+def trust_figures(out: Path, report: dict) -> None:
+    """``trust_<model>.png``: the calibration of each signal on the unseen family episodes."""
+    for n, r in report["models"].items():
+        g = r.get("generalisation") or {}
+        t = g.get("trust", {})
+        if "spearman" not in t or not t["error_unseen"]:
+            continue
+        unseen = [f for f in g["families"] if not g["families"][f]["seen"]]
+        err = np.asarray(t["error_unseen"])
+        sig = g.get("signals", {})
+        curves = {name: (np.concatenate([sig[name][f] for f in unseen]), err) for name in t["spearman"] if name in sig}
+        if "predictor" in t:
+            curves["predictor"] = (np.asarray(t["predictor"]["per_episode_unseen"]), err)
+        calibration_figure(out / f"trust_{n}.png", curves, f"{n}: trust signals on the unseen families "
+                           f"({len(err)} episodes)")
 
 
 def markdown(report: dict, strip_rows: list[str]) -> str:
@@ -376,6 +435,8 @@ def main(argv: list[str] | None = None) -> int:
                    "model's training data, for its seen families (default: play,expert-noisy)")
     p.add_argument("--curve", help="NAME,NAME,...: models of one run (checkpoints named by their step) to plot "
                    "against training steps in scaling.png")
+    p.add_argument("--trust-samples", type=int, default=1, help="samples of each model per family episode (its "
+                   "noise drawn again), for the sample-spread trust signal (default: %(default)s: none)")
     p.add_argument("--trust-pairs", nargs="*", default=[], help="MODEL=PARTNER: the ensemble trust signal, "
                    "each family episode's |MODEL - PARTNER| against MODEL's error (both with the families part)")
     p.add_argument("--merge", nargs="*", default=[], help="reports (results.json) of yardstick runs made side by "
@@ -390,7 +451,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.zoo and fam.LEARNED in args.families:
         args.families.remove(fam.LEARNED)
     check_positive(args, "episodes", "steps", "candidates", "stability_steps", "horizon", "speed_calls", "threads",
-                   "jobs", "family_seeds", "idle_episodes", "rest_episodes")
+                   "trust_samples", "jobs", "family_seeds", "idle_episodes", "rest_episodes")
     models = named_checkpoints(args.models)
     for name, ckpt in models.items():
         check_model_task(WorldModel.load(ckpt), PUSHT, f"--models {name}={ckpt}")
@@ -476,6 +537,7 @@ def main(argv: list[str] | None = None) -> int:
         if missing:
             p.error(f"--curve names models without the core part: {', '.join(missing)}")
         scaling_figure(out / "scaling.png", {n: report["models"][n] for n in curve}, report["mujoco"])
+    trust_figures(out, report)
     # The strip needs the weights: models evaluated on an earlier machine whose runs are gone drop out of it.
     present = {n: r["checkpoint"] for n, r in report["models"].items() if Path(r["checkpoint"]).is_dir()}
     if len(present) < len(report["models"]):

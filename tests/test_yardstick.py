@@ -160,7 +160,7 @@ def test_seen_families_and_the_learned_familys_checkpoints(tmp_path):
         str(single)]
 
 
-def test_compare_pools_the_families_and_ranks_episodes_by_novelty():
+def test_compare_pools_the_families_and_ranks_episodes_by_each_trust_signal():
     import numpy as np
 
     from iwsim.yardstick.families import compare, ensemble_trust
@@ -168,15 +168,26 @@ def test_compare_pools_the_families_and_ranks_episodes_by_novelty():
     mujoco = {"play": [0.2, 0.4, 0.6], "expert": [0.9, 0.8, 1.0]}
     model = {"play": [0.3, 0.5, 0.7], "expert": [0.5, 0.9, 0.6]}
     novelty = {"play": [0.0, 0.1, 0.2], "expert": [0.9, 0.3, 0.8]}  # high where the model is wrong
-    r = compare(mujoco, model, ["play"], novelty)
+    backwards = {"play": [0.9, 0.8, 0.7], "expert": [0.0, 0.5, 0.1]}  # high where it is right
+    r = compare(mujoco, model, ["play"], {"novelty": novelty, "implausibility": backwards,
+                                          "partial": {"play": [0.0, 0.0, 0.0]}})  # not every family: left out
     play, expert = r["families"]["play"], r["families"]["expert"]
     assert play["offset"] == pytest.approx(0.1) and play["seen"] and not expert["seen"] and play["episodes"] == 3
     lo, hi = expert["offset_interval"]
     assert expert["offset"] == pytest.approx(-0.7 / 3) and lo <= expert["offset"] <= hi
     assert r["pooled"]["unseen"]["families"] == ["expert"] and r["pooled"]["all"]["families"] == ["play", "expert"]
     assert r["pooled"]["unseen"]["max_abs_offset"] == pytest.approx(0.7 / 3)
-    assert r["trust"]["episodes"] == 6 and r["trust"]["spearman_error"] > 0.5
-    assert play["novelty"] == pytest.approx(0.1)
+    trust = r["trust"]
+    assert trust["episodes"] == {"seen": 3, "unseen": 3, "all": 6} and set(trust["spearman"]) == {
+        "novelty", "implausibility"}
+    assert trust["spearman"]["novelty"]["all"] > 0.5 and trust["spearman"]["implausibility"]["all"] < -0.5
+    # errors 0.4, 0.1, 0.4 against 0.9, 0.3, 0.8: in order, but for the tie (rho sqrt(3) / 2)
+    assert trust["spearman"]["novelty"]["unseen"] == pytest.approx(np.sqrt(3) / 2)
+    assert trust["error_unseen"] == pytest.approx([0.4, 0.1, 0.4])
+    flagged = trust["calibration"]["novelty"]  # the most novel third first: an error of 0.4
+    assert flagged[0]["share"] == 0.1 and flagged[0]["flagged_error"] == pytest.approx(0.4)
+    assert "predictor" not in trust  # 3 seen episodes are too few to fit one on
+    assert play["novelty"] == pytest.approx(0.1) and "partial" not in play
     t = ensemble_trust(mujoco, model, {"play": [0.3, 0.5, 0.7], "expert": [0.9, 0.8, 1.0]})
     assert t["episodes"] == 6 and t["spearman_error"] > 0.5 and t["families"]["play"] == 0
     assert np.isclose(t["families"]["expert"], np.mean([0.4, 0.1, 0.4]))

@@ -24,6 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                          f"shipped one, {TASK.checkpoint} for {TASK.kind})")
     q.add_argument("--trust-model", help="a second world model of the task (trained differently): the policy runs "
                    "in it too, and each episode's score difference says how far the first can be trusted")
+    q.add_argument("--samples", type=int, default=1, help="for --env world-model, samples of the model per first "
+                   "state (its noise drawn again): their score spread per episode is a trust signal; the score is "
+                   "the first sample's (default: %(default)s)")
     q.add_argument("--paired", metavar="RESULTS", help="for --env world-model, the results.json of the same policy "
                    "in the task's simulator from some of these seeds (at least 2): adds the prediction-powered "
                    "estimate of the real score and success rate, with a 95%% interval")
@@ -59,6 +62,10 @@ def _eval_policy(args: argparse.Namespace) -> int:
     check_args(args.episodes, args.seed, steps, args.videos, env)
     if args.trust_model is not None and env != WORLD_MODEL:
         raise InputError("--trust-model applies to --env world-model (MuJoCo is the ground truth).")
+    if args.samples != 1 and env != WORLD_MODEL:
+        raise InputError("--samples applies to --env world-model (MuJoCo has one outcome per first state).")
+    if args.samples < 1:
+        raise InputError(f"--samples must be >= 1, got {args.samples}.")
     if args.paired is not None and env != WORLD_MODEL:
         raise InputError("--paired applies to --env world-model (it corrects the model's score with real episodes).")
     world_model = None
@@ -94,7 +101,7 @@ def _eval_policy(args: argparse.Namespace) -> int:
                       meta={"checkpoint": str(args.checkpoint), "policy_sha256": policy_sha256,
                             "n_action_steps": policy.cfg.n_action_steps, "world_model": world_model,
                             "trust_model": args.trust_model, "paired_results": args.paired},
-                      partner=partner, command=command_line("iwsim", args.argv), paired=real)
+                      partner=partner, command=command_line("iwsim", args.argv), paired=real, samples=args.samples)
     if result["scorer"] is None:
         print(f"{env}: no scorer (task {result['task']!r} has no pixel scorer): {args.episodes} episodes of "
               f"{steps} steps without a score; {result['env_steps_per_s']:.0f} env steps/s -> {args.out}")
@@ -118,6 +125,15 @@ def _eval_policy(args: argparse.Namespace) -> int:
         print(f"trust: the two world models' scores differ by {dis['mean']:.3f} on average; "
               f"{100 * dis['above_warn']:.0f}% of episodes differ by more than {dis['warn']:g}, where the score is "
               "least to be trusted")
+    if "implausibility" in result:
+        imp = result["implausibility"]
+        print(f"plausibility: the model's frames fit the task's objects {1 - imp['mean']:.3f} on average (the "
+              f"simulator's ~0.95); {100 * imp['above_warn']:.0f}% of episodes below {1 - imp['warn']:g}, where "
+              "the score is least to be trusted")
+    if "sample_spread" in result:
+        spread = result["sample_spread"]
+        print(f"samples: {args.samples} samples of the model per first state differ by {spread['mean']:.3f} on "
+              f"average; {100 * spread['above_warn']:.0f}% of episodes by more than {spread['warn']:g}")
     if "novelty" in result:
         nov = result["novelty"]
         print(f"novelty: {nov['mean']:.2f} on average (about 1 on the model's training data); "

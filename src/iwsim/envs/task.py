@@ -278,6 +278,14 @@ class Task:
         del frames
         return None
 
+    def plausibility(self, frames: np.ndarray) -> np.ndarray | None:
+        """How well each of frames (B, H, W, 3) shows a scene this task can have (B,) in
+        [0, 1] (1: its objects exactly as they can look), or None: this task cannot tell.
+        A world model's frames that stop looking possible (a rigid block that bends) are
+        frames whose score is least to be trusted (:mod:`iwsim.eval.trust`)."""
+        del frames
+        return None
+
     def observe(self, frames: np.ndarray, setpoint: np.ndarray, previous: np.ndarray
                 ) -> tuple[np.ndarray | None, np.ndarray]:
         """Scores (B,) of frames (B, H, W, 3) (None without a scorer) and ``agent_pos``

@@ -41,6 +41,8 @@ from iwsim.envs.registry import DEFAULT_TASK, REGISTRY, get_task, task_of
 from iwsim.envs.task import Task
 from iwsim.eval.paired import paired_estimate, paired_rate
 from iwsim.eval.stats import beta_posterior, clopper_pearson
+from iwsim.eval.trust import PLAUSIBILITY_EVERY, SAMPLE_OFFSET, episode_signals
+from iwsim.eval.trust import summary as trust_summary
 from iwsim.eval.video import upscale, write_video
 from iwsim.policies.common import PolicyLike
 from iwsim.world_model.env import WorldModelVectorEnv, score_key
@@ -135,7 +137,7 @@ def env_task(venv: VectorEnv, env: str) -> Task:
 def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
             image_size: int | None = None, record: int = 0, progress: bool = True,
             stop: Callable[[dict[str, np.ndarray]], bool] | None = None, start: str = "random",
-            keep: tuple[str, ...] = ()) -> dict[str, Any]:
+            keep: tuple[str, ...] = (), plausibility_every: int = 0, noise_offset: int = 0) -> dict[str, Any]:
     """Run ``policy`` for ``steps`` steps from each seed, all episodes together in ``env``
     (a built-in task's simulator, by the task's name, or "world-model"). Returns the task's
     per-step pixel score ``iou`` (E, T + 1) (whatever the task's score is, T-push's IoU or
@@ -149,7 +151,13 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
     (MuJoCo's initial-state distribution): as in :func:`make_vector_env`. ``novelty`` (E, T):
     in a world model with a trust signal, how unlike its training data each step's inputs
     are (:mod:`iwsim.world_model.novelty`), else None.
-    ``info``: the environment's per-step info arrays named in ``keep`` (E, T + 1, ...), from the reset on."""
+    ``info``: the environment's per-step info arrays named in ``keep`` (E, T + 1, ...), from the reset on.
+    ``plausibility`` (E, K): with ``plausibility_every`` > 0, the task's
+    :meth:`~iwsim.envs.task.Task.plausibility` of every such step's frames from the first
+    on, else (or for a task that cannot tell) None. ``noise_offset``: in a world model,
+    another sample of the same episodes (the model's noise seeds shifted by it)."""
+    if noise_offset and env != WORLD_MODEL:
+        raise InputError("another sample (noise_offset) applies to a world model; MuJoCo has one outcome.")
     venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size, start=start)
     task = env_task(venv, env)
     key = score_key(task)
@@ -163,8 +171,13 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
             raise InputError(f"the policy takes {want[what]}-D {what}s; task {task.name!r} in {env} has "
                              f"{have[what]}-D ones.")
     try:
-        obs, info = venv.reset(seed=list(seeds))
+        obs, info = venv.reset(seed=list(seeds), options={"noise_offset": noise_offset} if noise_offset else None)
         iou = info[key]
+        plausible: list[np.ndarray] = []
+        first = task.plausibility(obs["pixels"]) if plausibility_every > 0 else None
+        judge = first is not None
+        if first is not None:
+            plausible.append(first)
         history: deque[dict[str, np.ndarray]] = deque([obs] * policy.obs_horizon, maxlen=policy.obs_horizon)
         ious, frames, positions, actions, targets = [iou], [obs["pixels"][:record]], [obs["agent_pos"]], [], []
         kept = {k: [info[k]] for k in keep}
@@ -191,6 +204,8 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
                 kept[k].append(info[k])
             if "novelty" in info:
                 novelty.append(info["novelty"])
+            if judge and len(actions) % plausibility_every == 0 and (p := task.plausibility(obs["pixels"])) is not None:
+                plausible.append(p)
             bar.update()
             if stop is not None and stop(obs):
                 break
@@ -202,7 +217,9 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
             "score_key": key, "task": task.name, "success_score": task.success_score,
             "frames": np.stack(frames, 1) if record else None,
             "agent_pos": np.stack(positions, 1), "action": np.stack(actions, 1), "target": np.stack(targets, 1),
-            "novelty": np.stack(novelty, 1) if novelty else None, "info": {k: np.stack(v, 1) for k, v in kept.items()},
+            "novelty": np.stack(novelty, 1) if novelty else None,
+            "plausibility": np.stack(plausible, 1) if plausible else None,
+            "info": {k: np.stack(v, 1) for k, v in kept.items()},
             "seconds": seconds}
 
 
@@ -258,15 +275,36 @@ def summarize(max_score: np.ndarray, seeds: list[int], success_score: float, key
     }
 
 
-def trust(novelty: np.ndarray | None) -> dict[str, Any]:
-    """The trust signal of a world-model evaluation (``rollout``'s ``novelty`` (E, T)):
-    each episode's mean novelty and their mean, the share of episodes above
-    :data:`NOVELTY_WARN`; nothing for MuJoCo or a model without one."""
-    if novelty is None:
-        return {}
-    per_episode = novelty.mean(1)
-    return {"novelty": {"per_episode": np.round(per_episode, 3).tolist(), "mean": float(per_episode.mean()),
-                        "above_warn": float((per_episode > NOVELTY_WARN).mean()), "warn": NOVELTY_WARN}}
+def trust(run: dict[str, Any], sample_max_scores: list[np.ndarray] | None = None) -> dict[str, Any]:
+    """The trust signals of a world-model evaluation (:mod:`iwsim.eval.trust`) from a
+    :func:`rollout` (and the max scores of its other samples, :func:`sampled_rollout`):
+    per signal each episode's value, their mean and the share of episodes above its warning
+    level (``novelty``'s :data:`NOVELTY_WARN`); nothing for MuJoCo."""
+    out = trust_summary(episode_signals(run["plausibility"], sample_max_scores))
+    if run["novelty"] is not None:
+        per_episode = run["novelty"].mean(1)
+        out["novelty"] = {"per_episode": np.round(per_episode, 3).tolist(), "mean": float(per_episode.mean()),
+                          "above_warn": float((per_episode > NOVELTY_WARN).mean()), "warn": NOVELTY_WARN}
+    return out
+
+
+def sampled_rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, samples: int = 1,
+                    **kwargs: Any) -> tuple[dict[str, Any], list[np.ndarray] | None]:
+    """:func:`rollout` (its frames' plausibility measured in a world model), and with
+    ``samples`` > 1 the max scores (E,) of that many samples of the world model (the first
+    this rollout's, the others the same episodes with other noise); else None."""
+    if samples < 1:
+        raise InputError(f"--samples must be >= 1, got {samples}.")
+    if samples > 1 and env != WORLD_MODEL:
+        raise InputError("--samples applies to --env world-model (MuJoCo has one outcome per first state).")
+    every = PLAUSIBILITY_EVERY if env == WORLD_MODEL else 0
+    run = rollout(policy, env, seeds, steps, plausibility_every=every, **kwargs)
+    if samples == 1 or run["iou"] is None:
+        return run, None
+    kwargs = {**kwargs, "record": 0}
+    others = [rollout(policy, env, seeds, steps, noise_offset=k * SAMPLE_OFFSET, **kwargs)["iou"].max(1)
+              for k in range(1, samples)]
+    return run, [run["iou"].max(1), *others]
 
 
 def no_score(seeds: list[int], key: str = "score") -> dict[str, Any]:
@@ -357,7 +395,7 @@ def paired_scores(model: dict[str, Any], real: dict[str, Any], key: str) -> dict
 def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: int, world_model: Any = None,
              image_size: int | None = None, out: str | Path | None = None, videos: int = 4, progress: bool = True,
              meta: dict[str, Any] | None = None, partner: Any = None, command: str | None = None,
-             paired: dict[str, Any] | None = None) -> dict[str, Any]:
+             paired: dict[str, Any] | None = None, samples: int = 1) -> dict[str, Any]:
     """Evaluate ``policy`` in ``env`` (a built-in task's simulator, by the task's name, or
     "world-model") on ``episodes`` seeds ``seed, seed+1, ...``; with ``out``, write
     ``results.json`` (and each step's score: T-push's ``iou.json``, another task's
@@ -370,20 +408,22 @@ def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: i
     ``paired``: the results of the same policy in the task's simulator from some of these
     seeds (checked by :func:`check_paired`); the result gains ``paired``, the
     prediction-powered estimates of the real score and success rate
-    (:mod:`iwsim.eval.paired`)."""
+    (:mod:`iwsim.eval.paired`). In a world model the result holds the trust signals of
+    :func:`trust` (``samples``: how many samples of the model, for ``sample_spread``)."""
     check_args(episodes, seed, steps, videos, env)
     if out is not None:
         check_output_dir(out)
     if partner is not None and env != "world-model":
         raise InputError("a partner world model (--trust-model) applies to evaluations inside a world model.")
     seeds = [seed + i for i in range(episodes)]
-    run = rollout(policy, env, seeds, steps, world_model=world_model, image_size=image_size,
-                  record=min(videos, episodes) if out is not None else 0, progress=progress)
+    run, sampled = sampled_rollout(policy, env, seeds, steps, samples=samples, world_model=world_model,
+                                   image_size=image_size, record=min(videos, episodes) if out is not None else 0,
+                                   progress=progress)
     key = run["score_key"]
     result = {"env": env, "steps": steps, **(meta or {}), "task": run["task"], "scorer": run["scorer"],
               **(no_score(seeds, key) if run["iou"] is None else
                  summarize(run["iou"].max(1), seeds, run["success_score"], key)),
-              **trust(run["novelty"]), "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
+              **trust(run, sampled), "seconds": run["seconds"], "env_steps_per_s": episodes * steps / run["seconds"]}
     if partner is not None and run["iou"] is not None:
         other = rollout(policy, env, seeds, steps, world_model=partner, image_size=image_size, progress=progress)
         result["disagreement"] = disagreement(run["iou"].max(1), other["iou"].max(1))

@@ -39,8 +39,9 @@ from iwsim.core.trainer import data_by_content
 from iwsim.data.store import EpisodeStore
 from iwsim.envs.registry import DEFAULT_TASK, get_task, task_from_config, task_of
 from iwsim.envs.task import Task
-from iwsim.eval.policy import WORLD_MODEL, rollout, summarize, trust
+from iwsim.eval.policy import WORLD_MODEL, sampled_rollout, summarize, trust
 from iwsim.eval.records import command_line
+from iwsim.eval.trust import PLAUSIBILITY_EVERY
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class
 from iwsim.policies.data import Source
 from iwsim.policies.factory import checkpoint_dir, load_policy
@@ -297,7 +298,7 @@ def _load(source: PolicySource, task: Task) -> Any:
 
 
 def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps: int, world_model: str | None,
-              path: Path, key: dict[str, Any], progress: bool) -> dict[str, Any]:
+              path: Path, key: dict[str, Any], progress: bool, samples: int = 1) -> dict[str, Any]:
     torch.manual_seed(0)  # the policies' sampling noise: the same evaluation gives the same scores
     wm = None
     if env == WORLD_MODEL:
@@ -305,10 +306,11 @@ def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps
         wm = WorldModel.load(world_model)
     policy = _load(source, get_task(env) if wm is None else task_of(wm))
     image_size = wm.image_size if wm is not None else getattr(policy, "image_size", None)
-    run = rollout(policy, env, seeds, steps, world_model=wm, image_size=image_size, progress=progress)
+    run, sampled = sampled_rollout(policy, env, seeds, steps, samples=samples, world_model=wm,
+                                   image_size=image_size, progress=progress)
     score = run["score_key"]
     result = {"name": name, "key": key, **summarize(run["iou"].max(1), seeds, run["success_score"], score),
-              **trust(run["novelty"]), "seconds": run["seconds"],
+              **trust(run, sampled), "seconds": run["seconds"],
               f"{score}_per_step": np.round(run["iou"], 4).tolist()}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(path, result, sort_keys=False)
@@ -317,7 +319,7 @@ def _evaluate(name: str, source: PolicySource, env: str, seeds: list[int], steps
 
 def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: Sequence[int], steps: int,
                       world_model: str | Path | None, out: Path, jobs: int = 1,
-                      progress: bool = True) -> dict[str, dict[str, Any]]:
+                      progress: bool = True, samples: int = 1) -> dict[str, dict[str, Any]]:
     """Closed-loop evaluation of each named policy in ``env`` (a built-in task's simulator,
     by the task's name, or "world-model"; a scripted policy is that task's, or the world
     model's) from ``seeds``, all episodes of a policy in lockstep
@@ -327,8 +329,9 @@ def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: 
     dict, each step's score (E, steps + 1) (T-push's ``iou_per_step``, another task's
     ``score_per_step``), ``seconds`` and a ``key`` (the policy, seeds, steps, world model
     and its weights); a cached result with the same key is reused. Up to
-    ``jobs`` policies at once in spawned processes with one torch thread each. Returns
-    name -> result.
+    ``jobs`` policies at once in spawned processes with one torch thread each. In a world
+    model a result holds the trust signals (:func:`iwsim.eval.policy.trust`; ``samples``
+    samples of the model each). Returns name -> result.
     """
     if env == WORLD_MODEL and world_model is None:
         raise InputError("evaluating inside the world model needs a world-model checkpoint.")
@@ -341,10 +344,12 @@ def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: 
         path = Path(out) / env / f"{name}.json"
         key = {"policy": _describe(source), "env": env, "seeds": seeds, "steps": steps,
                "world_model_sha256": wm_sha256}  # identities by content: the same files at another path match
+        if wm is not None:  # the trust signals a world-model evaluation measures (iwsim.eval.trust)
+            key.update(plausibility_every=PLAUSIBILITY_EVERY, samples=samples)
         if path.is_file() and load_json(path).get("key") == key:
             results[name] = load_json(path)
         else:
-            calls.append((name, source, env, seeds, steps, wm, path, key, progress and jobs <= 1))
+            calls.append((name, source, env, seeds, steps, wm, path, key, progress and jobs <= 1, samples))
     if calls:
         log.info("evaluating %d policies in %s (%d episodes x %d steps; %d cached)", len(calls), env, len(seeds),
                  steps, len(results))

@@ -209,7 +209,9 @@ def score_key(task: Task) -> str:
 class WorldModelVectorEnv(VectorEnv):
     """``num_envs`` world-model rollouts stepped in one batched forward pass.
 
-    ``reset(seed=s)`` starts env i from seed ``s + i``. All episodes are truncated together
+    ``reset(seed=s)`` starts env i from seed ``s + i``, the model's noise seeded alike
+    (``options={"noise_offset": k}`` adds k to the noise seeds: another sample of the same
+    starts). All episodes are truncated together
     after ``max_episode_steps``; the following ``step`` resets them all (Gymnasium's
     next-step autoreset) from the next seeds.
     """
@@ -260,7 +262,8 @@ class WorldModelVectorEnv(VectorEnv):
         self._setpoint = np.stack([d.command for d in drawn]).astype(np.float64)
         self._frames = frames
         self._agent_pos = np.stack([d.agent_pos for d in drawn]).astype(np.float32)
-        self.model.reset(frames, seed=seeds, held=self._setpoint.astype(np.float32),
+        offset = int(options.get("noise_offset", 0))  # another sample of the same starts: other noise
+        self.model.reset(frames, seed=[(s + offset) % 2**32 for s in seeds], held=self._setpoint.astype(np.float32),
                          state=self._agent_pos if self._own_pos else None)
         self._t, self._needs_reset = 0, False
         return self._obs(), self._info(self.task.score(self._frames))

@@ -29,13 +29,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.stats import spearmanr
 
 from iwsim.core.checkpoint import load_json, write_json_atomic
 from iwsim.envs.pusht import pixels
 from iwsim.envs.registry import DEFAULT_TASK, get_task
 from iwsim.eval.policy import rollout
 from iwsim.eval.ranking import agreement
+from iwsim.eval.trust import SIGNALS, ErrorPredictor, calibration, spearman
 from iwsim.experiments.common import evaluate_policies, fingerprint
 from iwsim.experiments.policy_eval import mean_interval
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
@@ -109,11 +109,12 @@ def zoo_sources(zoo: list[str]) -> list[str]:
 
 
 def family_scores(model: str | None, work: Path, families: list[str], seeds: int, steps: int,
-                  zoo: list[str], jobs: int = 1, task: str = DEFAULT_TASK.kind
-                  ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+                  zoo: list[str], jobs: int = 1, task: str = DEFAULT_TASK.kind, samples: int = 1
+                  ) -> tuple[dict[str, list[float]], dict[str, dict[str, list[float]]]]:
     """Per family, the max score (T-push's IoU, ``task``'s score) of each episode (``seeds``
-    of them) in ``task``'s MuJoCo (``model`` None) or in the world model ``model``, and (for
-    a model with a trust signal) each episode's novelty; cached under ``work`` by
+    of them) in ``task``'s MuJoCo (``model`` None) or in the world model ``model``, and (in a
+    model) each episode's trust signals (:mod:`iwsim.eval.trust`: signal -> family ->
+    per-episode; ``samples`` samples of the model for the spread); cached under ``work`` by
     :func:`iwsim.experiments.common.evaluate_policies`, up to ``jobs`` families at a time."""
     env = task if model is None else "world-model"
     best = f"max_{score_key(get_task(task))}"
@@ -121,37 +122,44 @@ def family_scores(model: str | None, work: Path, families: list[str], seeds: int
     work = work / "families" / ("mujoco" if model is None else fingerprint(model))  # a cache per model
     sources: dict[str, Any] = {f: FAMILIES[f][0] for f in families if f != LEARNED}
     results = evaluate_policies(sources, env, seeds=all_seeds, steps=steps, world_model=model, out=work,
-                                jobs=jobs, progress=False)
+                                jobs=jobs, progress=False, samples=samples)
     out = {f: [e[best] for e in r["episodes"]] for f, r in results.items()}
-    novelty = {f: r["novelty"]["per_episode"] for f, r in results.items() if "novelty" in r}
+    signals: dict[str, dict[str, list[float]]] = {}
+    for f, r in results.items():
+        for name in SIGNALS:
+            if name in r:
+                signals.setdefault(name, {})[f] = r[name]["per_episode"]
     if LEARNED in families:
         policies = zoo_sources(zoo)
         if not policies:
             raise ValueError("the learned family needs policy checkpoints: pass --zoo RUN_OR_CHECKPOINT ...")
-        scores, nov = np.zeros(seeds), np.zeros(seeds)
+        scores = np.zeros(seeds)
+        learned: dict[str, np.ndarray] = {}
         for k, path in enumerate(policies):
             mine = all_seeds[k::len(policies)]
             if not mine:
                 continue
             name = f"{LEARNED}-{Path(path).parent.parent.name}-{Path(path).name}"
             r = evaluate_policies({name: path}, env, seeds=mine, steps=steps, world_model=model, out=work,
-                                  progress=False)[name]
+                                  progress=False, samples=samples)[name]
             scores[k::len(policies)] = [e[best] for e in r["episodes"]]
-            if "novelty" in r:
-                nov[k::len(policies)] = r["novelty"]["per_episode"]
+            for signal in SIGNALS:
+                if signal in r:
+                    learned.setdefault(signal, np.zeros(seeds))[k::len(policies)] = r[signal]["per_episode"]
         out[LEARNED] = scores.tolist()
-        if novelty:
-            novelty[LEARNED] = nov.tolist()
-    return {f: out[f] for f in families}, {f: novelty[f] for f in families if f in novelty}
+        for signal, v in learned.items():
+            signals.setdefault(signal, {})[LEARNED] = v.tolist()
+    return ({f: out[f] for f in families},
+            {n: {f: v[f] for f in families} for n, v in signals.items() if set(families) <= set(v)})
 
 
 def compare(mujoco: dict[str, list[float]], model: dict[str, list[float]], seen: list[str],
-            novelty: dict[str, list[float]] | None = None) -> dict[str, Any]:
+            signals: dict[str, dict[str, list[float]]] | None = None) -> dict[str, Any]:
     """Per family: the mean max IoU in both, the offset (model - MuJoCo) with a 95% bootstrap
     interval over episodes, and whether the family is seen; pooled Pearson r, Spearman rho
     and MMRV over all (family, episode) pairs and over the unseen families' alone. With
-    ``novelty`` (each episode's, per family): how well it ranks the episodes by their error
-    |model - MuJoCo| (Spearman rho over all episodes), and each family's mean."""
+    ``signals`` (:func:`family_scores`'s): each family's mean of each, and ``trust``
+    (:func:`trust_measures`)."""
     rows: dict[str, dict[str, Any]] = {}
     for f in model:
         a, b = np.asarray(mujoco[f]), np.asarray(model[f])
@@ -167,13 +175,42 @@ def compare(mujoco: dict[str, list[float]], model: dict[str, list[float]], seen:
         pooled[part] = {"pearson": agree["pearson"], "spearman": agree["spearman"], "mmrv": agree["mmrv"],
                         "max_abs_offset": max(abs(rows[f]["offset"]) for f in fams), "families": fams}
     out: dict[str, Any] = {"families": rows, "pooled": pooled}
-    if novelty and set(novelty) == set(model):
-        err = np.concatenate([np.abs(np.asarray(model[f]) - np.asarray(mujoco[f])) for f in model])
-        nov = np.concatenate([novelty[f] for f in model])
-        for f in model:
-            rows[f]["novelty"] = float(np.mean(novelty[f]))
-        out["trust"] = {"spearman_error": float(spearmanr(nov, err)[0]) if np.ptp(nov) > 0 and np.ptp(err) > 0
-                        else None, "episodes": len(err)}
+    signals = {n: v for n, v in (signals or {}).items() if set(v) == set(model)}
+    if signals:
+        for name, v in signals.items():
+            for f in model:
+                rows[f][name] = float(np.mean(v[f]))
+        out["trust"] = trust_measures(mujoco, model, seen, signals)
+    return out
+
+
+def trust_measures(mujoco: dict[str, list[float]], model: dict[str, list[float]], seen: list[str],
+                   signals: dict[str, dict[str, list[float]]]) -> dict[str, Any]:
+    """How well each trust signal ranks the family episodes by their error |model -
+    MuJoCo| (Spearman rho over the seen families' episodes, the unseen ones' and all), and
+    the error predictor (:class:`~iwsim.eval.trust.ErrorPredictor`: the signals and the
+    model's score) fitted on the seen families' episodes and judged on the unseen ones'
+    (policies it never saw); the unseen episodes' calibration (:func:`~iwsim.eval.trust.calibration`)."""
+    parts = {"seen": [f for f in model if f in seen], "unseen": [f for f in model if f not in seen],
+             "all": list(model)}
+
+    def pool(d: dict[str, list[float]], fams: list[str]) -> np.ndarray:
+        return np.concatenate([np.asarray(d[f], np.float64) for f in fams]) if fams else np.zeros(0)
+
+    err = {p: np.abs(pool(model, fams) - pool(mujoco, fams)) for p, fams in parts.items()}
+    feats = {p: {**{n: pool(v, fams) for n, v in signals.items()}, "score": pool(model, fams)}
+             for p, fams in parts.items()}
+    out: dict[str, Any] = {"episodes": {p: len(e) for p, e in err.items()},
+                           "spearman": {n: {p: spearman(feats[p][n], err[p]) for p in parts} for n in signals},
+                           "calibration": {n: calibration(feats["unseen"][n], err["unseen"]) for n in signals}
+                           if len(err["unseen"]) else {}}
+    if len(err["seen"]) >= 10 and len(err["unseen"]):
+        predictor = ErrorPredictor.fit(feats["seen"], err["seen"])
+        predicted = predictor.predict(feats["unseen"])
+        out["predictor"] = {"weights": predictor.weights(), "spearman_unseen": spearman(predicted, err["unseen"]),
+                            "calibration": calibration(predicted, err["unseen"]),
+                            "per_episode_unseen": np.round(predicted, 4).tolist()}
+    out["error_unseen"] = np.round(err["unseen"], 4).tolist()
     return out
 
 
@@ -187,7 +224,7 @@ def ensemble_trust(mujoco: dict[str, list[float]], model: dict[str, list[float]]
     a, b = (np.concatenate([np.asarray(x[f]) for f in fams]) for x in (model, partner))
     err = np.abs(a - np.concatenate([np.asarray(mujoco[f]) for f in fams]))
     gap = np.abs(a - b)
-    return {"spearman_error": float(spearmanr(gap, err)[0]) if np.ptp(gap) > 0 and np.ptp(err) > 0 else None,
+    return {"spearman_error": spearman(gap, err),
             "episodes": len(err), "families": {f: float(np.mean(np.abs(np.subtract(model[f], partner[f]))))
                                               for f in fams}}
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from iwsim.envs.pusht import scripted
-from iwsim.envs.pusht.pixels import PALETTE_MODEL, pixel_iou, read_frames
+from iwsim.envs.pusht.pixels import PALETTE_MODEL, estimate_block_pose, pixel_iou, read_frames
 from iwsim.envs.pusht.sim import IMAGE_SIZE, STARTS, SUCCESS_IOU, TaskSpec
 from iwsim.envs.tabletop.scripting import ScriptedPolicy
 from iwsim.envs.tabletop.task import TabletopTask
@@ -41,6 +41,11 @@ class PushTTask(TabletopTask):
 
     def score(self, frames: np.ndarray) -> np.ndarray:
         return np.asarray(pixel_iou(frames), np.float64)
+
+    def plausibility(self, frames: np.ndarray) -> np.ndarray:
+        """The fit of a rigid T's outline to the block's pixels (0 where too little block
+        shows to fit one): about 0.95 in MuJoCo's frames, lower where the block bends."""
+        return np.array([estimate_block_pose(f).fit_iou for f in frames], np.float64)
 
     def read(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return read_frames(frames)
