@@ -88,6 +88,9 @@ def test_tiny_study_end_to_end_and_resumed(inputs, tmp_path, capsys, caplog):
     assert report["command"] in md and "iwsim experiment policy-eval --preset tiny" in report["command"]
     assert next(iter(report)) == "command"
     assert all(f"| {n} |" in md for n in names) and "undefined" in md and "Within each group" in md
+    # each policy's trust signals inside the model (iwsim.eval.trust), none in MuJoCo
+    assert all(0 <= p["world-model"]["trust"]["implausibility"] <= 1 and not p["pusht"]["trust"]
+               for p in report["policies"]) and "implausibility 0." in md
     assert (out / "scatter.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     # A rerun trains nothing and evaluates nothing: the cached evaluations are reused.

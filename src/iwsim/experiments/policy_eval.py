@@ -49,6 +49,7 @@ from iwsim.eval.figures import pyplot, save_figure
 from iwsim.eval.paired import METHOD, paired_estimate
 from iwsim.eval.policy import WORLD_MODEL, check_args
 from iwsim.eval.ranking import agreement
+from iwsim.eval.trust import SIGNALS
 from iwsim.experiments.common import (
     STUDY,
     STUDY_TASK,
@@ -244,7 +245,8 @@ def _scores(result: dict[str, Any], key: str) -> dict[str, Any]:
             "successes": int(sum(e["success"] for e in result["episodes"])),
             "success_clopper_pearson": result["success_clopper_pearson"],
             "success_beta_posterior": result["success_beta_posterior"], "seconds": result["seconds"],
-            f"max_{key}": [round(float(m), 4) for m in best]}
+            f"max_{key}": [round(float(m), 4) for m in best],
+            "trust": {n: result[n]["mean"] for n in SIGNALS if n in result}}  # a world model's (iwsim.eval.trust)
 
 
 def run_policy_eval(cfg: PolicyEvalConfig, *, out: str | Path, work: str | Path, preset: str = "default",
@@ -465,8 +467,8 @@ def markdown(report: dict[str, Any]) -> str:
         "## Policies",
         "",
         f"| policy | kind | train steps | demos | MuJoCo max {name} | world model max {name} | MuJoCo success | "
-        "world model success |",
-        "|---|---|---|---|---|---|---|---|",
+        "world model success | world model: trust signals (mean) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for p in sorted(report["policies"], key=lambda p: -p[reference][f"mean_max_{key}"]):
         cells = [p["name"], p["kind"], p["train_steps"] or "-", p["demos"] or "-"]
@@ -478,6 +480,7 @@ def markdown(report: dict[str, Any]) -> str:
             r = p[env]
             lo_, hi_ = r["success_clopper_pearson"]
             cells.append(f"{r['success_rate']:.2f} ({lo_:.2f}-{hi_:.2f})")
+        cells.append(", ".join(f"{n} {v:.3f}" for n, v in p[proxy].get("trust", {}).items()) or "-")
         lines.append("| " + " | ".join(map(str, cells)) + " |")
     lines += _paired_markdown(report.get("paired"), name)
     t = report["timings"]
