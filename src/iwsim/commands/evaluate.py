@@ -51,7 +51,15 @@ def _eval_policy(args: argparse.Namespace) -> int:
     from iwsim.core.checkpoint import load_json
     from iwsim.core.trainer import resolve_device
     from iwsim.envs.registry import DEFAULT_TASK, shipped_world_model
-    from iwsim.eval.policy import WORLD_MODEL, check_args, check_model_task, check_paired, choose_task, evaluate
+    from iwsim.eval.policy import (
+        WORLD_MODEL,
+        check_args,
+        check_model_task,
+        check_paired,
+        check_samples,
+        choose_task,
+        evaluate,
+    )
     from iwsim.eval.records import command_line
     from iwsim.experiments.common import fingerprint
     from iwsim.policies.factory import checkpoint_dir, load_policy, recorded_task
@@ -62,10 +70,7 @@ def _eval_policy(args: argparse.Namespace) -> int:
     check_args(args.episodes, args.seed, steps, args.videos, env)
     if args.trust_model is not None and env != WORLD_MODEL:
         raise InputError("--trust-model applies to --env world-model (MuJoCo is the ground truth).")
-    if args.samples != 1 and env != WORLD_MODEL:
-        raise InputError("--samples applies to --env world-model (MuJoCo has one outcome per first state).")
-    if args.samples < 1:
-        raise InputError(f"--samples must be >= 1, got {args.samples}.")
+    check_samples(args.samples, env)  # before anything loads (the evaluation checks it again)
     if args.paired is not None and env != WORLD_MODEL:
         raise InputError("--paired applies to --env world-model (it corrects the model's score with real episodes).")
     world_model = None

@@ -288,15 +288,20 @@ def trust(run: dict[str, Any], sample_max_scores: list[np.ndarray] | None = None
     return out
 
 
+def check_samples(samples: int, env: str) -> None:
+    """One line unless ``samples`` (of the model per first state) can run in ``env``."""
+    if samples < 1:
+        raise InputError(f"--samples must be >= 1, got {samples}.")
+    if samples > 1 and env != WORLD_MODEL:
+        raise InputError("--samples applies to --env world-model (MuJoCo has one outcome per first state).")
+
+
 def sampled_rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, samples: int = 1,
                     **kwargs: Any) -> tuple[dict[str, Any], list[np.ndarray] | None]:
     """:func:`rollout` (its frames' plausibility measured in a world model), and with
     ``samples`` > 1 the max scores (E,) of that many samples of the world model (the first
     this rollout's, the others the same episodes with other noise); else None."""
-    if samples < 1:
-        raise InputError(f"--samples must be >= 1, got {samples}.")
-    if samples > 1 and env != WORLD_MODEL:
-        raise InputError("--samples applies to --env world-model (MuJoCo has one outcome per first state).")
+    check_samples(samples, env)
     every = PLAUSIBILITY_EVERY if env == WORLD_MODEL else 0
     run = rollout(policy, env, seeds, steps, plausibility_every=every, **kwargs)
     if samples == 1 or run["iou"] is None:
