@@ -24,6 +24,43 @@ def play_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+def two_view_episode(j: int, t: int, size: int = 32, second: str = "side") -> dict[str, np.ndarray]:
+    """Episode j of two camera views that look unlike each other (smooth, so that video
+    codecs keep them well): ``img`` warm stripes across, ``img_<second>`` cool stripes down,
+    both moving with time; 4-D state and action."""
+    y, x = np.mgrid[0:size, 0:size] / size
+    rng = np.random.default_rng(200 + j)
+    first, other = np.empty((2, t, size, size, 3), np.uint8)
+    for k in range(t):
+        u = 0.5 + 0.5 * np.sin(2 * np.pi * (x + 0.1 * k + 0.2 * j))
+        v = 0.5 + 0.5 * np.sin(2 * np.pi * (y + 0.15 * k + 0.1 * j))
+        # brightness stripes of one tint per view: H.264 in yuv420p halves the colour resolution
+        first[k] = np.stack([90 + 120 * u, 50 + 120 * u, 20 + 120 * u], axis=-1)
+        other[k] = np.stack([20 + 120 * v, 50 + 120 * v, 90 + 120 * v], axis=-1)
+    return {"img": first, f"img_{second}": other, "state": rng.standard_normal((t, 4)).astype(np.float32),
+            "action": rng.standard_normal((t, 4)).astype(np.float32)}
+
+
+def make_two_view_store(path: Path, episodes: int = 2, cameras: tuple[str, str] = ("top", "side"),
+                        size: int = 32, **attrs) -> Path:
+    """A store of two views ``cameras`` (``data/img`` and ``data/img_<cameras[1]>``) made
+    directly with EpisodeStore: episodes of 5, 6, ... steps, seeds 0, 1, ..."""
+    from iwsim.data.store import EpisodeStore
+
+    store = EpisodeStore.create(path, {"task": "pusht", "fps": 10, "image_size": size, "cameras": list(cameras),
+                                       "action_names": ["left_x", "left_y", "right_x", "right_y"], **attrs})
+    for j in range(episodes):
+        store.append(two_view_episode(j, 5 + j, size, cameras[1]), seed=j)
+    store.close()
+    return path
+
+
+@pytest.fixture(scope="session")
+def two_view_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A store of the views top and side: 2 episodes of 5 and 6 steps at 32 px."""
+    return make_two_view_store(tmp_path_factory.mktemp("views") / "two.zarr")
+
+
 @pytest.fixture
 def one_thread():
     """Tiny networks on two cores shared with other jobs: torch's default two threads

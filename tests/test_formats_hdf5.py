@@ -224,12 +224,17 @@ def test_aloha_round_trip_resized(store_path: Path, tmp_path: Path) -> None:
 def test_act_files_uncompressed(tmp_path: Path) -> None:
     src, eps = act_dir(tmp_path / "sim_transfer_cube_scripted")
     store = import_("hdf5-aloha", src, tmp_path / "a.zarr", image_size=None, progress=False)
-    assert_episodes(store, eps)  # episode_0, episode_2, episode_10: numeric order
-    assert store.attrs["camera"] == "top" and store.attrs["fps"] == 50
+    assert_episodes(store, [{**e, "img_left_wrist": e["left_wrist"]} for e in eps],
+                    keys=("img", "img_left_wrist", "state", "action"))  # episode_0, episode_2, episode_10
+    # every camera, "top" first though h5py lists left_wrist first
+    assert store.attrs["cameras"] == ["top", "left_wrist"] and store.attrs["source_cameras"] == ["top", "left_wrist"]
+    assert "camera" not in store.attrs and store.attrs["fps"] == 50
     assert store.attrs["task"] == "sim_transfer_cube_scripted"
     assert store.attrs["action_names"] == ALOHA_ACTION_NAMES and len(ALOHA_ACTION_NAMES) == 14
     wrist = import_("hdf5-aloha", src, tmp_path / "w.zarr", camera="left_wrist", image_size=None, progress=False)
     assert_episodes(wrist, [{**e, "img": e["left_wrist"]} for e in eps])
+    assert wrist.attrs["camera"] == "left_wrist" and "cameras" not in wrist.attrs
+    assert sorted(wrist.keys) == ["action", "img", "state"]
     one = import_("hdf5-aloha", src / "episode_2.hdf5", tmp_path / "one.zarr", image_size=None, progress=False)
     assert_episodes(one, eps[1:2])
 
@@ -260,22 +265,33 @@ def test_robomimic_file(tmp_path: Path) -> None:
     store = import_("robomimic", tmp_path / "image.hdf5", tmp_path / "r.zarr", image_size=None, progress=False)
     assert_episodes(store, eps)  # demo_0, demo_2, demo_10: numeric order; state = sorted low-dim keys
     a = store.attrs
-    assert (a["task"], a["fps"], a["camera"], a["image_size"]) == ("Lift", 20, "agentview_image", 32)
+    assert (a["task"], a["fps"], a["cameras"], a["image_size"]) == ("Lift", 20, ["agentview", "robot0_eye_in_hand"],
+                                                                   32)
+    assert a["source_cameras"] == ["agentview_image", "robot0_eye_in_hand_image"]
+    np.testing.assert_array_equal(store.episode(2)["img_robot0_eye_in_hand"],
+                                  arrays["data/demo_10/obs/robot0_eye_in_hand_image"])
     assert a["state_keys"] == [[k, ROBOMIMIC_LOWDIM[k]] for k in sorted(ROBOMIMIC_LOWDIM)]
     assert store.episode(0)["action"].shape[1] == 7
     hand = import_("robomimic", tmp_path / "image.hdf5", tmp_path / "h.zarr", camera="robot0_eye_in_hand_image",
                    image_size=None, progress=False)
     np.testing.assert_array_equal(hand.episode(2)["img"], arrays["data/demo_10/obs/robot0_eye_in_hand_image"])
+    assert hand.attrs["camera"] == "robot0_eye_in_hand_image" and "img_agentview" not in hand.keys
     assert validate(tmp_path / "image.hdf5") == ("robomimic", [])
 
 
-def test_robomimic_camera_must_be_chosen_among_several(tmp_path: Path) -> None:
+def test_robomimic_cameras_without_agentview_in_name_order(tmp_path: Path) -> None:
     arrays, attrs, _ = robomimic_arrays((0,))
     arrays["data/demo_0/obs/sideview_image"] = arrays.pop("data/demo_0/obs/agentview_image")
     write_h5(tmp_path / "x.hdf5", arrays, attrs)
-    with pytest.raises(FormatError, match="robot0_eye_in_hand_image, sideview_image.*--camera") as e:
-        import_("robomimic", tmp_path / "x.hdf5", tmp_path / "r.zarr", image_size=None, progress=False)
-    assert_clean_failure(e.value, tmp_path / "r.zarr")
+    store = import_("robomimic", tmp_path / "x.hdf5", tmp_path / "r.zarr", image_size=16, progress=False)
+    assert store.attrs["cameras"] == ["robot0_eye_in_hand", "sideview"] and store.attrs["image_size"] == 16
+    np.testing.assert_array_equal(store.episode(0)["img_sideview"],
+                                  resize_frames(arrays["data/demo_0/obs/sideview_image"], 16))
+    with pytest.raises(FormatError, match="no obs key 'agentview_image'; image keys: robot0_eye_in_hand_image, "
+                                          "sideview_image") as e:
+        import_("robomimic", tmp_path / "x.hdf5", tmp_path / "a.zarr", camera="agentview_image", image_size=None,
+                progress=False)
+    assert_clean_failure(e.value, tmp_path / "a.zarr")
 
 
 def test_dp_pusht_zarr(tmp_path: Path) -> None:
@@ -329,7 +345,10 @@ ALOHA_BREAKS: dict[str, tuple[Callable[[Path], None], str]] = {
     "text actions": (lambda p: _h5_edit(p, "action", np.full((5, 14), b"x")), "'action' must be numbers"),
     "empty": (lambda p: [_h5_edit(p, k, np.zeros((0, *s), d)) for k, s, d in
                          [("action", (14,), np.float32), ("observations/qpos", (14,), np.float32),
-                          ("observations/images/top", (32, 32, 3), np.uint8)]], "episode is empty"),
+                          ("observations/images/top", (32, 32, 3), np.uint8),
+                          ("observations/images/left_wrist", (32, 32, 3), np.uint8)]], "episode is empty"),
+    "short camera": (lambda p: _h5_edit(p, "observations/images/left_wrist", np.zeros((4, 32, 32, 3), np.uint8)),
+                     r"\(episode 1\): the views differ in frame count: img 5, img_left_wrist 4"),
     "nan": (lambda p: _h5_edit(p, "action", np.full((5, 14), np.nan, np.float32)), "non-finite"),
 }
 
@@ -588,3 +607,104 @@ def test_validate_neither_format(tmp_path: Path) -> None:
     write_h5(tmp_path / "x.h5", {"foo": np.zeros(3)}, {})
     kind, problems = validate(tmp_path / "x.h5")
     assert kind == "hdf5" and "neither ALOHA" in problems[0]
+
+
+# --- several cameras ---------------------------------------------------------------------------
+def test_aloha_two_views_round_trip(two_view_store: Path, tmp_path: Path) -> None:
+    out = export("hdf5-aloha", two_view_store, tmp_path / "aloha", progress=False)
+    src = EpisodeStore.open(two_view_store)
+    with h5py.File(out / "episode_1.hdf5") as f:
+        assert sorted(f["observations/images"]) == ["side", "top"]
+        assert json.loads(f.attrs["cameras"]) == ["top", "side"]
+        np.testing.assert_array_equal(f["observations/images/side"][()], src.episode(1)["img_side"])
+    assert validate(out) == ("hdf5-aloha", [])
+    back = import_("hdf5-aloha", out, tmp_path / "back.zarr", image_size=None, progress=False)
+    assert_episodes(back, [src.episode(j) for j in range(2)], keys=("img", "img_side", "state", "action"))
+    assert back.attrs["cameras"] == ["top", "side"] and back.seeds == [0, 1]
+    assert validate(back.path) == ("episode store", [])
+    side = import_("hdf5-aloha", out, tmp_path / "side.zarr", camera="side", image_size=None, progress=False)
+    assert_episodes(side, [{"img": src.episode(j)["img_side"]} for j in range(2)], keys=("img",))
+    assert sorted(side.keys) == ["action", "img", "state"] and side.attrs["camera"] == "side"
+
+
+def test_aloha_export_keeps_the_view_order(tmp_path: Path) -> None:
+    """A store whose first view is not "top": the files' ``cameras`` attribute brings the
+    order back (without it, "top" would come first)."""
+    from conftest import make_two_view_store
+
+    store = make_two_view_store(tmp_path / "s.zarr", cameras=("side", "top"))
+    out = export("hdf5-aloha", store, tmp_path / "aloha", progress=False)
+    back = import_("hdf5-aloha", out, tmp_path / "back.zarr", image_size=None, progress=False)
+    assert back.attrs["cameras"] == ["side", "top"]
+    src = EpisodeStore.open(store)
+    assert_episodes(back, [src.episode(j) for j in range(2)], keys=("img", "img_top"))
+
+
+def test_views_of_different_sizes_need_resizing(tmp_path: Path) -> None:
+    src = tmp_path / "aloha"
+    src.mkdir()
+    ep = episode(0, 4, s=14, a=14)
+    write_act(src / "episode_0.hdf5", {"top": ep["img"], "wrist": frames(4, 16, 3)}, ep["state"], ep["action"])
+    with pytest.raises(FormatError, match=r"episode 0: the views' frames differ in size \(top 32x32, wrist 16x16\); "
+                                          "import with --image-size") as e:
+        import_("hdf5-aloha", src, tmp_path / "o.zarr", image_size=None, progress=False)
+    assert_clean_failure(e.value, tmp_path / "o.zarr")
+    store = import_("hdf5-aloha", src, tmp_path / "o.zarr", image_size=8, progress=False)
+    assert store.array("img").shape[1:] == store.array("img_wrist").shape[1:] == (8, 8, 3)
+    np.testing.assert_array_equal(store.episode(0)["img_wrist"], resize_frames(frames(4, 16, 3), 8))
+
+
+def test_validate_finds_cameras_missing_from_an_episode(tmp_path: Path) -> None:
+    src = _aloha_file(tmp_path)
+    _h5_edit(src / "episode_1.hdf5", "observations/images/left_wrist", None)
+    problems = validate(src)[1]
+    assert len(problems) == 1 and "episode_1.hdf5 key 'observations/images' (episode 1): cameras top; the first " \
+        "episode has left_wrist, top" in problems[0], problems
+    with pytest.raises(FormatError, match=r"episode_1.hdf5 key 'observations/images' \(episode 1\): no camera "
+                                          "'left_wrist'; it has top") as e:
+        import_("hdf5-aloha", src, tmp_path / "o.zarr", image_size=None, progress=False)
+    assert_clean_failure(e.value, tmp_path / "o.zarr")
+    top = import_("hdf5-aloha", src, tmp_path / "t.zarr", camera="top", image_size=None, progress=False)
+    assert top.n_episodes == 2
+
+    arrays, attrs, _ = robomimic_arrays((0, 1))
+    del arrays["data/demo_1/obs/robot0_eye_in_hand_image"]
+    write_h5(tmp_path / "r.hdf5", arrays, attrs)
+    problems = validate(tmp_path / "r.hdf5")[1]
+    assert len(problems) == 1 and "demo_1/obs' (episode 1): image keys agentview_image; the first demo has " \
+        "agentview_image, robot0_eye_in_hand_image" in problems[0], problems
+
+
+def test_dp_zarr_with_two_image_arrays(tmp_path: Path) -> None:
+    arrays = dp_arrays()
+    arrays["data/wrist_image"] = np.concatenate([frames(t, 16, 40 + j) for j, t in enumerate((5, 6, 7))])
+    write_zarr(tmp_path / "d.zarr", arrays)
+    store = import_("zarr", tmp_path / "d.zarr", tmp_path / "p.zarr", image_size=None, progress=False)
+    assert store.attrs["cameras"] == ["top", "wrist"] and store.attrs["source_cameras"] == ["img", "wrist_image"]
+    assert store.keys == ["action", "img", "img_wrist", "keypoint", "n_contacts", "state"]
+    np.testing.assert_array_equal(store.array("img_wrist")[:], arrays["data/wrist_image"])
+    np.testing.assert_array_equal(store.array("img")[:], arrays["data/img"].astype(np.uint8))
+    assert validate(store.path) == ("episode store", [])
+    assert validate(tmp_path / "d.zarr") == ("Diffusion Policy zarr", [])
+    for camera in ("wrist_image", "wrist"):  # the array's name or its view's
+        one = import_("zarr", tmp_path / "d.zarr", tmp_path / f"{camera}.zarr", camera=camera, image_size=None,
+                      progress=False)
+        np.testing.assert_array_equal(one.array("img")[:], arrays["data/wrist_image"])
+        assert "cameras" not in one.attrs and "img_wrist" not in one.keys
+    del arrays["data/img"]  # no img: the image arrays in name order
+    arrays["data/agentview_image"] = arrays["data/wrist_image"][:, ::-1].copy()
+    write_zarr(tmp_path / "e.zarr", arrays)
+    store = import_("zarr", tmp_path / "e.zarr", tmp_path / "e_out.zarr", image_size=None, progress=False)
+    assert store.attrs["cameras"] == ["agentview", "wrist"]
+    np.testing.assert_array_equal(store.array("img")[:], arrays["data/agentview_image"])
+
+
+def test_own_two_view_store_through_zarr_importer(two_view_store: Path, tmp_path: Path) -> None:
+    store = import_("zarr", two_view_store, tmp_path / "c.zarr", image_size=16, progress=False)
+    src = EpisodeStore.open(two_view_store)
+    assert store.attrs["cameras"] == ["top", "side"] and store.seeds == [0, 1]
+    assert_episodes(store, [{k: resize_frames(src.episode(j)[k], 16) for k in ("img", "img_side")} for j in range(2)],
+                    keys=("img", "img_side"))
+    side = import_("zarr", two_view_store, tmp_path / "s.zarr", camera="side", image_size=None, progress=False)
+    assert_episodes(side, [{"img": src.episode(j)["img_side"]} for j in range(2)], keys=("img",))
+    assert side.keys == ["action", "img", "state"] and "cameras" not in side.attrs

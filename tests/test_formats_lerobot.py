@@ -136,7 +136,7 @@ def test_v21_files_follow_the_specification(play_store, exports):
 
 def handwritten_v3(root: Path, action_dim: int = 6, image_dtype: str = "video") -> dict[str, np.ndarray]:
     """A small v3 dataset written without our exporter: two cameras, 2 episodes of 5 and 3
-    frames, a ``action_dim``-D action. Returns the 'wrist' frames and the actions."""
+    frames, a ``action_dim``-D action. Returns the 'top' and 'wrist' frames and the actions."""
     rng = np.random.default_rng(0)
     lengths, n = [5, 3], 8
     frames = {cam: np.repeat(rng.integers(0, 256, (n, 1, 1, 3), dtype=np.uint8), 32, 1).repeat(32, 2)
@@ -195,22 +195,27 @@ def handwritten_v3(root: Path, action_dim: int = 6, image_dtype: str = "video") 
         rows.append(row)
     pq.write_table(pa.Table.from_pylist(rows), root / "meta/episodes/chunk-000/file-000.parquet")
     pd.DataFrame({"task_index": [0]}, index=pd.Index(["stack"], name="task")).to_parquet(root / "meta/tasks.parquet")
-    return {"wrist": frames["wrist"], "action": action}
+    return {"top": frames["top"], "wrist": frames["wrist"], "action": action}
 
 
 @pytest.mark.parametrize("image_dtype", ["video", "image"])
 def test_import_a_handwritten_v3_dataset(tmp_path, image_dtype):
     src = tmp_path / "ds"
     want = handwritten_v3(src, image_dtype=image_dtype)
-    with pytest.raises(FormatError, match="2 cameras"):
-        import_("lerobot-v3", src, tmp_path / "x.zarr", image_size=64, progress=False)
-    assert not (tmp_path / "x.zarr").exists()
+    both = import_("lerobot-v3", src, tmp_path / "x.zarr", image_size=None, progress=False)
+    assert both.attrs["cameras"] == ["top", "wrist"] and "camera" not in both.attrs
+    assert both.attrs["source_cameras"] == ["observation.images.top", "observation.images.wrist"]
+    for view, key in (("top", "img"), ("wrist", "img_wrist")):
+        got = np.concatenate([both.episode(i)[key] for i in range(2)]).astype(int)
+        assert np.abs(got - want[view]).mean() < FRAME_TOLERANCE, view
+    assert validate(both.path) == ("episode store", [])
     back = import_("lerobot-v3", src, tmp_path / "s.zarr", camera="wrist", image_size=None, progress=False)
     assert back.n_episodes == 2 and list(back.episode_ends) == [5, 8]
     np.testing.assert_array_equal(np.concatenate([back.episode(i)["action"] for i in range(2)]), want["action"])
     got = np.concatenate([back.episode(i)["img"] for i in range(2)]).astype(int)
     assert np.abs(got - want["wrist"]).mean() < FRAME_TOLERANCE  # flat colours: the camera asked for
     assert back.attrs["task"] == "stack" and back.array("action").shape[1] == 6
+    assert "img_wrist" not in back.keys and back.attrs["camera"] == "observation.images.wrist"
     small = import_("lerobot-v3", src, tmp_path / "s16.zarr", camera="observation.images.top", image_size=16,
                     progress=False)
     assert small.array("img").shape[1:] == (16, 16, 3)
@@ -466,3 +471,117 @@ def test_image_cells_are_bounded_before_decoding(tmp_path, bad, message):
     with pytest.raises(FormatError, match=message):
         import_("lerobot-v3", src, tmp_path / "s.zarr", camera="wrist", image_size=64, progress=False)
     assert not (tmp_path / "s.zarr").exists()
+
+
+# -- several cameras -----------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def two_view_exports(two_view_store, tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("lerobot_views")
+    return {fmt: export(fmt, two_view_store, root / fmt, progress=False) for fmt in ("lerobot-v3", "lerobot-v2.1")}
+
+
+def assert_views_close(back: EpisodeStore, src: EpisodeStore, keys: dict[str, str]) -> None:
+    """Each of ``back``'s arrays (``keys``: back's -> src's) within the codec's error of the
+    view it came from and far from the other view: the views were not mixed up."""
+    for i in range(src.n_episodes):
+        a, b = src.episode(i), back.episode(i)
+        for got, want in keys.items():
+            err = np.abs(b[got].astype(int) - a[want]).mean(axis=(1, 2, 3))
+            assert err.max() < FRAME_TOLERANCE, (i, got, err.max())
+            other = "img_side" if want == "img" else "img"
+            assert np.abs(b[got].astype(int) - a[other]).mean() > 20, (i, got)
+
+
+@pytest.mark.parametrize("fmt", ["lerobot-v3", "lerobot-v2.1"])
+def test_two_views_round_trip(two_view_store, two_view_exports, tmp_path, fmt):
+    root = two_view_exports[fmt]
+    src = EpisodeStore.open(two_view_store)
+    info = json.loads((root / "meta/info.json").read_text())
+    cams = ["observation.images.top", "observation.images.side"]
+    assert [k for k, f in info["features"].items() if f["dtype"] == "video"] == cams  # in view order
+    assert "observation.image" not in info["features"]
+    for cam in cams:
+        assert info["features"][cam]["shape"] == [32, 32, 3] and info["features"][cam]["info"]["video.height"] == 32
+    if fmt == "lerobot-v3":
+        for cam in cams:
+            video = probe(root / f"videos/{cam}/chunk-000/file-000.mp4")
+            assert video["frames"] == src.n_frames and (video["height"], video["width"]) == (32, 32)
+        rows = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+        for r, lo in zip(rows, [0, 5]):
+            for cam in cams:
+                assert (r[f"videos/{cam}/chunk_index"], r[f"videos/{cam}/file_index"]) == (0, 0)
+                assert r[f"videos/{cam}/from_timestamp"] == pytest.approx(lo / 10)
+                assert np.shape(r[f"stats/{cam}/mean"]) == (3, 1, 1)
+        stats = json.loads((root / "meta/stats.json").read_text())
+        assert set(cams) <= set(stats)
+        assert validate(root) == ("LeRobot dataset v3.0", [])
+    else:
+        assert info["total_videos"] == 2 * src.n_episodes
+        for i in range(src.n_episodes):
+            for cam in cams:
+                assert probe(root / f"videos/chunk-000/{cam}/episode_{i:06d}.mp4")["frames"] == 5 + i
+        assert validate(root) == ("LeRobot dataset v2.1", [])
+
+    back = import_(fmt, root, tmp_path / "back.zarr", image_size=None, progress=False)
+    assert back.attrs["cameras"] == ["top", "side"] and back.attrs["source_cameras"] == cams
+    assert sorted(back.keys) == ["action", "img", "img_side", "state"]
+    np.testing.assert_array_equal(back.episode_ends, src.episode_ends)
+    for i in range(src.n_episodes):
+        np.testing.assert_array_equal(back.episode(i)["action"], src.episode(i)["action"])
+        np.testing.assert_array_equal(back.episode(i)["state"], src.episode(i)["state"])
+    assert_views_close(back, src, {"img": "img", "img_side": "img_side"})
+    assert validate(back.path) == ("episode store", [])
+
+    side = import_(fmt, root, tmp_path / "side.zarr", camera="side", image_size=16, progress=False)
+    assert sorted(side.keys) == ["action", "img", "state"] and "cameras" not in side.attrs
+    assert side.attrs["camera"] == "observation.images.side" and side.array("img").shape[1:] == (16, 16, 3)
+    assert validate(side.path) == ("episode store", [])
+
+
+def test_two_views_through_the_cli(two_view_exports, tmp_path, capsys):
+    out = tmp_path / "s.zarr"
+    assert main(["data", "import", "--format", "lerobot-v3", "--in", str(two_view_exports["lerobot-v3"]), "--out",
+                 str(out), "--image-size", "16", "--no-progress"]) == 0
+    back = EpisodeStore.open(out)
+    assert back.attrs["cameras"] == ["top", "side"]
+    assert back.array("img").shape[1:] == back.array("img_side").shape[1:] == (16, 16, 3)
+    assert main(["data", "import", "--format", "lerobot-v3", "--in", str(two_view_exports["lerobot-v3"]), "--out",
+                 str(tmp_path / "x.zarr"), "--camera", "front", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no camera 'front'" in err[0] and not (tmp_path / "x.zarr").exists()
+
+
+@pytest.mark.parametrize("fmt", ["lerobot-v3", "lerobot-v2.1"])
+def test_validate_lists_what_is_wrong_with_each_view(two_view_exports, tmp_path, fmt):
+    root = tmp_path / "ds"
+    shutil.copytree(two_view_exports[fmt], root)
+    info = json.loads((root / "meta/info.json").read_text())
+    for cam in ("observation.images.top", "observation.images.side"):
+        info["features"][cam]["shape"] = [48, 32, 3]
+    (root / "meta/info.json").write_text(json.dumps(info))
+    _, problems = validate(root)
+    for cam in ("observation.images.top", "observation.images.side"):
+        assert any(f"{cam} frames are (H, W, C) = (32, 32, 3), info.json says (48, 32, 3)" in p for p in problems), \
+            (cam, problems)
+    # a video of one camera gone: the import names it and writes nothing; validate still checks the other
+    shutil.copytree(two_view_exports[fmt], root, dirs_exist_ok=True)
+    video = sorted((root / "videos").rglob("*.mp4"))
+    side = [v for v in video if "observation.images.side" in v.as_posix()][0]
+    side.unlink()
+    with pytest.raises(FormatError, match=f"{side.name}: video file is missing"):
+        import_(fmt, root, tmp_path / "out.zarr", image_size=None, progress=False)
+    assert not (tmp_path / "out.zarr").exists() and not list(tmp_path.glob(".out.zarr*"))
+    _, problems = validate(root)
+    assert len(problems) == 1 and "video file is missing" in problems[0], problems
+    assert import_(fmt, root, tmp_path / "top.zarr", camera="top", image_size=None, progress=False).n_episodes == 2
+
+
+def test_views_of_other_frame_counts_are_refused(tmp_path):
+    """A handwritten v3 dataset whose second camera's video misses frames: one line, nothing written."""
+    src = tmp_path / "ds"
+    want = handwritten_v3(src)
+    write_episode_video(src / "videos/observation.images.wrist/chunk-000/file-000.mp4", want["wrist"][:6], 10)
+    with pytest.raises(FormatError, match=r"frames 5..7 asked, the video has 6"):
+        import_("lerobot-v3", src, tmp_path / "x.zarr", image_size=None, progress=False)
+    assert not (tmp_path / "x.zarr").exists()

@@ -282,3 +282,46 @@ def test_merge_concatenates_stores_and_refuses_mismatches(tmp_path: Path) -> Non
             merge([a, b], inside, progress=False)
         assert not inside.exists()
     assert_episodes(EpisodeStore.open(a))
+
+
+def test_merge_refuses_stores_of_other_cameras(tmp_path: Path) -> None:
+    from conftest import make_two_view_store
+
+    from iwsim.core.errors import InputError
+    from iwsim.data.formats import merge
+
+    a = make_two_view_store(tmp_path / "a.zarr", policy="play")
+    b = make_two_view_store(tmp_path / "b.zarr", episodes=1, policy="expert")
+    merged = merge([a, b], tmp_path / "ab.zarr", progress=False)
+    assert merged.attrs["cameras"] == ["top", "side"] and merged.n_episodes == 3
+    np.testing.assert_array_equal(merged.episode(2)["img_side"], EpisodeStore.open(b).episode(0)["img_side"])
+    one = EpisodeStore.create(tmp_path / "one.zarr", {"task": "pusht", "fps": 10, "image_size": 32})
+    one.append({k: v for k, v in EpisodeStore.open(a).episode(0).items() if k != "img_side"}, seed=0)
+    one.close()
+    swapped = make_two_view_store(tmp_path / "swapped.zarr", cameras=("side", "top"))
+    other = make_two_view_store(tmp_path / "other.zarr", cameras=("top", "wrist"))
+    for src, have in ((one.path, ["top"]), (swapped, ["side", "top"]), (other, ["top", "wrist"])):
+        with pytest.raises(InputError) as e:
+            merge([a, src], tmp_path / "x.zarr", progress=False)
+        assert str(e.value) == f"cannot merge {src} into {a}: cameras {have} differ from ['top', 'side']."
+        assert not (tmp_path / "x.zarr").exists() and not list(tmp_path.glob(".x.zarr*"))
+    assert EpisodeStore.open(a).n_episodes == 2  # untouched
+
+
+def test_validate_checks_every_view(tmp_path: Path) -> None:
+    from conftest import make_two_view_store
+
+    from iwsim.data.formats import validate
+
+    path = make_two_view_store(tmp_path / "two.zarr")
+    assert validate(path) == ("episode store", [])
+    root = zarr.open_group(path, mode="r+")
+    root.attrs["cameras"] = ["top", "side", "front"]  # a view it does not hold
+    root.attrs["image_size"] = 16
+    _, problems = validate(path)
+    assert f"{path} key 'data/img_front': missing (camera 'front' of top, side, front)." in problems
+    for key in ("img", "img_side"):
+        assert f"{path}: attribute 'image_size' is 16; data/{key} holds 32x32 frames." in problems
+    root.attrs["cameras"] = ["top", "Side"]
+    _, problems = validate(path)
+    assert any("camera name 'Side' must be" in p for p in problems), problems

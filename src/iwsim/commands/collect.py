@@ -29,6 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=TASK.image_size,
         help=f"square image size: {', '.join(map(str, IMAGE_SIZES))} (default: %(default)s)",
     )
+    p.add_argument("--cameras", default="top", metavar="NAMES",
+                   help="the simulator's views to record, comma-separated, the first in data/img and each other in "
+                        "data/img_<name> (tabletop tasks: top, side) (default: %(default)s)")
     p.add_argument(
         "--workers",
         type=int,
@@ -89,10 +92,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _collect(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from iwsim.data.views import parse_cameras
     from iwsim.envs import POLICIES
     from iwsim.envs.collect import collect
     from iwsim.envs.registry import DEFAULT_TASK
 
+    cameras = parse_cameras(args.cameras)
     recorder, policy = None, args.policy
     if policy not in POLICIES.get(args.task or DEFAULT_TASK.kind, ()) and Path(policy).is_dir():  # a learned policy
         from iwsim.envs.registry import REGISTRY
@@ -101,6 +106,8 @@ def _collect(args: argparse.Namespace) -> int:
 
         if args.out is None:
             raise InputError("collecting a learned policy's episodes needs --out STORE.")
+        if cameras != ("top",):
+            raise InputError("--cameras: a learned policy's episodes are recorded from the top camera only.")
         net = load_policy(policy)
         own = net.task.name if net.task is not None and net.task.kind in REGISTRY else None
         if args.task is not None and own is not None and own != args.task:
@@ -126,6 +133,7 @@ def _collect(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         wait_for_lock=args.wait_for_lock,
         recorder=recorder,
+        cameras=cameras,
     )
     return 0
 

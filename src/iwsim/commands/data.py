@@ -30,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--format", required=True, choices=IMPORT_FORMATS)
     q.add_argument("--in", dest="src", required=True, help="dataset directory or file")
     q.add_argument("--out", required=True, help="episode store to create (must not exist)")
-    q.add_argument("--camera", help="camera to take frames from (default: the only or the usual one)")
+    q.add_argument("--camera", help="import only this camera, as a store of one view (default: every camera of the "
+                                    "source, the first as data/img, each further one as data/img_<name>)")
     q.add_argument("--image-size", type=int, default=TASK.image_size,
                    help="frame size after a centred square crop; 0 keeps the source's (default: %(default)s)")
     q.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -47,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _data_info(args: argparse.Namespace) -> int:
     from iwsim.data.store import EpisodeStore
+    from iwsim.data.views import store_cameras
 
     info = EpisodeStore.open(args.path, "r").info()
     attrs = info["attrs"]
@@ -57,6 +59,7 @@ def _data_info(args: argparse.Namespace) -> int:
         ("frames", info["frames"]),
         ("fps", info["fps"]),
         ("image size", info["image_size"]),
+        ("cameras", ", ".join(store_cameras(attrs, info["arrays"]))),
         ("size on disk", human_bytes(info["bytes_on_disk"])),
     ]
     width = max(len(k) for k, _ in rows)

@@ -13,6 +13,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")  # before any task module imports mujoco: headless rendering
 
 import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
 
 from iwsim.core.errors import InputError  # noqa: E402
 
@@ -23,6 +24,13 @@ SMALLEST_FRAME_BYTES = min(IMAGE_SIZES) ** 2 * 3  # an RGB frame's lower bound, 
 POLICIES = {"pusht": ("play", "play-broad", "play-press", "expert", "expert-wide", "expert-noisy", "expert-lagged",
                       "expert-hands", "expert-imprecise"),
             "pilesweep": ("play", "expert", "expert-noisy", "expert-lagged")}
+
+
+def pixels_space(image_size: int, cameras: tuple[str, ...] = ("top",)) -> gym.spaces.Space:
+    """An observation's ``pixels``: one (H, W, 3) uint8 frame, or {camera: frame} with several
+    cameras (gym-aloha's convention; LeRobot reads either as ``observation.image(s)``)."""
+    frame = gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
+    return frame if len(cameras) == 1 else gym.spaces.Dict({c: frame for c in cameras})
 
 
 def check_task(task: str) -> str:

@@ -30,14 +30,17 @@ import iwsim
 from iwsim.core.errors import InputError
 from iwsim.core.resources import require_memory
 from iwsim.data.store import EpisodeStore, attrs_mismatch
+from iwsim.data.views import DEFAULT_CAMERA, check_cameras
 from iwsim.envs import IMAGE_SIZES, check_task
 from iwsim.envs.registry import DEFAULT_TASK, get_task
 
 log = logging.getLogger(__name__)
 
 STEP_LOWDIM_BYTES = 256  # per step besides the frame: state, action, poses, IoU, contacts (generous)
-# Attributes that must agree before a run may append to an existing store.
-MATCHING_ATTRS = ("task", "policy", "image_size", "steps")
+# Attributes that must agree before a run may append to an existing store (a store written
+# before the cameras attribute existed, or with one camera, has the top view only).
+MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "cameras")
+ABSENT_ATTRS = {"cameras": [DEFAULT_CAMERA]}
 # Records the episodes of the given seeds, in order, each in the store's layout
 # (:meth:`iwsim.envs.task.Task.record_episode`'s): a controller that is not a scripted policy.
 Recorder = Callable[[list[int]], Iterator[dict[str, np.ndarray]]]
@@ -65,11 +68,12 @@ class CollectStats:
         )
 
 
-def store_attrs(task: str, policy: str, steps: int, image_size: int) -> dict[str, Any]:
+def store_attrs(task: str, policy: str, steps: int, image_size: int,
+                cameras: tuple[str, ...] = (DEFAULT_CAMERA,)) -> dict[str, Any]:
     """Root attributes of a collected store: the task spec (fps, action bounds and names,
-    goal pose, ...) plus how the episodes were made."""
+    goal pose, ...) plus how the episodes were made, and its views (``cameras``)."""
     return {**get_task(task).store_attrs(), "image_size": image_size, "policy": policy, "steps": steps,
-            "iwsim_version": iwsim.__version__}
+            "cameras": list(cameras), "iwsim_version": iwsim.__version__}
 
 
 def collect(
@@ -85,6 +89,7 @@ def collect(
     progress: bool = True,
     wait_for_lock: bool = False,
     recorder: Recorder | None = None,
+    cameras: tuple[str, ...] = (DEFAULT_CAMERA,),
 ) -> CollectStats:
     """Record episodes ``0..episodes-1`` (seeds ``seed + i``) into the store at ``out``.
 
@@ -96,11 +101,13 @@ def collect(
     waited for, after which only the episodes still missing are recorded.
 
     ``recorder`` records the episodes instead of the scripted policy's workers; ``policy``
-    is then only the store's label of it (its ``policy`` attribute).
+    is then only the store's label of it (its ``policy`` attribute). ``cameras``: the
+    simulator's views to record (the first in ``data/img``, :mod:`iwsim.data.views`).
     """
     _check_args(task, policy, episodes, steps, image_size, workers, seed, scripted=recorder is None)
+    cameras = _check_cameras(task, cameras, recorder is None)
     out = Path(out)
-    attrs = store_attrs(task, policy, steps, image_size)
+    attrs = store_attrs(task, policy, steps, image_size, cameras)
     if out.exists():
         if not os.access(out, os.W_OK | os.X_OK):
             raise InputError(f"cannot append to {out}: the directory is not writable.")
@@ -113,7 +120,7 @@ def collect(
             log.info("%s already holds %d episodes (>= %d requested); nothing to do", out, start, episodes)
             return CollectStats(0, start, 0, 0.0, 0.0, float("nan"), float("nan"), float("nan"))
         if recorder is None:
-            recorder = functools.partial(_record_scripted, task, policy, steps, image_size, workers)
+            recorder = functools.partial(_record_scripted, task, policy, steps, image_size, cameras, workers)
         return _collect_into(store, task, policy, start, episodes, steps, image_size, seed, progress, recorder)
 
 
@@ -191,7 +198,7 @@ def _check_existing(store: EpisodeStore, attrs: dict[str, Any], seed: int) -> No
     """Raise unless this run may append to ``store`` (same command, same seeds)."""
     out = store.path
     stored = store.attrs
-    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS)
+    mismatch = attrs_mismatch(store, attrs, MATCHING_ATTRS, ABSENT_ATTRS)
     if mismatch:
         raise InputError(f"{out} holds episodes with {mismatch}; choose another --out.")
     expected = [seed + i for i in range(store.n_episodes)]
@@ -210,18 +217,36 @@ def _check_existing(store: EpisodeStore, attrs: dict[str, Any], seed: int) -> No
         )
 
 
-def _record(job: tuple[str, str, int, int, int]) -> dict[str, np.ndarray]:
-    task, policy, seed, steps, image_size = job
-    return get_task(task).record_episode(policy, seed, steps, image_size)
+def _record(job: Job) -> dict[str, np.ndarray]:
+    task, policy, seed, steps, image_size, cameras = job
+    return get_task(task).record_episode(policy, seed, steps, image_size, cameras)
 
 
-def _record_scripted(task: str, policy: str, steps: int, image_size: int, workers: int,
+def _check_cameras(task: str, cameras: tuple[str, ...], scripted: bool) -> tuple[str, ...]:
+    """``cameras`` checked against the task's simulator (a recorder records what it records)."""
+    names = check_cameras(cameras, "--cameras")
+    have = get_task(task).cameras
+    if scripted and names != (DEFAULT_CAMERA,):
+        unknown = [c for c in names if c not in have]
+        if unknown:
+            raise InputError(f"--cameras: task {task!r} has no camera {unknown[0]!r}; it has "
+                             f"{', '.join(have) or 'none'}.")
+        if names[0] != have[0]:
+            raise InputError(f"--cameras: the first camera must be {have[0]!r} (the view the task's scores are "
+                             f"read from), got {','.join(names)}.")
+    return names
+
+
+def _record_scripted(task: str, policy: str, steps: int, image_size: int, cameras: tuple[str, ...], workers: int,
                      seeds: list[int]) -> Iterator[dict[str, np.ndarray]]:
     """The scripted policy's episodes of ``seeds``, in order, recorded by ``workers`` processes."""
-    return _record_all([(task, policy, s, steps, image_size) for s in seeds], workers)
+    return _record_all([(task, policy, s, steps, image_size, cameras) for s in seeds], workers)
 
 
-def _record_all(jobs: list[tuple[str, str, int, int, int]], workers: int) -> Iterator[dict[str, np.ndarray]]:
+Job = tuple[str, str, int, int, int, tuple[str, ...]]  # task, policy, seed, steps, image size, cameras
+
+
+def _record_all(jobs: list[Job], workers: int) -> Iterator[dict[str, np.ndarray]]:
     """Episodes of ``jobs``, in order; in this process when ``workers`` is 1."""
     if workers == 1 or len(jobs) == 1:
         yield from map(_record, jobs)

@@ -26,7 +26,9 @@ from typing import Any
 import numpy as np
 
 from iwsim.core.errors import InputError
+from iwsim.data.frames import read_frames
 from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.data.views import store_cameras
 from iwsim.envs.pilesweep.task import PileSweepTask
 from iwsim.envs.pusht.task import PushTTask
 from iwsim.envs.task import Bindings, Start, Task
@@ -66,12 +68,13 @@ class DatasetTask(Task):
     """The generic task (see :class:`~iwsim.envs.task.Task`) whose initial frames are the
     first frames of a store's episodes."""
 
-    def initial_frames(self, image_size: int, store: str | None = None) -> StoreStarts:
+    def initial_frames(self, image_size: int, store: str | None = None,
+                       cameras: tuple[str, ...] = ("top",)) -> StoreStarts:
         path = store or self.store
         if path is None:
             raise InputError(f"task {self.name!r} has no store of episodes to start from; give one "
                              "(store=... / --store).")
-        return StoreStarts(self, path, image_size)
+        return StoreStarts(self, path, image_size, cameras=cameras)
 
 
 def foreign_task(path: str | Path, task: Task) -> str | None:
@@ -86,7 +89,8 @@ class StoreStarts:
     """Initial frames from a store: ``draw(seed)`` is the first frame of episode ``seed %
     episodes`` (``first=True``), or a random frame of a random episode drawn from ``seed``."""
 
-    def __init__(self, task: Task, path: str | Path, image_size: int, first: bool = True) -> None:
+    def __init__(self, task: Task, path: str | Path, image_size: int, first: bool = True,
+                 cameras: tuple[str, ...] | None = None) -> None:
         try:
             self.store = EpisodeStore.open(path, "r")
         except (StoreError, OSError) as e:
@@ -100,6 +104,10 @@ class StoreStarts:
             raise InputError(f"{path} holds {size}x{size} frames; the world model needs {image_size}x{image_size}.")
         if self.store.n_episodes == 0:
             raise InputError(f"{path} holds no episodes to start from.")
+        views = store_cameras(self.store.attrs, self.store.keys)
+        if cameras is not None and len(cameras) > 1 and views != tuple(cameras):
+            raise InputError(f"{path} holds the views {list(views)}; the world model sees {list(cameras)}.")
+        self._multi = cameras is not None and len(cameras) > 1
         self.task, self.path, self.first = task, Path(path), first
 
     def draw(self, seed: int, state: object = None) -> Start:
@@ -115,7 +123,8 @@ class StoreStarts:
             i = int(rng.integers(start, ends[e]))
         record = {k: np.asarray(self.store.array(k)[i]) for k in (*RECORD_KEYS, *self.task.state_keys)
                   if k in self.store.keys}
-        return self.task.start_from_record(np.asarray(self.store.array("img")[i]), record)
+        frame = read_frames(self.store, slice(i, i + 1))[0] if self._multi else np.asarray(self.store.array("img")[i])
+        return self.task.start_from_record(frame, record)
 
     def close(self) -> None:
         pass

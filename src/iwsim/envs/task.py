@@ -29,6 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from iwsim.core.errors import InputError
+from iwsim.envs import pixels_space
 
 if TYPE_CHECKING:
     from iwsim.envs.tabletop.scripting import ScriptedPolicy
@@ -44,7 +45,8 @@ MAX_GAMEPAD_AXES = 16
 
 @dataclass(frozen=True)
 class Start:
-    """An initial frame (H, W, 3) uint8, the observation's ``agent_pos``, the command the
+    """An initial frame (H, W, 3) uint8 (of several views: stacked along the channels,
+    :func:`iwsim.data.frames.stack_views`), the observation's ``agent_pos``, the command the
     robot holds there (A,) (the setpoint the first step moves from) and, when known, the
     ground-truth simulator's state that renders it."""
 
@@ -200,6 +202,7 @@ class Task:
     horizon: ClassVar[int | None] = None  # steps of an evaluation episode
     checkpoint: ClassVar[str | None] = None  # the shipped world model
     starts: ClassVar[tuple[str, ...]] = ("random",)  # the simulator's initial-state distributions
+    cameras: ClassVar[tuple[str, ...]] = ()  # the simulator's cameras (the first: its pixel scorer's view)
     pixel_policies: ClassVar[tuple[str, ...]] = ()  # scripted policies that read only the observation
     pixel_experts: ClassVar[tuple[str, ...]] = ()  # those of them that do the task (demonstrators)
     pixel_reading: ClassVar[str] = "the frame"  # what they read from the frame (a demonstration store says)
@@ -237,10 +240,11 @@ class Task:
     def default_bindings(self) -> Bindings:
         return default_bindings(self.action_names, self.action_step, self.fps)
 
-    def spaces(self, image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
-        """The action and observation spaces (``pixels`` (H, W, 3) uint8, ``agent_pos`` (A,))."""
+    def spaces(self, image_size: int, cameras: tuple[str, ...] = ("top",)) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
+        """The action and observation spaces (``pixels`` (H, W, 3) uint8, or {camera: (H, W,
+        3) uint8} with several ``cameras``; ``agent_pos`` (A,))."""
         low, high = np.asarray(self.action_low, np.float32), np.asarray(self.action_high, np.float32)
-        obs = gym.spaces.Dict({"pixels": gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
+        obs = gym.spaces.Dict({"pixels": pixels_space(image_size, cameras),
                                "agent_pos": gym.spaces.Box(low, high, dtype=np.float32)})
         return gym.spaces.Box(low, high, dtype=np.float32), obs
 
@@ -297,8 +301,11 @@ class Task:
         return None if scores is None or self.success_score is None else np.asarray(scores) >= self.success_score
 
     # -- initial frames and the ground truth -----------------------------------------------------
-    def initial_frames(self, image_size: int, store: str | None = None) -> InitialFrames:
-        """The source of this task's own initial frames (:meth:`InitialFrames.draw` per seed)."""
+    def initial_frames(self, image_size: int, store: str | None = None,
+                       cameras: tuple[str, ...] = ("top",)) -> InitialFrames:
+        """The source of this task's own initial frames (:meth:`InitialFrames.draw` per seed),
+        of ``cameras`` stacked along the channels (:func:`iwsim.data.frames.stack_views`)."""
+        del image_size, store, cameras
         raise InputError(f"task {self.name!r} has no initial frames of its own; give a store of its episodes "
                          "(store=... / --store).")
 
@@ -319,11 +326,13 @@ class Task:
         command = np.clip(np.asarray(record[key], np.float64), self.action_low, self.action_high)
         return Start(frame, command.astype(np.float32), command)
 
-    def ground_truth_env(self, image_size: int | None = None, start: str = "random") -> gym.Env | None:
+    def ground_truth_env(self, image_size: int | None = None, start: str = "random",
+                         cameras: tuple[str, ...] = ("top",)) -> gym.Env | None:
         """The simulator the world model stands in for, if the task has one (side by side in
-        play, policy evaluation): frames ``image_size`` pixels square (None: the task's own),
-        initial states from the distribution ``start`` (one of :attr:`starts`)."""
-        del image_size, start
+        play, policy evaluation): frames ``image_size`` pixels square (None: the task's own)
+        from ``cameras`` (of :attr:`cameras`), initial states from the distribution ``start``
+        (one of :attr:`starts`)."""
+        del image_size, start, cameras
         return None
 
     @property
@@ -340,11 +349,14 @@ class Task:
         del seed, rng, miss
         raise InputError(f"task {self.name!r} has no scripted policies; {kind!r} needs a task with a simulator.")
 
-    def record_episode(self, policy: str, seed: int, steps: int, image_size: int) -> dict[str, np.ndarray]:
+    def record_episode(self, policy: str, seed: int, steps: int, image_size: int,
+                       cameras: tuple[str, ...] = ("top",)) -> dict[str, np.ndarray]:
         """One seeded episode of the simulator under a scripted policy, in the episode
         store's layout (``img``, ``state``, ``action``, ``target``, ``n_contacts`` and the
-        :attr:`episode_score` array, per step; ``iwsim collect`` records them)."""
-        del seed, steps, image_size
+        :attr:`episode_score` array, per step; ``iwsim collect`` records them), its frames
+        from the simulator's ``cameras`` (:attr:`cameras`; the first is ``img``, each other
+        ``img_<camera>``, :mod:`iwsim.data.views`)."""
+        del seed, steps, image_size, cameras
         raise InputError(f"task {self.name!r} has no simulator to record {policy!r} episodes in.")
 
     # -- descriptions ------------------------------------------------------------------------------

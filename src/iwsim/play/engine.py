@@ -17,6 +17,12 @@ too), and the world model is conditioned on that executed motion, as it was trai
 A command outside the task's bounds is refused with one line (T-push clips it, as MuJoCo
 does); the session goes on.
 
+A world model of several camera views shows each (and the MuJoCo twin's, rendered by the
+same cameras): the frame message's ``views`` name them ``world_model`` and ``mujoco`` for
+the first view, ``world_model:<camera>`` and ``mujoco:<camera>`` for the others; the task
+scores the first. A take stores every view (``img`` and ``img_<camera>``, as ``iwsim
+collect --cameras`` does).
+
 Recording: step t stores the frame shown before action t, the ``agent_pos`` observed
 there (T-push: the pusher positions read from it), the action, the motion it executed and
 the frame's pixel score if the task has a scorer (``img``, ``state``, ``action``,
@@ -41,12 +47,22 @@ import torch
 import iwsim
 from iwsim.core.errors import InputError
 from iwsim.core.resources import MiB, human_bytes, require_memory
+from iwsim.data.frames import unstack_views
 from iwsim.data.store import EpisodeStore, StoreError
+from iwsim.data.views import DEFAULT_CAMERA, view_keys
 from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.task import Bindings, Start, Task
 from iwsim.play import protocol as proto
 from iwsim.world_model import StreamState, WorldModel
-from iwsim.world_model.env import STORE, Starts, predicted_agent_pos, predicts_agent_pos, resolve_task, score_key
+from iwsim.world_model.env import (
+    STORE,
+    Starts,
+    Views,
+    predicted_agent_pos,
+    predicts_agent_pos,
+    resolve_task,
+    score_key,
+)
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +118,7 @@ class Session:
     setpoint: np.ndarray  # the executed motion
     ack: int = -1  # seq of the last action message
     state: StreamState | None = None
-    frame: np.ndarray | None = None  # the world model's current frame (H, W, 3)
+    frame: np.ndarray | None = None  # the world model's current frame (H, W, 3; several views: stacked)
     agent_pos: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     iou: float | None = 0.0  # the task's pixel score of the frame (None: the task has no scorer)
     step: int = 0
@@ -124,8 +140,8 @@ class Recorder:
                  keys: tuple[str, ...] = EPISODE_KEYS) -> None:
         def check(store: EpisodeStore) -> None:
             have = store.attrs
-            for key in ("task", "image_size"):
-                if have.get(key) != attrs[key]:
+            for key in ("task", "image_size", "cameras"):
+                if have.get(key, [DEFAULT_CAMERA] if key == "cameras" else None) != attrs[key]:
                     raise StoreError(f"{path} holds episodes with {key}={have.get(key)!r}, not {attrs[key]!r}; "
                                      "record into another store.")
             if store.n_episodes and set(store.keys) != set(keys):
@@ -161,14 +177,16 @@ class Engine:
         self.task = task
         self.low = np.asarray(task.action_low, np.float32)
         self.high = np.asarray(task.action_high, np.float32)
-        self.starts = Starts(task, model.image_size, cfg.store)
+        self.views = Views(model.cameras)
+        self.starts = Starts(task, model.image_size, cfg.store, cameras=self.views.cameras)
         self.keys = episode_keys(task)
         self.recorder: Recorder | None = None
         if cfg.record_to is not None:
             attrs = {**task.store_attrs(), "image_size": model.image_size, "policy": "teleop", "steps": None,
                      "iwsim_version": iwsim.__version__, "source": "world_model", "world_model": cfg.checkpoint,
-                     "keys": list(self.keys)}
-            self.recorder = Recorder(Path(cfg.record_to), attrs, cfg.wait_for_lock, self.keys)
+                     "keys": list(self.keys), "cameras": list(self.views.cameras)}
+            stored = (*self.keys, *list(view_keys(self.views.cameras).values())[1:])
+            self.recorder = Recorder(Path(cfg.record_to), attrs, cfg.wait_for_lock, stored)
         self.sessions: dict[int, Session] = {}
         self._saves: list[tuple[Session, dict[str, np.ndarray], int, Future[int]]] = []
         self._next_id = 0
@@ -231,7 +249,7 @@ class Engine:
             return dropped + [self._status(s, f"reset to a {msg.source} start (seed {s.seed})")]
         if isinstance(msg, proto.SideBySide):
             if msg.on and s.twin is None:
-                twin = self.task.ground_truth_env(self.model.image_size)
+                twin = self.task.ground_truth_env(self.model.image_size, cameras=self.views.cameras)
                 if twin is None:
                     return [proto.event("error", message=f"task {self.task.name!r} has no simulator to run "
                                                          "side by side.")]
@@ -274,9 +292,16 @@ class Engine:
         take, s.take = s.take, None
         if not take["img"]:
             return [self._status(s, "nothing recorded yet; take discarded")]
-        episode = {k: np.stack(v) for k, v in take.items()}
+        episode = self._episode(take)
         self._save(s, episode, s.seed)
         return [self._status(s, f"saving {len(episode['img'])} steps")]
+
+    def _episode(self, take: dict[str, list]) -> dict[str, np.ndarray]:
+        """A take's arrays in the store's layout: each view of the frames in its own array."""
+        episode = {k: np.stack(v) for k, v in take.items()}
+        frames = unstack_views(episode.pop("img"), len(self.views.cameras))
+        episode.update(zip(view_keys(self.views.cameras).values(), frames, strict=True))
+        return episode
 
     def _save(self, s: Session, episode: dict[str, np.ndarray], seed: int) -> None:
         assert self.recorder is not None  # takes are recorded only with a recorder
@@ -328,12 +353,12 @@ class Engine:
         # controllers start at the pushers)
         s.target = np.clip(start.command.astype(np.float32), self.low, self.high)
         s.setpoint = start.command.astype(np.float32)
-        score = self.task.score(s.frame[None])
+        score = self.task.score(self.views.first(s.frame[None]))
         s.iou = None if score is None else float(score[0])
         s.twin_frame = s.twin_iou = None
         if s.twin is not None and start.state is not None:
             obs, info = s.twin.reset(seed=seed, options={"reset_to_state": start.state})
-            s.twin_frame, s.twin_iou = obs["pixels"], float(info[score_key(self.task)])
+            s.twin_frame, s.twin_iou = self.views.stacked(obs["pixels"]), float(info[score_key(self.task)])
 
     def tick(self) -> list[Session]:
         """One control step of every session: record, then step all world models in one
@@ -361,24 +386,27 @@ class Engine:
         states = [state] if len(sessions) == 1 else state.split()
         for s, state, frame in zip(sessions, states, frames):
             s.state, s.frame = state, frame
-        ious, pos = self.task.observe(np.stack(list(frames)), np.stack([s.setpoint for s in sessions]),
-                                      np.stack([s.agent_pos for s in sessions]))
+        setpoints, positions = np.stack([s.setpoint for s in sessions]), np.stack([s.agent_pos for s in sessions])
+        ious, pos = self.task.observe(self.views.first(np.stack(list(frames))), setpoints, positions)
         pos = pos if own is None else own
         for i, (s, p) in enumerate(zip(sessions, pos)):
             s.iou, s.agent_pos, s.step = None if ious is None else float(ious[i]), p, s.step + 1
             if s.twin_frame is not None:
                 obs, _, _, _, info = s.twin.step(s.target)
-                s.twin_frame, s.twin_iou = obs["pixels"], float(info[score_key(self.task)])
+                s.twin_frame, s.twin_iou = self.views.stacked(obs["pixels"]), float(info[score_key(self.task)])
         self.last_step_ms = 1000 * (time.perf_counter() - t0)
         return sessions
 
     def frame_message(self, s: Session) -> bytes:
         """The session's current frame(s) and what the page shows with them."""
         assert s.frame is not None  # set by reset
-        views, names = [s.frame], ["world_model"]
-        if s.twin_frame is not None:
-            views.append(s.twin_frame)
-            names.append("mujoco")
+        n = len(self.views.cameras)
+        sources = [("world_model", s.frame)] + ([] if s.twin_frame is None else [("mujoco", s.twin_frame)])
+        views, names = [], []
+        for source, frames in sources:
+            for camera, frame in zip(self.views.cameras, unstack_views(frames, n), strict=True):
+                views.append(frame)
+                names.append(source if camera == self.views.cameras[0] else f"{source}:{camera}")
         header = {
             "type": "frame", "step": s.step, "ack": s.ack, "action": s.target.tolist(),
             "agent_pos": s.agent_pos.tolist(), "iou": s.iou, "mujoco_iou": s.twin_iou,

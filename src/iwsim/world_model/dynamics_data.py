@@ -26,14 +26,15 @@ from iwsim.core.checkpoint import resolve_checkpoint, save_tensors
 from iwsim.core.errors import InputError
 from iwsim.core.normalize import scale, widen
 from iwsim.core.resources import available_cores, torch_threads
-from iwsim.data.frames import split_episodes, to_model
+from iwsim.data.frames import read_frames, split_episodes, to_model
 from iwsim.data.store import EpisodeStore, StoreError, conditioning_key
+from iwsim.data.views import store_cameras
 from iwsim.diffusion import edm
 from iwsim.diffusion.consistency import sample_levels
 from iwsim.diffusion.schedule import gaussian
 from iwsim.envs.registry import foreign_task
 from iwsim.world_model.codecs import load_codec
-from iwsim.world_model.codecs.base import Codec
+from iwsim.world_model.codecs.base import Codec, encode_views
 from iwsim.world_model.model import WorldModel
 from iwsim.world_model.novelty import Novelty, fit_novelty, novelty_features
 from iwsim.world_model.presets import DynamicsStageConfig
@@ -107,6 +108,10 @@ class DynamicsData:
         if size != self.codec.image_size:
             raise InputError(f"{data} holds {size}x{size} frames but the autoencoder {self.ae_path} expects "
                              f"{self.codec.image_size}x{self.codec.image_size}.")
+        self.cameras = store_cameras(store.attrs, store.keys)
+        if init is not None and tuple(init.cameras) != self.cameras:
+            raise InputError(f"{data} holds the views {list(self.cameras)} but the world model {self.ae_path} sees "
+                             f"{list(init.cameras)}.")
         self.action_key = conditioning_key(store.keys)
         actions = np.asarray(store.array(self.action_key)[:], dtype=np.float32)
         if actions.ndim != 2:
@@ -143,7 +148,7 @@ class DynamicsData:
                                     bf16=cfg.train.cpu_bf16 and device.type == "cpu")
         # The action size and latent shape follow the data; positional actions where the
         # task declares them (see iwsim.world_model.dynamics).
-        cfg = replace(cfg, dynamics=replace(cfg.dynamics, action_dim=actions.shape[1],
+        cfg = replace(cfg, cameras=self.cameras, dynamics=replace(cfg.dynamics, action_dim=actions.shape[1],
                                             latent_channels=self.latents.shape[1],
                                             latent_size=self.latents.shape[-1],
                                             **self.points(store.attrs, cfg)))
@@ -258,26 +263,31 @@ class DynamicsData:
 @torch.no_grad()
 def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
                  chunk: int = 512, bf16: bool = False, threads: int | None = None) -> torch.Tensor:
-    """Latents (N, C, h, w) float16 of every frame of the store. A chunk of frames whose
+    """Latents (N, C, h, w) float16 of every frame of the store (a store of several views:
+    each view encoded by ``codec``, their latents stacked along the channels,
+    :func:`~iwsim.world_model.codecs.base.encode_views`). A chunk of frames whose
     bytes, encoder weights and precision match what ``cache`` was written for is not
     encoded again, so a cache made for a store serves a store that extends it (``iwsim
     data merge`` of it and more): only the new frames are encoded. ``bf16``: encode under
     bf16 autocast (faster on CPUs with AVX-512-BF16 or AMX, latents within rounding of
     float32's: bench/results/speed). ``threads``: torch threads while encoding (default:
     every core this process may use); float16 storage halves the memory of large stores."""
-    img = store.array("img")
-    weights = encoder_key(codec) + ("|bf16" if bf16 else "")
-    cached, old = _read_cache(cache, weights, store, img.shape[0], chunk)
+    cameras = store_cameras(store.attrs, store.keys)
+    views = len(cameras)
+    n = store.array("img").shape[0]
+    weights = encoder_key(codec) + ("|bf16" if bf16 else "") + (f"|views={','.join(cameras)}" if views > 1 else "")
+    cached, old = _read_cache(cache, weights, store, n, chunk)
     out, hashes = [], []
     with torch_threads(threads or available_cores()):
-        for k, i in enumerate(tqdm(range(0, img.shape[0], chunk), desc="encode", disable=not progress)):
-            frames = np.ascontiguousarray(img[i:i + chunk])
+        for k, i in enumerate(tqdm(range(0, n, chunk), desc="encode", disable=not progress)):
+            frames = np.ascontiguousarray(read_frames(store, slice(i, i + chunk)))
             hashes.append(hashlib.blake2b(frames.tobytes(), digest_size=12).hexdigest())
             if cached is not None and k < len(old) and old[k] in (hashes[-1], "*") and len(cached) >= i + len(frames):
                 out.append(cached[i:i + len(frames)].half())
                 continue
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-                out.append(codec.encode(to_model(frames).to(device)).float().cpu().half())
+                x = to_model(frames, views).to(device)
+                out.append(encode_views(codec, x, views).float().cpu().half())
     latents = torch.cat(out)
     if cache is not None and hashes != old:
         cache.parent.mkdir(parents=True, exist_ok=True)
@@ -359,6 +369,9 @@ def fit_store_novelty(wm: WorldModel, data: str | Path, progress: bool = True,
     if img.shape[1] != wm.image_size:
         raise InputError(f"{data} holds {img.shape[1]}x{img.shape[1]} frames but the world model renders "
                          f"{wm.image_size}x{wm.image_size}.")
+    if store_cameras(store.attrs, store.keys) != tuple(wm.cameras):
+        raise InputError(f"{data} holds the views {list(store_cameras(store.attrs))} but the world model sees "
+                         f"{list(wm.cameras)}.")
     ends = store.episode_ends.astype(np.int64)
     starts = np.concatenate([[0], ends[:-1]])
     every = max(1, int(np.ceil(ends[-1] / max_steps)))
@@ -367,6 +380,6 @@ def fit_store_novelty(wm: WorldModel, data: str | Path, progress: bool = True,
     feats = []
     for e in tqdm(chosen, desc="novelty", disable=not progress):
         idx = np.arange(starts[e], ends[e])
-        z = wm.standardize(wm.encode(np.asarray(img[starts[e]:ends[e]]))).cpu()
+        z = wm.standardize(wm.encode(read_frames(store, slice(starts[e], ends[e])))).cpu()
         feats.append(novelty_features(z, actions[np.maximum(idx - 1, starts[e])], actions[idx]))
     return fit_novelty(torch.cat(feats))

@@ -12,6 +12,12 @@ from the same state in both environments; ``"dataset"`` for any other robot's ta
 first frame of its store's episode ``seed % episodes``), ``"store"`` (a random frame of
 the episode store ``store``), or ``reset(options={"frame": f})``.
 
+A model of several camera views (``WorldModel.cameras``) observes ``pixels`` as {camera:
+(H, W, 3) uint8} (gym-aloha's convention; one view: the frame itself), starts from every
+view of MuJoCo's reset (or of a store's frame), takes ``reset(options={"frame": {camera:
+frame}})`` and renders its views one above the other; its pixel scorer reads the first
+view (the tabletop tasks' top camera).
+
 ``agent_pos`` is the robot's state the model predicts, for a model trained to predict it
 (``--variant state``: the dynamics takes and predicts the store's ``data/state``; it
 starts from the start's ``agent_pos``). For another T-push model, each pusher's
@@ -41,6 +47,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from iwsim.core.errors import InputError
+from iwsim.data.frames import stack_views, tile_views, unstack_views
 from iwsim.envs.registry import StoreStarts, get_task, task_of
 from iwsim.envs.task import Start, Task
 from iwsim.world_model import StreamState, WorldModel
@@ -57,8 +64,9 @@ class Starts:
     dataset episode's first frame for a generic task) or a random frame of the episode
     store ``store`` (source ``"store"``)."""
 
-    def __init__(self, task: Task, image_size: int, store: str | Path | None, source: str | None = None) -> None:
-        self.task, self.image_size = task, image_size
+    def __init__(self, task: Task, image_size: int, store: str | Path | None, source: str | None = None,
+                 cameras: tuple[str, ...] = ("top",)) -> None:
+        self.task, self.image_size, self.cameras = task, image_size, tuple(cameras)
         self.sources = (task.start_source, STORE)
         self.source = source or task.start_source
         if self.source not in self.sources:
@@ -66,10 +74,11 @@ class Starts:
         if self.source == STORE and store is None:
             raise InputError("reset_source 'store' needs store=<path of an episode store>.")
         self._own = None
-        self._store = None if store is None else StoreStarts(task, store, image_size, first=False)
+        self._store = None if store is None else StoreStarts(task, store, image_size, first=False,
+                                                             cameras=self.cameras)
         self._store_path = None if store is None else str(store)
         if self.source == task.start_source:
-            self._own = task.initial_frames(image_size, self._store_path)
+            self._own = task.initial_frames(image_size, self._store_path, self.cameras)
 
     @property
     def has_store(self) -> bool:
@@ -80,7 +89,7 @@ class Starts:
         source = source or self.source
         if source == self.task.start_source:
             if self._own is None:
-                self._own = self.task.initial_frames(self.image_size, self._store_path)
+                self._own = self.task.initial_frames(self.image_size, self._store_path, self.cameras)
             return self._own.draw(int(seed), state)
         if source != STORE or self._store is None:
             raise InputError(f"reset source {source!r} is not available; expected one of {self.sources} "
@@ -119,6 +128,40 @@ def predicted_agent_pos(model: WorldModel, task: Task, state: StreamState | None
     return np.clip(own, task.action_low, task.action_high).astype(np.float32)
 
 
+class Views:
+    """A model's camera views at the env's boundary: its frames are the views stacked along
+    the channels (:class:`~iwsim.world_model.WorldModel`); observations give ``pixels`` as one
+    frame for one view and {camera: frame} for several; the task's pixel scorer reads the
+    first view."""
+
+    def __init__(self, cameras: tuple[str, ...]) -> None:
+        self.cameras = tuple(cameras)
+
+    def pixels(self, frames: np.ndarray) -> np.ndarray | dict[str, np.ndarray]:
+        """``pixels`` of frames (..., H, W, 3V)."""
+        if len(self.cameras) == 1:
+            return frames
+        return dict(zip(self.cameras, unstack_views(frames, len(self.cameras)), strict=True))
+
+    def first(self, frames: np.ndarray) -> np.ndarray:
+        """The first view of frames (..., H, W, 3V): what the task's scorer reads."""
+        return frames[..., :3]
+
+    def stacked(self, pixels: Any) -> np.ndarray:
+        """Frames given as ``pixels`` are ({camera: frame} or, for one view, a frame) -> (..., H, W, 3V)."""
+        if len(self.cameras) == 1:
+            return np.asarray(pixels)
+        if isinstance(pixels, dict):
+            if set(pixels) != set(self.cameras):
+                raise InputError(f"expected frames of the views {list(self.cameras)}, got {list(pixels)}.")
+            return stack_views([np.asarray(pixels[c]) for c in self.cameras])
+        return np.asarray(pixels)  # already stacked (checked by the model)
+
+    def picture(self, frames: np.ndarray) -> np.ndarray:
+        """What ``render`` shows: the views one above the other."""
+        return frames if len(self.cameras) == 1 else tile_views(frames)
+
+
 def _load(model: WorldModel | None, checkpoint: str | Path | None, device: str) -> WorldModel:
     if model is not None:
         return model
@@ -142,8 +185,9 @@ class WorldModelEnv(gym.Env):
         self.task = resolve_task(self.model, task)
         self.metadata = {**self.metadata, "render_fps": self.task.fps}
         self.render_mode, self.terminate_on_success = render_mode, terminate_on_success
-        self.action_space, self.observation_space = self.task.spaces(self.model.image_size)
-        self._starts = Starts(self.task, self.model.image_size, store, reset_source)
+        self.views = Views(self.model.cameras)
+        self.action_space, self.observation_space = self.task.spaces(self.model.image_size, self.views.cameras)
+        self._starts = Starts(self.task, self.model.image_size, store, reset_source, self.views.cameras)
         self._frame: np.ndarray | None = None
         self._agent_pos = np.zeros(self.task.action_dim, np.float32)
         self._own_pos = predicts_agent_pos(self.model, self.task)
@@ -158,7 +202,7 @@ class WorldModelEnv(gym.Env):
         # the start's seed and the model's noise seed: the given seed, as in the vector env
         draw = int(self.np_random.integers(2**31)) if seed is None else seed
         if "frame" in options:
-            frame = self.model.check_frames(np.asarray(options["frame"])[None], 4).numpy()[0]
+            frame = self.model.check_frames(self.views.stacked(options["frame"])[None], 4).numpy()[0]
             start = self.task.start_from_frame(frame, options.get("agent_pos"))
         else:
             start = self._starts.draw(draw, options.get("source"), options.get("reset_to_state"))
@@ -166,7 +210,7 @@ class WorldModelEnv(gym.Env):
         self.model.reset(start.frame[None], seed=draw, held=np.asarray(start.command, np.float32)[None],
                          state=self._agent_pos[None] if self._own_pos else None)
         self._setpoint = np.asarray(start.command, np.float64)
-        return self._obs(), self._info(self.task.score(self._frame[None]))
+        return self._obs(), self._info(self.task.score(self.views.first(self._frame[None])))
 
     def step(self, action):
         if self._frame is None:
@@ -174,16 +218,16 @@ class WorldModelEnv(gym.Env):
         task = self.task
         self._setpoint = task.executed(self._setpoint, task.check_actions(action, (task.action_dim,)))
         self._frame = self.model.step(self._setpoint.astype(np.float32)[None])[0]
-        score, pos = task.observe(self._frame[None], self._setpoint[None], self._agent_pos[None])
+        score, pos = task.observe(self.views.first(self._frame[None]), self._setpoint[None], self._agent_pos[None])
         own = predicted_agent_pos(self.model, task)
         self._agent_pos = pos[0] if own is None else own[0]
         info = {**self._info(score), "target": self._setpoint.astype(np.float32)}
         terminated = bool(self.terminate_on_success and info.get("is_success"))
         return self._obs(), 0.0 if score is None else float(score[0]), terminated, False, info
 
-    def _obs(self) -> dict[str, np.ndarray]:
+    def _obs(self) -> dict[str, Any]:
         assert self._frame is not None  # set by reset
-        return {"pixels": self._frame, "agent_pos": self._agent_pos.copy()}
+        return {"pixels": self.views.pixels(self._frame), "agent_pos": self._agent_pos.copy()}
 
     def _info(self, score: np.ndarray | None) -> dict[str, Any]:
         """``info[score_key]``: the task's pixel score (None: the task has no scorer), and
@@ -195,7 +239,7 @@ class WorldModelEnv(gym.Env):
         return out
 
     def render(self):
-        return None if self.render_mode is None else self._frame
+        return None if self.render_mode is None or self._frame is None else self.views.picture(self._frame)
 
     def close(self) -> None:
         self._starts.close()
@@ -227,11 +271,13 @@ class WorldModelVectorEnv(VectorEnv):
         self.task = resolve_task(self.model, task)
         self.metadata = {**self.metadata, "render_fps": self.task.fps}
         self.num_envs, self.max_episode_steps = num_envs, max_episode_steps
-        self.single_action_space, self.single_observation_space = self.task.spaces(self.model.image_size)
+        self.views = Views(self.model.cameras)
+        self.single_action_space, self.single_observation_space = self.task.spaces(self.model.image_size,
+                                                                                   self.views.cameras)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.render_mode = "rgb_array"
-        self._starts = Starts(self.task, self.model.image_size, store, reset_source)
+        self._starts = Starts(self.task, self.model.image_size, store, reset_source, self.views.cameras)
         self._frames: np.ndarray | None = None
         self._agent_pos = np.zeros((num_envs, self.task.action_dim), np.float32)
         self._own_pos = predicts_agent_pos(self.model, self.task)
@@ -251,7 +297,7 @@ class WorldModelVectorEnv(VectorEnv):
                 raise InputError(f"got {len(seeds)} seeds for {self.num_envs} environments.")
         self._next_seed = max(seeds) + 1
         if "frames" in options:
-            frames = self.model.check_frames(np.asarray(options["frames"]), 4).numpy()
+            frames = self.model.check_frames(self.views.stacked(options["frames"]), 4).numpy()
             if len(frames) != self.num_envs:
                 raise InputError(f"got {len(frames)} frames for {self.num_envs} environments.")
             pos = options.get("agent_pos")
@@ -266,7 +312,7 @@ class WorldModelVectorEnv(VectorEnv):
         self.model.reset(frames, seed=[(s + offset) % 2**32 for s in seeds], held=self._setpoint.astype(np.float32),
                          state=self._agent_pos if self._own_pos else None)
         self._t, self._needs_reset = 0, False
-        return self._obs(), self._info(self.task.score(self._frames))
+        return self._obs(), self._info(self.task.score(self.views.first(self._frames)))
 
     def step(self, actions):
         if self._frames is None:
@@ -279,7 +325,7 @@ class WorldModelVectorEnv(VectorEnv):
         self._setpoint = task.executed(self._setpoint, task.check_actions(actions, (self.num_envs, task.action_dim)))
         novelty = self.model.novelty_of(self.model.state, self._setpoint.astype(np.float32))
         self._frames = self.model.step(self._setpoint.astype(np.float32))
-        score, pos = task.observe(self._frames, self._setpoint, self._agent_pos)
+        score, pos = task.observe(self.views.first(self._frames), self._setpoint, self._agent_pos)
         own = predicted_agent_pos(self.model, task)
         self._agent_pos = pos if own is None else own
         self._t += 1
@@ -291,9 +337,9 @@ class WorldModelVectorEnv(VectorEnv):
         reward = np.zeros(self.num_envs) if score is None else np.asarray(score, np.float64)
         return self._obs(), reward, np.zeros(self.num_envs, dtype=bool), truncated, info
 
-    def _obs(self) -> dict[str, np.ndarray]:
+    def _obs(self) -> dict[str, Any]:
         assert self._frames is not None  # set by reset
-        return {"pixels": self._frames, "agent_pos": self._agent_pos.copy()}
+        return {"pixels": self.views.pixels(self._frames), "agent_pos": self._agent_pos.copy()}
 
     def _info(self, score: np.ndarray | None) -> dict[str, Any]:
         """As :meth:`WorldModelEnv._info`, batched (the score None without a scorer)."""
@@ -304,7 +350,7 @@ class WorldModelVectorEnv(VectorEnv):
         return out
 
     def render(self):
-        return self._frames
+        return None if self._frames is None else self.views.picture(self._frames)
 
     def close_extras(self, **kwargs: Any) -> None:
         self._starts.close()

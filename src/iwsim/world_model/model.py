@@ -26,7 +26,11 @@ the rate-limited targets (``iwsim.envs.tabletop.scene.limit_targets``), which th
 callers (``iwsim/WorldModel-v0``, ``iwsim play``) compute from commands.
 
 The codec is any :class:`~iwsim.world_model.codecs.base.Codec` (frames <-> latents of its
-``latent_shape``); the dynamics network is called through a
+``latent_shape``). A model of several camera views (``cfg.cameras``, as its store names
+them) encodes each view with the one codec and stacks the views' latents along the
+channels, so one dynamics pass predicts the next state of every view together; its frames
+are the views stacked along the channels, uint8 (..., H, W, 3 x views), view v in channels
+3v..3v+2 (:func:`iwsim.data.frames.stack_views`). The dynamics network is called through a
 :class:`~iwsim.world_model.denoiser.Denoiser`. Objectives: a new latent comes from one
 consistency jump from noise (ours), or, for the benchmark's baselines, Euler steps of an
 EDM denoiser or one pass of a regressor (``cfg.objective``,
@@ -72,7 +76,7 @@ from iwsim.diffusion.schedule import gaussian
 from iwsim.envs.registry import task_from_config
 from iwsim.envs.task import Task
 from iwsim.world_model.codecs import WM_KIND, build_codec, codec_class, world_model_codec
-from iwsim.world_model.codecs.base import DEFAULT_KIND, Codec
+from iwsim.world_model.codecs.base import DEFAULT_KIND, Codec, decode_views, encode_views
 from iwsim.world_model.denoiser import ACTION_STILL, Denoiser
 from iwsim.world_model.dynamics import Dynamics
 from iwsim.world_model.novelty import Novelty
@@ -166,8 +170,11 @@ class WorldModel(nn.Module):
         super().__init__()
         if cfg.objective not in OBJECTIVES:
             raise InputError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
-        if tuple(codec.latent_shape) != self.latent_shape_of(cfg):
-            raise InputError(f"the codec's latents are {tuple(codec.latent_shape)} but the dynamics takes "
+        self.views = len(cfg.cameras)
+        c, h, w = codec.latent_shape
+        if (c * self.views, h, w) != self.latent_shape_of(cfg):
+            views = f" x {self.views} views" if self.views > 1 else ""
+            raise InputError(f"the codec's latents are {tuple(codec.latent_shape)}{views} but the dynamics takes "
                              f"{self.latent_shape_of(cfg)}.")
         self.codec, self.dynamics, self.cfg = codec, dynamics, cfg
         codec.to(memory_format=torch.channels_last)  # see decode_latents
@@ -249,9 +256,15 @@ class WorldModel(nn.Module):
 
     @property
     def latent_shape(self) -> tuple[int, int, int]:
-        """(C, h, w) of one frame's latent."""
+        """(C, h, w) of one frame's latent (its views' latents stacked along the channels)."""
         c, h, w = self.codec.latent_shape  # three, as __init__ checked
-        return (c, h, w)
+        return (c * self.views, h, w)
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """The views of a frame, in order: a frame is (H, W, 3 x views), view v in channels
+        3v..3v+2 (:func:`iwsim.data.frames.unstack_views`)."""
+        return tuple(self.cfg.cameras)
 
     @property
     def action_dim(self) -> int:
@@ -284,14 +297,16 @@ class WorldModel(nn.Module):
 
     # -- frames and actions -----------------------------------------------------------------
     def check_frames(self, frames: np.ndarray | torch.Tensor, ndim: int) -> torch.Tensor:
-        """uint8 frames of rank ``ndim`` ending in (H, W, 3) at this model's size, as a tensor."""
+        """uint8 frames of rank ``ndim`` ending in (H, W, 3) at this model's size (3 x views
+        channels for a model of several views), as a tensor."""
         x = torch.as_tensor(frames)
-        s = self.image_size
+        s, c = self.image_size, 3 * self.views
         if x.dtype != torch.uint8:
             raise InputError(f"frames must be uint8, got {x.dtype}.")
-        if x.ndim != ndim or tuple(x.shape[-3:]) != (s, s, 3):
-            want = "(B, H, W, 3)" if ndim == 4 else "(B, T, H, W, 3)"
-            raise InputError(f"expected frames {want} with H = W = {s}, got shape {tuple(x.shape)}.")
+        if x.ndim != ndim or tuple(x.shape[-3:]) != (s, s, c):
+            want = f"(B, H, W, {c})" if ndim == 4 else f"(B, T, H, W, {c})"
+            views = f" ({self.views} views stacked along the channels)" if self.views > 1 else ""
+            raise InputError(f"expected frames {want} with H = W = {s}{views}, got shape {tuple(x.shape)}.")
         return x
 
     def normalize_actions(self, actions: np.ndarray | torch.Tensor, batch: int | None = None) -> torch.Tensor:
@@ -309,17 +324,17 @@ class WorldModel(nn.Module):
 
     @torch.inference_mode()
     def encode(self, frames: np.ndarray | torch.Tensor) -> torch.Tensor:
-        """uint8 frames (B, H, W, 3) -> latents (B, *latent_shape)."""
+        """uint8 frames (B, H, W, 3 x views) -> latents (B, *latent_shape)."""
         x = self.check_frames(frames, 4)
         with self._precision.autocast(self.device):
-            z = self.codec.encode(to_model(x).to(self.device)).float()
+            z = encode_views(self.codec, to_model(x, self.views).to(self.device), self.views).float()
         check_finite_output(z, self.name, "its encoder's latents")
         return z
 
     @torch.inference_mode()
     def decode(self, latents: np.ndarray | torch.Tensor, seed: int = 0) -> np.ndarray:
         """Latents (B, C, h, w) (as ``encode`` returns them, numpy or tensor) -> uint8 frames
-        (B, H, W, 3) (a stochastic codec's noise drawn from ``seed``)."""
+        (B, H, W, 3 x views) (a stochastic codec's noise drawn from ``seed``)."""
         z = torch.as_tensor(latents, dtype=torch.float32, device=self.device)
         if z.ndim != 4 or tuple(z.shape[1:]) != self.latent_shape:
             raise InputError(f"expected latents (B, {', '.join(map(str, self.latent_shape))}), "
@@ -328,7 +343,7 @@ class WorldModel(nn.Module):
             raise InputError("the latents to decode hold NaN or infinite values.")
         g = torch.Generator(self.device).manual_seed(seed)
         with self._precision.autocast(self.device):
-            images = self.codec.decode(z, None, 1, g).float()
+            images = decode_views(self.codec, z, self.views, None, 1, g).float()
         check_finite_output(images, self.name, "its decoder's frames")
         return to_uint8(images)
 
@@ -493,7 +508,7 @@ class WorldModel(nn.Module):
         if decode or self.reencode:  # the decoder draws after the dynamics, from the same generators
             images = self.decode_latents(z, state.generators)
             if self.reencode:
-                new = self.standardize(self.codec.encode(images.clamp(-1, 1)))
+                new = self.standardize(encode_views(self.codec, images.clamp(-1, 1), self.views))
         done = torch.ones_like(state.known)
         return (StreamState(torch.cat([state.context[:, 1:], new[:, None]], 1), actions, done, done, state.generators,
                             robot), z, images)
@@ -527,12 +542,12 @@ class WorldModel(nn.Module):
 
     @torch.inference_mode()
     def decode_latents(self, z: torch.Tensor, generators: Sequence[torch.Generator] | None = None) -> torch.Tensor:
-        """Latents (B, ..., C, h, w) -> images (B, ..., 3, H, W) in [-1, 1], item i's
-        noise (for a stochastic codec) from ``generators[i]`` (default: the current
+        """Latents (B, ..., C, h, w) -> images (B, ..., 3 x views, H, W) in [-1, 1], item
+        i's noise (for a stochastic codec) from ``generators[i]`` (default: the current
         rollouts' generators)."""
         lead = tuple(z.shape[1:-3])
         size = self.image_size
-        shape = (3, size, size)
+        shape = (3 * self.views, size, size)
         noise = None
         if self.codec.stochastic:
             gens = self.state.generators if generators is None else generators
@@ -540,7 +555,8 @@ class WorldModel(nn.Module):
             noise = noise.contiguous(memory_format=torch.channels_last)
         # channels-last activations: the decoder's convolutions run faster on CPU (bench/speed.py)
         with self._precision.autocast(self.device):
-            images = self.codec.decode(z.flatten(0, len(lead)).contiguous(memory_format=torch.channels_last), noise)
+            images = decode_views(self.codec, z.flatten(0, len(lead)).contiguous(memory_format=torch.channels_last),
+                                  self.views, noise)
         check_finite_output(images, self.name, "its decoder's frames")
         return images.float().contiguous().view(*z.shape[:-3], *shape)
 

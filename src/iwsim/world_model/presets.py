@@ -137,6 +137,11 @@ class DynamicsStageConfig:
     # it pays for large batches, not for one stream (bench/results/speed).
     inference_bf16: bool = False
     start_fraction: float = 0.1  # share of sequences that start at an episode's first frame
+    # The camera views the model sees, as the store names them (iwsim.data.views; the data
+    # decides): each view is encoded by the one codec and the views' latents are stacked
+    # along the channels, so the dynamics predicts the joint next state of every view in
+    # one pass, and each view is decoded alone.
+    cameras: tuple[str, ...] = ("top",)
     # The robot's own state (the store's data/state, e.g. where T-push's pushers are): the
     # network takes it and predicts it each step (Dynamics.predict_state), each prediction
     # fed back, supervised by an MSE on the normalised state weighted by state_weight.

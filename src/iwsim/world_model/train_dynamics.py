@@ -44,7 +44,7 @@ from iwsim.core.checkpoint import last_checkpoint, load_json, load_tensors, reso
 from iwsim.core.errors import InputError
 from iwsim.core.metrics import psnr
 from iwsim.core.normalize import unscale
-from iwsim.data.frames import to_model, to_uint8
+from iwsim.data.frames import read_frames, tile_views, to_model, to_uint8
 from iwsim.envs.registry import task_from_store
 from iwsim.world_model.denoiser import Denoiser
 from iwsim.world_model.dynamics import Dynamics, add_state, widen_window
@@ -146,7 +146,7 @@ def evaluate_open_loop(wm: WorldModel, data: DynamicsData, episodes: int, steps:
     true_idx = first[:, None] + torch.arange(1, steps + 1)
     true = data.latents[true_idx].to(wm.device)
     frames = wm.decode_latents(pred, state.generators)
-    truth = to_model(np.asarray(data.store.array("img").oindex[true_idx.flatten().numpy()])).to(wm.device)
+    truth = to_model(read_frames(data.store, true_idx.flatten().numpy()), wm.views).to(wm.device)
     truth = truth.unflatten(0, (len(eps), steps))
     p = psnr((frames.flatten(0, 1) + 1) / 2, (truth.flatten(0, 1) + 1) / 2).view(len(eps), steps)
     out = {"latent_mse": ((pred - true) ** 2).mean().item() / data.latent_scale ** 2,  # standardised units
@@ -163,7 +163,7 @@ def write_rollout_strip(path: Path, truth: torch.Tensor, frames: torch.Tensor) -
     from images (E, S, 3, H, W) in [-1, 1]."""
     steps = truth.shape[1]
     cols = np.linspace(0, steps - 1, min(8, steps)).round().astype(int)
-    rows = [np.concatenate(list(to_uint8(v[0, cols])), axis=1) for v in (truth, frames)]
+    rows = [np.concatenate(list(tile_views(to_uint8(v[0, cols]))), axis=1) for v in (truth, frames)]
     path.parent.mkdir(parents=True, exist_ok=True)
     imageio.imwrite(path, np.concatenate(rows, axis=0))
 

@@ -3,7 +3,15 @@
     export:   lerobot-v3, lerobot-v2.1, hdf5-aloha
     import:   lerobot-v3, lerobot-v2.1, hdf5-aloha, robomimic, zarr (Diffusion Policy)
     validate: an episode store, a LeRobot dataset (v3 or v2.1) or ALOHA/robomimic HDF5
-    merge:    episode stores of one task into a new one
+    merge:    episode stores of one task (and one set of cameras) into a new one
+
+Every camera travels (see :mod:`iwsim.data.views` for the store's side): an export writes
+each view of the store (LeRobot: one ``observation.images.<name>`` video feature each, or
+``observation.image`` for a store of one view, as ever; ALOHA: ``/observations/images/<name>``,
+or ``top`` for one view); an import without ``camera`` reads every camera of the source, the
+first into ``data/img``, each further one into ``data/img_<name>`` (names made by
+:func:`~iwsim.data.formats.common.view_name`), and records them in ``cameras``; with
+``camera`` it reads that one only, as a store of one view.
 
 Every format module offers some of:
 
@@ -22,7 +30,15 @@ import os
 from pathlib import Path
 
 from iwsim.core.errors import InputError
-from iwsim.data.formats.common import FormatError, check_resize_memory, output_dir, read_meta, write_store
+from iwsim.data import views
+from iwsim.data.formats.common import (
+    FormatError,
+    check_resize_memory,
+    output_dir,
+    read_meta,
+    store_views,
+    write_store,
+)
 from iwsim.data.store import EpisodeStore
 
 log = logging.getLogger(__name__)
@@ -48,7 +64,7 @@ def export(fmt: str, store: str | os.PathLike, out: str | os.PathLike, *, fps: i
     if fps < 1:
         raise InputError(f"--fps must be a positive integer, got {fps}.")
     task = task or str(src.attrs.get("task") or "")
-    dropped = sorted(set(src.keys) - {"img", "state", "action"})
+    dropped = sorted(set(src.keys) - {"state", "action", *store_views(src).values()})
     if dropped:
         log.info("%s has no place for %s; they are not exported", fmt, ", ".join(dropped))
     if fmt == "hdf5-aloha":
@@ -65,7 +81,8 @@ def export(fmt: str, store: str | os.PathLike, out: str | os.PathLike, *, fps: i
 def import_(fmt: str, src: str | os.PathLike, out: str | os.PathLike, *, camera: str | None = None,
             image_size: int | None, progress: bool = True) -> EpisodeStore:
     """Read ``src`` (in ``fmt``) into a new episode store at ``out``, frames resized to
-    ``image_size`` (None keeps them; ``iwsim data import`` resizes to the default task's)."""
+    ``image_size`` (None keeps them; ``iwsim data import`` resizes to the default task's).
+    Every camera of the source becomes a view of the store, or only ``camera`` when given."""
     if fmt not in IMPORT_FORMATS:
         raise InputError(f"unknown import format {fmt!r}; expected one of {', '.join(IMPORT_FORMATS)}.")
     if image_size is not None and image_size < 1:
@@ -86,6 +103,10 @@ def import_(fmt: str, src: str | os.PathLike, out: str | os.PathLike, *, camera:
 
         reader = read_v3 if fmt == "lerobot-v3" else read_v21
     attrs, n, episodes = reader(src, camera=camera)
+    n_views = len(views.store_cameras(attrs))
+    if image_size is not None and n_views > 1:  # before reading any episode: one frame of each view must fit
+        check_resize_memory(1, image_size, f"--image-size {image_size} (for a single frame of {n_views} views)",
+                            n_views=n_views)
     attrs = {**attrs, "source_format": fmt, "source": str(src)}
     if image_size is not None:
         attrs["image_size"] = image_size
@@ -126,8 +147,9 @@ def validate(path: str | os.PathLike) -> tuple[str, list[str]]:
 
 def merge(sources: list[str | os.PathLike], out: str | os.PathLike, *, progress: bool = True) -> EpisodeStore:
     """A new episode store at ``out`` holding every episode of ``sources`` in order (with
-    their seeds). The sources must share the task, image size, fps and arrays; the merged
-    store's ``policy`` joins theirs with ``+`` and ``sources`` lists them."""
+    their seeds). The sources must share the task, image size, fps, cameras (their names and
+    order, when any has several) and arrays; the merged store's ``policy`` joins theirs with
+    ``+`` and ``sources`` lists them."""
     if len(sources) < 2:
         raise InputError(f"merge takes at least 2 stores, got {len(sources)}.")
     target = Path(out).resolve()
@@ -140,11 +162,17 @@ def merge(sources: list[str | os.PathLike], out: str | os.PathLike, *, progress:
         seen[Path(src).resolve()] = src
     stores = [EpisodeStore.open(src, "r") for src in sources]
     first = stores[0]
+    first_cameras = views.store_cameras(first.attrs, first.keys)
     for s in stores[1:]:
         for key in MERGE_MATCHING:
             if s.attrs.get(key) != first.attrs.get(key):
                 raise InputError(f"cannot merge {s.path} into {first.path}: {key} {s.attrs.get(key)!r} differs "
                                  f"from {first.attrs.get(key)!r}.")
+        cameras = views.store_cameras(s.attrs, s.keys)
+        # One view is data/img whatever its name; several must be the same views in the same order.
+        if cameras != first_cameras and max(len(cameras), len(first_cameras)) > 1:
+            raise InputError(f"cannot merge {s.path} into {first.path}: cameras {list(cameras)} differ from "
+                             f"{list(first_cameras)}.")
         if sorted(s.keys) != sorted(first.keys):
             raise InputError(f"cannot merge {s.path} into {first.path}: arrays {sorted(s.keys)} differ from "
                              f"{sorted(first.keys)}.")

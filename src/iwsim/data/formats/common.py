@@ -2,7 +2,10 @@
 frame resizing and writing an episode store from imported episodes.
 
 An episode, between a format and the store, is ``{"img": (T, H, W, 3) uint8, "state":
-(T, S) float32, "action": (T, A) float32, ...}`` with T >= 1 (other keys are kept).
+(T, S) float32, "action": (T, A) float32, ...}`` with T >= 1 (other keys are kept). A
+source with several cameras gives one more ``img_<name>`` array per further camera, laid
+out like ``img``, and the reader's attributes name the views (``cameras``, see
+:mod:`iwsim.data.views` and :class:`SourceViews`).
 """
 
 from __future__ import annotations
@@ -11,8 +14,10 @@ import contextlib
 import io
 import math
 import os
+import re
 import shutil
 from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +26,7 @@ import numpy as np
 from iwsim.core.errors import InputError
 from iwsim.core.lock import LOCK_NAME, DirLock, remove_stale_temps, temp_sibling
 from iwsim.core.resources import read_capped, require_memory
+from iwsim.data import views
 from iwsim.data.store import EpisodeStore
 
 REQUIRED = ("img", "state", "action")
@@ -112,16 +118,24 @@ def positive_int(value: Any) -> int | None:
     return int(round(v)) if math.isfinite(v) and v >= 1 else None
 
 
-def check_episode(ep: Mapping[str, np.ndarray], at: str) -> dict[str, np.ndarray]:
-    """An episode with the required arrays, equal lengths T >= 1, RGB uint8 frames and
-    finite float state and action (cast to float32); else a FormatError naming ``at``."""
-    missing = [k for k in REQUIRED if k not in ep]
+def check_episode(ep: Mapping[str, np.ndarray], at: str, view_keys: Sequence[str] = (views.IMAGE_KEY,)
+                  ) -> dict[str, np.ndarray]:
+    """An episode with the required arrays (and the frames of every view in ``view_keys``,
+    ``img`` first), equal lengths T >= 1, RGB uint8 frames and finite float state and action
+    (cast to float32); else a FormatError naming ``at``."""
+    missing = [k for k in (*REQUIRED, *view_keys) if k not in ep]
     if missing:
-        raise FormatError(f"{at}: missing {', '.join(missing)}.")
+        raise FormatError(f"{at}: missing {', '.join(dict.fromkeys(missing))}.")
     out = {k: np.asarray(v) for k, v in ep.items()}
-    img = out["img"]
-    if img.dtype != np.uint8 or img.ndim != 4 or img.shape[-1] != 3:
-        raise FormatError(f"{at}: frames must be uint8 (T, H, W, 3), got {img.dtype} {img.shape}.")
+    for key in view_keys:
+        img = out[key]
+        if img.dtype != np.uint8 or img.ndim != 4 or img.shape[-1] != 3:
+            what = "frames" if key == views.IMAGE_KEY else f"'{key}' frames"
+            raise FormatError(f"{at}: {what} must be uint8 (T, H, W, 3), got {img.dtype} {img.shape}.")
+    counts = {k: len(out[k]) for k in view_keys}
+    if len(set(counts.values())) != 1:
+        raise FormatError(f"{at}: the views differ in frame count: "
+                          f"{', '.join(f'{k} {n}' for k, n in counts.items())}; every view needs one frame a step.")
     lengths = {k: (len(v) if v.ndim else 0) for k, v in out.items()}
     if len(set(lengths.values())) != 1:
         raise FormatError(f"{at}: arrays differ in length: {lengths}.")
@@ -138,6 +152,71 @@ def check_episode(ep: Mapping[str, np.ndarray], at: str) -> dict[str, np.ndarray
             raise FormatError(f"{at}: '{k}' holds non-finite values.")
         out[k] = v
     return out
+
+
+_NOT_NAME = re.compile(r"[^a-z0-9_]+")
+
+
+def view_name(source: str, prefixes: Sequence[str] = (), suffixes: Sequence[str] = ()) -> str:
+    """A source's camera name as a view name (:func:`iwsim.data.views.check_cameras`): its last
+    dotted part (as :func:`~iwsim.data.views.store_cameras` reads a ``camera`` attribute),
+    without the first of ``prefixes`` / ``suffixes`` it has (kept when nothing would remain),
+    lower-cased, every run of other characters as one ``_``, at most 32 characters:
+    ``observation.images.wrist_left`` -> ``wrist_left``, with the suffix ``_image``
+    ``agentview_image`` -> ``agentview``, ``Cam-High`` -> ``cam_high``."""
+    name = source.rsplit(".", 1)[-1]
+    for p in prefixes:
+        if name.startswith(p) and len(name) > len(p):
+            name = name[len(p):]
+            break
+    for x in suffixes:
+        if name.endswith(x) and len(name) > len(x):
+            name = name[:-len(x)]
+            break
+    name = _NOT_NAME.sub("_", name.lower()).strip("_")[:32].rstrip("_")
+    return name or "camera"
+
+
+@dataclass(frozen=True)
+class SourceViews:
+    """The cameras a reader takes from a source, first view first: ``sources`` their names
+    in the source, ``names`` the store's view names (distinct, valid)."""
+
+    sources: tuple[str, ...]
+    names: tuple[str, ...]
+
+    @classmethod
+    def of(cls, sources: Sequence[str], names: Sequence[str] | None = None, *, prefixes: Sequence[str] = (),
+           suffixes: Sequence[str] = ()) -> SourceViews:
+        """Views of ``sources``, named ``names`` or, by default, by :func:`view_name`; a name
+        that two cameras would share gets ``_2``, ``_3``, ... on the later ones."""
+        if names is None:
+            names = [view_name(s, prefixes, suffixes) for s in sources]
+        unique: list[str] = []
+        for name in names:
+            candidate, k = name, 2
+            while candidate in unique:
+                suffix = f"_{k}"
+                candidate, k = name[:32 - len(suffix)] + suffix, k + 1
+            unique.append(candidate)
+        return cls(tuple(sources), views.check_cameras(unique))
+
+    @property
+    def keys(self) -> dict[str, str]:
+        """{source camera: the episode's array}: ``img`` for the first, ``img_<name>`` after."""
+        return dict(zip(self.sources, views.view_keys(self.names).values()))
+
+    def attrs(self) -> dict[str, Any]:
+        """The store attributes that record them: one camera as ever (``camera``: its source
+        name), several as ``cameras`` (view names) and ``source_cameras`` (source names)."""
+        if len(self.sources) == 1:
+            return {"camera": self.sources[0]}
+        return {"cameras": list(self.names), "source_cameras": list(self.sources)}
+
+
+def store_views(store: EpisodeStore) -> dict[str, str]:
+    """{view name: data array} of ``store`` in view order (checked to hold every view)."""
+    return views.view_keys(views.store_cameras(store.attrs, store.keys))
 
 
 @contextlib.contextmanager
@@ -168,9 +247,10 @@ def output_dir(out: str | os.PathLike, force: bool = False) -> Iterator[Path]:
 RESIZE_BYTES_PER_VALUE = 9  # the float32 interpolation, its rounded float32 copy, the uint8 result
 
 
-def check_resize_memory(frames: int, size: int, what: str) -> None:
-    """Refuse to resize ``frames`` frames to ``size`` x ``size`` when the buffers cannot fit."""
-    require_memory(frames * size * size * 3 * RESIZE_BYTES_PER_VALUE, what)
+def check_resize_memory(frames: int, size: int, what: str, n_views: int = 1) -> None:
+    """Refuse to resize ``frames`` frames of each of ``n_views`` views to ``size`` x ``size``
+    when the buffers cannot fit (counted for all views at once: an upper bound)."""
+    require_memory(frames * n_views * size * size * 3 * RESIZE_BYTES_PER_VALUE, what)
 
 
 def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
@@ -199,17 +279,31 @@ def store_episodes(store: EpisodeStore) -> Iterator[dict[str, np.ndarray]]:
 def write_store(out: str | os.PathLike, episodes: Iterable[tuple[dict[str, np.ndarray], int | None]],
                 attrs: Mapping[str, Any], image_size: int | None = None, progress: bool = True,
                 total: int | None = None, force: bool = False) -> EpisodeStore:
-    """An episode store at ``out`` from ``(episode, seed)`` pairs (frames resized to
-    ``image_size`` when given), written under a temporary name and renamed at the end."""
+    """An episode store at ``out`` from ``(episode, seed)`` pairs (the frames of every view
+    that ``attrs`` names resized to ``image_size`` when given), written under a temporary
+    name and renamed at the end. The views' frames must be of one size."""
     from tqdm import tqdm
 
+    cameras = views.store_cameras(attrs)
+    keys = views.view_keys(cameras)
     with output_dir(out, force) as tmp:
         store = EpisodeStore.create(tmp / "store.zarr", dict(attrs))
-        for ep, seed in tqdm(episodes, total=total, unit="ep", desc=f"import {Path(out).name}", disable=not progress):
+        for i, (ep, seed) in enumerate(tqdm(episodes, total=total, unit="ep", desc=f"import {Path(out).name}",
+                                            disable=not progress)):
+            missing = [k for k in keys.values() if k not in ep]
+            if missing:
+                raise FormatError(f"episode {i}: holds no {', '.join(missing)} for the views {list(cameras)}.")
             if image_size is not None:
-                check_resize_memory(len(ep["img"]), image_size,
-                                    f"resizing an episode of {len(ep['img'])} frames to {image_size}x{image_size}")
-                ep = {**ep, "img": resize_frames(ep["img"], image_size)}
+                t = len(ep[views.IMAGE_KEY])
+                check_resize_memory(t, image_size, f"resizing an episode of {t} frames"
+                                    f"{f' of {len(keys)} views' if len(keys) > 1 else ''} to "
+                                    f"{image_size}x{image_size}", n_views=len(keys))
+                ep = {**ep, **{k: resize_frames(ep[k], image_size) for k in keys.values()}}
+            sizes = {name: ep[k].shape[1:3] for name, k in keys.items()}
+            if len(set(sizes.values())) > 1:
+                raise FormatError(f"episode {i}: the views' frames differ in size ("
+                                  f"{', '.join(f'{n} {h}x{w}' for n, (h, w) in sizes.items())}); import with "
+                                  "--image-size to give them one size.")
             store.append(ep, seed=seed)
         if store.n_episodes == 0:
             raise FormatError(f"no episodes to write to {out}.")

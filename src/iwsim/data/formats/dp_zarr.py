@@ -8,6 +8,15 @@ A ReplayBuffer (diffusion_policy/common/replay_buffer.py) is a Zarr format 2 gro
 Its Push-T file ``pusht_cchi_v7_replay.zarr`` holds ``img`` (N, 96, 96, 3) float32 in [0, 255]
 (LeRobot's converter checks that range and casts to uint8), ``state`` (N, 5) = agent xy and
 block pose, ``action`` (N, 2), ``keypoint`` (N, 9, 2) and ``n_contacts`` (N, 1), at 10 fps.
+
+Cameras: every image array ((N, H, W, 3), uint8 or float) is a camera. An import without
+``camera`` reads them all: in the order of the store's ``cameras`` attribute where it names
+image arrays the store holds (our own stores, :mod:`iwsim.data.views`), then ``img`` (when
+not yet taken), then the others in name order. ``img`` is named as a store without
+``cameras`` names its view (its ``camera`` attribute, else ``top``); the others by their
+array's name without ``img_`` and ``_image`` / ``_img`` (``img_wrist`` -> ``wrist``,
+``agentview_image`` -> ``agentview``). ``camera`` reads one array (by its name, or by the
+view name it would get) as a store of one view.
 """
 
 from __future__ import annotations
@@ -21,7 +30,9 @@ from typing import Any
 import numpy as np
 import zarr
 
-from iwsim.data.formats.common import FormatError, check_episode, positive_int, reason, where
+from iwsim.core.errors import InputError
+from iwsim.data import views
+from iwsim.data.formats.common import FormatError, SourceViews, check_episode, positive_int, reason, view_name, where
 from iwsim.data.store import EpisodeStore, StoreError
 
 log = logging.getLogger(__name__)
@@ -31,7 +42,9 @@ IMAGE_KEY, STATE_KEYS, ACTION_KEY = "img", ("state", "agent_pos"), "action"
 # What zarr and numcodecs raise on a damaged store: Blosc reports a bad chunk as RuntimeError,
 # or as SystemError when a damaged header gives it a negative size.
 _READ_ERRORS = (OSError, KeyError, ValueError, TypeError, IndexError, RuntimeError, SystemError, MemoryError)
-_STORE_ATTRS = ("seeds", "store_version", "source_format", "source")  # managed by the store / import_
+_STORE_ATTRS = ("seeds", "store_version", "source_format", "source",  # managed by the store / import_
+                "camera", "cameras", "source_cameras")  # set anew from the cameras imported
+VIEW_PREFIXES, VIEW_SUFFIXES = (views.VIEW_PREFIX,), ("_image", "_img")  # dropped from an array's view name
 
 
 def _is_image(arr: zarr.Array) -> bool:
@@ -75,30 +88,55 @@ def _open(src: Path) -> tuple[zarr.Group, dict[str, zarr.Array], np.ndarray]:
     return root, arrays, ends
 
 
-def _pick(arrays: dict[str, zarr.Array], src: Path, camera: str | None) -> tuple[str, str]:
-    """(image key, state key) of the store."""
+def _all_views(arrays: dict[str, zarr.Array], attrs: dict[str, Any]) -> SourceViews | None:
+    """Every image array as a view, in the order of the module docstring; None if none."""
+    images = [k for k in sorted(arrays) if _is_image(arrays[k])]
+    sources: list[str] = []
+    names: list[str] = []
+    if "cameras" in attrs:  # our own store's views, when they are what it holds
+        try:
+            keys = views.view_keys(views.store_cameras(attrs))
+        except InputError:
+            keys = {}
+        if all(k in images for k in keys.values()):
+            sources, names = list(keys.values()), list(keys)
+    if IMAGE_KEY in images and IMAGE_KEY not in sources:
+        sources.append(IMAGE_KEY)
+        names.append(views.store_cameras({k: v for k, v in attrs.items() if k != "cameras"})[0])
+    for key in images:
+        if key not in sources:
+            sources.append(key)
+            names.append(view_name(key, VIEW_PREFIXES, VIEW_SUFFIXES))
+    return SourceViews.of(sources, names) if sources else None
+
+
+def _pick(arrays: dict[str, zarr.Array], src: Path, camera: str | None,
+          attrs: dict[str, Any]) -> tuple[SourceViews, str]:
+    """(the cameras to read, state key) of the store."""
     have = ", ".join(sorted(arrays)) or "none"
+    every = _all_views(arrays, attrs)
     if camera is not None:
-        if camera not in arrays:
+        by_name = dict(zip(every.names, every.sources)) if every is not None else {}
+        if camera not in arrays and camera not in by_name:
             raise FormatError(f"{where(src, f'data/{camera}')}: no such array; data/ holds {have}.")
-        img = camera
-    elif IMAGE_KEY in arrays:
-        img = IMAGE_KEY
+        cams = SourceViews.of([camera if camera in arrays else by_name[camera]])
+    elif IMAGE_KEY in arrays and not _is_image(arrays[IMAGE_KEY]):
+        cams = SourceViews.of([IMAGE_KEY])  # refused below, naming it
+    elif every is None:
+        raise FormatError(f"{where(src, 'data')}: no image arrays ((N, H, W, 3) frames); data/ holds {have}.")
     else:
-        images = [k for k, a in arrays.items() if _is_image(a)]
-        if len(images) != 1:
-            raise FormatError(f"{where(src, 'data')}: no data/img and {len(images)} image arrays "
-                              f"({', '.join(images) or 'none'}); choose one with --camera.")
-        img = images[0]
-    if not _is_image(arrays[img]):
-        a = arrays[img]
-        raise FormatError(f"{where(src, f'data/{img}')}: expected (N, H, W, 3) uint8 frames, got {a.dtype} {a.shape}.")
+        cams = every
+    for img in cams.sources:
+        if not _is_image(arrays[img]):
+            a = arrays[img]
+            raise FormatError(f"{where(src, f'data/{img}')}: expected (N, H, W, 3) uint8 frames, "
+                              f"got {a.dtype} {a.shape}.")
     state = next((k for k in STATE_KEYS if k in arrays), None)
     if state is None:
         raise FormatError(f"{where(src, 'data')}: no data/state or data/agent_pos; data/ holds {have}.")
     if ACTION_KEY not in arrays:
         raise FormatError(f"{where(src, 'data/action')}: missing; data/ holds {have}.")
-    return img, state
+    return cams, state
 
 
 def _frames(value: np.ndarray, at: str) -> np.ndarray:
@@ -110,8 +148,8 @@ def _frames(value: np.ndarray, at: str) -> np.ndarray:
     return np.rint(value).astype(np.uint8)
 
 
-def _episodes(src: Path, arrays: dict[str, zarr.Array], keys: dict[str, str], ends: np.ndarray,
-              seeds: list[Any]) -> Iterator[tuple[dict[str, np.ndarray], int | None]]:
+def _episodes(src: Path, arrays: dict[str, zarr.Array], keys: dict[str, str], view_keys: tuple[str, ...],
+              ends: np.ndarray, seeds: list[Any]) -> Iterator[tuple[dict[str, np.ndarray], int | None]]:
     start = 0
     for i, stop in enumerate(ends.tolist()):
         ep = {}
@@ -121,46 +159,49 @@ def _episodes(src: Path, arrays: dict[str, zarr.Array], keys: dict[str, str], en
                 value = np.asarray(arrays[key][start:stop])
             except _READ_ERRORS as e:
                 raise FormatError(f"{at}: unreadable ({reason(e)}).") from None
-            ep[name] = _frames(value, at) if name == "img" else value
+            ep[name] = _frames(value, at) if name in view_keys else value
         seed = seeds[i] if i < len(seeds) and isinstance(seeds[i], int) else None
-        yield check_episode(ep, where(src, episode=i)), seed
+        yield check_episode(ep, where(src, episode=i), view_keys), seed
         start = stop
 
 
 def read_zarr(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple[dict, int | None]]]:
     """Episodes of a Diffusion Policy ReplayBuffer (or one of our stores): ``img`` (T, H, W, 3)
-    uint8 from ``data/<camera>`` (default ``img``, else the only image array), ``state`` (T, S)
-    from ``data/state`` (else ``agent_pos``), ``action`` (T, A) from ``data/action``; other
-    numeric per-frame arrays that are not images are carried under their own names."""
+    uint8 and ``img_<name>`` from its image arrays (see the module docstring; ``camera``
+    reads that one only), ``state`` (T, S) from ``data/state`` (else ``agent_pos``),
+    ``action`` (T, A) from ``data/action``; other numeric per-frame arrays that are not
+    images are carried under their own names."""
     src = Path(src)
     root, arrays, ends = _open(src)
-    img, state = _pick(arrays, src, camera)
+    try:
+        source = dict(root.attrs)
+    except _READ_ERRORS:
+        source = {}
+    cams, state = _pick(arrays, src, camera, source)
+    img = cams.sources[0]
     n = int(ends[-1])
-    keys = {"img": img, "state": state, "action": ACTION_KEY}
+    keys = {**{key: cam for cam, key in cams.keys.items()}, "state": state, "action": ACTION_KEY}
     for key in keys.values():
         length = arrays[key].shape[0] if arrays[key].ndim else 0
         if length < n:
             raise FormatError(f"{where(src, f'data/{key}')}: holds {length} frames but meta/episode_ends counts {n}.")
     for key, arr in sorted(arrays.items()):
-        # Extras: per-frame numbers (e.g. keypoint, n_contacts); other cameras stay behind.
+        # Extras: per-frame numbers (e.g. keypoint, n_contacts); cameras not asked for stay behind.
         taken = key in keys.values() or key in keys
         numeric = np.issubdtype(arr.dtype, np.number) or arr.dtype == bool
         if not taken and numeric and 1 <= arr.ndim <= 3 and arr.shape[0] >= n:
             keys[key] = key
-    try:
-        source = dict(root.attrs)
-    except _READ_ERRORS:
-        source = {}
     attrs = {k: v for k, v in source.items() if k not in _STORE_ATTRS and _json_ok(v)}
     h, w = arrays[img].shape[1:3]
     attrs.update({
         "task": str(source.get("task") or src.name.removesuffix(".zarr")),
         "fps": positive_int(source.get("fps")) or ZARR_FPS,
-        "camera": img,
+        **cams.attrs(),
         "image_size": int(h) if h == w else [int(h), int(w)],
     })
     seeds = source.get("seeds")
-    return attrs, len(ends), _episodes(src, arrays, keys, ends, seeds if isinstance(seeds, list) else [])
+    return attrs, len(ends), _episodes(src, arrays, keys, tuple(cams.keys.values()), ends,
+                                       seeds if isinstance(seeds, list) else [])
 
 
 def _json_ok(value: Any) -> bool:
@@ -181,8 +222,9 @@ def _episodes_of(ends: np.ndarray, a: int, b: int) -> str:
 
 def validate_store(path: Path) -> list[str]:
     """What is wrong with an episode store, one line per problem naming the key and episode:
-    episode ends, array shapes/dtypes/lengths, unreadable chunks, non-finite state/action and
-    the fps/image_size/seeds attributes. Empty if it is valid."""
+    episode ends, array shapes/dtypes/lengths, unreadable chunks, non-finite state/action,
+    the fps/image_size/seeds/cameras attributes and each camera view's frames. Empty if it
+    is valid."""
     path = Path(path)
     try:
         store = EpisodeStore.open(path, "r")
@@ -208,14 +250,27 @@ def validate_store(path: Path) -> list[str]:
         problems.append(f"{path}: holds no episodes: an empty store (a collect stopped before its first episode "
                         "leaves one; a collect into it, with any flags, fills it).")
         return problems
-    for key in ("img", "state", "action"):
+    try:
+        view_keys = views.view_keys(views.store_cameras(store.attrs))
+    except InputError as e:
+        problems.append(f"{path}: {e}")
+        view_keys = {views.DEFAULT_CAMERA: views.IMAGE_KEY}
+
+    def of(name: str) -> str:
+        return f" (camera {name!r} of {', '.join(view_keys)})" if len(view_keys) > 1 else ""
+
+    shapes = {k: store.array(k).shape for k in store.keys}
+    for name, key in view_keys.items():
+        if key not in shapes:
+            problems.append(f"{where(path, f'data/{key}')}: missing{of(name)}.")
+            continue
+        a = store.array(key)
+        if a.dtype != np.uint8 or a.ndim != 4 or a.shape[-1] != 3:
+            problems.append(f"{where(path, f'data/{key}')}: expected uint8 (N, H, W, 3) frames{of(name)}, "
+                            f"got {a.dtype} {a.shape}.")
+    for key in ("state", "action"):
         if key not in store.keys:
             problems.append(f"{where(path, f'data/{key}')}: missing.")
-    shapes = {k: store.array(k).shape for k in store.keys}
-    if "img" in shapes:
-        a = store.array("img")
-        if a.dtype != np.uint8 or a.ndim != 4 or a.shape[-1] != 3:
-            problems.append(f"{where(path, 'data/img')}: expected uint8 (N, H, W, 3) frames, got {a.dtype} {a.shape}.")
     for key in ("state", "action"):
         if key in shapes:
             a = store.array(key)
@@ -244,11 +299,12 @@ def validate_store(path: Path) -> list[str]:
     if positive_int(attrs.get("fps")) is None:
         problems.append(f"{path}: attribute 'fps' is {attrs.get('fps')!r}; expected a positive integer.")
     size = attrs.get("image_size")
-    if "img" in shapes and len(shapes["img"]) == 4:
-        h, w = shapes["img"][1:3]
+    held = [key for key in view_keys.values() if key in shapes and len(shapes[key]) == 4]
+    for key in held:
+        h, w = shapes[key][1:3]
         if not (size == [h, w] or (h == w and size == h)):
-            problems.append(f"{path}: attribute 'image_size' is {size!r}; data/img holds {h}x{w} frames.")
-    elif size is None:
+            problems.append(f"{path}: attribute 'image_size' is {size!r}; data/{key} holds {h}x{w} frames.")
+    if not held and size is None:
         problems.append(f"{path}: attribute 'image_size' is missing.")
     # Open checked there are enough seeds; one more is an interrupted append's leftover.
     seeds = root.attrs.get("seeds")

@@ -3,7 +3,9 @@
 ALOHA / ACT, one file per episode ``episode_<i>.hdf5``, as act-plus-plus
 (``record_sim_episodes.py``, ``compress_data.py``) and the ALOHA recorders write it::
 
-    attrs                        sim (bool), compress (bool; absent in older files)
+    attrs                        sim (bool), compress (bool; absent in older files); ours
+                                 also fps, task, action_names, seed and, with several
+                                 cameras, cameras (JSON: their names in view order)
     /observations/images/<cam>   (T, H, W, 3) uint8, or when compressed (T, L) uint8: one
                                  JPEG per row, padded with zeros to the longest
     /observations/qpos           (T, S) float32 (h5py's default dtype; 14 on ALOHA)
@@ -17,6 +19,15 @@ robomimic, one file (robomimic docs/datasets/overview.md)::
     data                         attrs: total, env_args (JSON: env_name, env_type, env_kwargs)
     data/demo_<i>/actions        (T, A)
     data/demo_<i>/obs/<key>      (T, ...): images ``*_image`` (T, H, W, 3) uint8, low-dim (T, D)
+
+Cameras: an ALOHA export writes each view of the store as ``/observations/images/<name>``
+(a store of one view as ``top``, ACT's simulated camera, as ever). An import without
+``camera`` reads every RGB camera: ALOHA's in the order of the file's ``cameras`` attribute
+when it lists them all (ours), else ``top`` first (when there is one) and the others in file
+order, named as in the file (``cam_left_wrist``); robomimic's image obs keys with
+``agentview_image`` first (its usual camera) and the others in name order, named without
+``_image`` (``robot0_eye_in_hand_image`` -> ``robot0_eye_in_hand``). The first goes to
+``img``, the others to ``img_<name>``; every episode must hold every camera.
 """
 
 from __future__ import annotations
@@ -33,14 +44,25 @@ from typing import Any
 import h5py
 import numpy as np
 
-from iwsim.data.formats.common import FormatError, check_episode, decode_images, positive_int, reason, where
+from iwsim.data.formats.common import (
+    FormatError,
+    SourceViews,
+    check_episode,
+    decode_images,
+    positive_int,
+    reason,
+    store_views,
+    where,
+)
 from iwsim.data.store import EpisodeStore
 
 log = logging.getLogger(__name__)
 
 ALOHA_FPS = 50  # act-plus-plus constants.py: DT = 0.02
 ROBOMIMIC_FPS = 20  # robosuite's default control_freq, kept in env_args.env_kwargs when recorded
-ALOHA_CAMERA = "top"  # the camera of ACT's simulated tasks
+ALOHA_CAMERA = "top"  # the camera of ACT's simulated tasks, and the name of a one-view store's export
+ROBOMIMIC_CAMERA = "agentview_image"  # robomimic's usual camera, imported first
+ROBOMIMIC_IMAGE_SUFFIX = "_image"  # robomimic's image obs keys end so; a view's name drops it
 _ARM = ("waist", "shoulder", "elbow", "forearm_roll", "wrist_angle", "wrist_rotate", "gripper")
 ALOHA_ACTION_NAMES = [f"{side}_{joint}" for side in ("left", "right") for joint in _ARM]
 MOBILE_BASE_NAMES = ["linear_vel", "angular_vel"]
@@ -103,15 +125,19 @@ def _square_or_hw(h: int, w: int) -> int | list[int]:
 # --- ALOHA: export ---------------------------------------------------------------------------
 def export_aloha(store: EpisodeStore, out: Path, *, fps: int, task: str, progress: bool) -> None:
     """Write each episode of ``store`` to ``out/episode_<i>.hdf5`` in ACT's uncompressed layout:
-    ``/observations/images/top`` (T, H, W, 3) uint8, ``/observations/qpos`` (T, S) and
-    ``/action`` (T, A) float32; root attrs sim, compress, fps, task (and action_names, seed)."""
+    ``/observations/images/<camera>`` (T, H, W, 3) uint8 per view (``top`` for a store of one
+    view), ``/observations/qpos`` (T, S) and ``/action`` (T, A) float32; root attrs sim,
+    compress, fps, task (and action_names, seed, and cameras when there are several)."""
     from tqdm import tqdm
 
+    keys = store_views(store)
+    if len(keys) == 1:
+        keys = {ALOHA_CAMERA: next(iter(keys.values()))}
     names = store.attrs.get("action_names")
     seeds = store.seeds
     for i in tqdm(range(store.n_episodes), unit="ep", desc=f"export {out.name}", disable=not progress):
-        ep = check_episode(store.episode(i), where(store.path, episode=i))
-        img, state = ep["img"], ep["state"]
+        ep = check_episode(store.episode(i), where(store.path, episode=i), tuple(keys.values()))
+        state = ep["state"]
         # Built in memory, then written by Python: the HDF5 library on a full disk crashed
         # the process (segmentation fault); a failed Python write is an OSError, one line.
         image = io.BytesIO()
@@ -124,8 +150,12 @@ def export_aloha(store: EpisodeStore, out: Path, *, fps: int, task: str, progres
                 f.attrs["action_names"] = json.dumps([str(n) for n in names])
             if seeds[i] is not None:
                 f.attrs["seed"] = int(seeds[i])
-            # One frame per chunk, as ACT writes them: its loader reads one time step at a time.
-            f.create_dataset(f"observations/images/{ALOHA_CAMERA}", data=img, chunks=(1, *img.shape[1:]))
+            if len(keys) > 1:  # the view order (h5py lists datasets by name)
+                f.attrs["cameras"] = json.dumps(list(keys))
+            for cam, key in keys.items():
+                # One frame per chunk, as ACT writes them: its loader reads one time step at a time.
+                img = ep[key]
+                f.create_dataset(f"observations/images/{cam}", data=img, chunks=(1, *img.shape[1:]))
             f.create_dataset("observations/qpos", data=state)
             # ACT's loaders read qvel unconditionally but never use it; zeros keep them working.
             f.create_dataset("observations/qvel", data=np.zeros_like(state))
@@ -155,16 +185,18 @@ def _rgb_cameras(images: h5py.Group) -> list[str]:
     return [name for name in images if "depth" not in name]
 
 
-def _pick_camera(cameras: list[str], camera: str | None, at: str) -> str:
+def _pick_cameras(cameras: list[str], camera: str | None, at: str, order: list[str] | None = None) -> list[str]:
+    """The cameras to read: ``camera``, else all of them, in ``order`` (the file's
+    ``cameras`` attribute) when it lists them all, else "top" first and the rest in file order."""
     if camera is not None:
         if camera not in cameras:
             raise FormatError(f"{at}: no camera {camera!r}; it has {', '.join(cameras) or 'none'}.")
-        return camera
-    if len(cameras) == 1:
-        return cameras[0]
-    if ALOHA_CAMERA in cameras:
-        return ALOHA_CAMERA
-    raise FormatError(f"{at}: {len(cameras)} cameras ({', '.join(cameras) or 'none'}); choose one with --camera.")
+        return [camera]
+    if not cameras:
+        raise FormatError(f"{at}: holds no RGB camera.")
+    if order is not None and sorted(order) == sorted(cameras):
+        return list(order)
+    return sorted(cameras, key=lambda c: c != ALOHA_CAMERA)  # stable: the rest keep file order
 
 
 def _decode_jpegs(rows: np.ndarray, at: str, frame_ids: list[int] | None = None) -> np.ndarray:
@@ -192,16 +224,18 @@ def _aloha_frames(f: h5py.File, cam: str, path: Path, i: int, size: int) -> np.n
     return data
 
 
-def _read_aloha_file(path: Path, i: int, camera: str) -> tuple[dict[str, np.ndarray], int | None]:
+def _read_aloha_file(path: Path, i: int, cams: SourceViews) -> tuple[dict[str, np.ndarray], int | None]:
     with _open(path, i) as f:
         try:
             size = path.stat().st_size
             images = f.get("observations/images")
             if not isinstance(images, h5py.Group):
                 raise FormatError(f"{where(path, 'observations/images', i)}: missing.")
-            _pick_camera(_rgb_cameras(images), camera, where(path, "observations/images", i))
+            have = _rgb_cameras(images)
+            for cam in cams.sources:
+                _pick_cameras(have, cam, where(path, "observations/images", i))
             ep = {
-                "img": _aloha_frames(f, camera, path, i, size),
+                **{key: _aloha_frames(f, cam, path, i, size) for cam, key in cams.keys.items()},
                 "state": _read(_dataset(f, "observations/qpos", where(path, "observations/qpos", i)),
                                where(path, "observations/qpos", i), size),
                 "action": _read(_dataset(f, "action", where(path, "action", i)), where(path, "action", i), size),
@@ -218,13 +252,13 @@ def _read_aloha_file(path: Path, i: int, camera: str) -> tuple[dict[str, np.ndar
         except _READ_ERRORS as e:
             raise FormatError(f"{where(path, episode=i)}: unreadable ({reason(e)}).") from None
     seed = int(seed) if isinstance(seed, (int, np.integer)) else None
-    return check_episode(ep, where(path, episode=i)), seed
+    return check_episode(ep, where(path, episode=i), tuple(cams.keys.values())), seed
 
 
-def _aloha_episodes(files: list[Path], camera: str) -> Iterator[tuple[dict[str, np.ndarray], int | None]]:
+def _aloha_episodes(files: list[Path], cams: SourceViews) -> Iterator[tuple[dict[str, np.ndarray], int | None]]:
     dims: tuple[int, int] | None = None
     for i, path in enumerate(files):
-        ep, seed = _read_aloha_file(path, i, camera)
+        ep, seed = _read_aloha_file(path, i, cams)
         got = (ep["state"].shape[1], ep["action"].shape[1])
         if dims is None:
             dims = got
@@ -237,9 +271,9 @@ def _aloha_episodes(files: list[Path], camera: str) -> Iterator[tuple[dict[str, 
 def read_aloha(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple[dict, int | None]]]:
     """ALOHA/ACT episodes from a directory of ``episode_<i>.hdf5`` files (in the order of the
     number in their names) or one such file: ``img`` (T, H, W, 3) uint8 from
-    ``/observations/images/<camera>`` (JPEG-compressed files are decoded), ``state`` (T, S) from
-    ``/observations/qpos``, ``action`` (T, A) from ``/action``. ``camera`` defaults to the only
-    camera, else "top"."""
+    ``/observations/images/<camera>`` (JPEG-compressed files are decoded) and ``img_<name>``
+    from each further camera (see the module docstring; ``camera`` reads that one only),
+    ``state`` (T, S) from ``/observations/qpos``, ``action`` (T, A) from ``/action``."""
     src = Path(src)
     files = _aloha_files(src)
     first = files[0]
@@ -249,7 +283,9 @@ def read_aloha(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tu
             if not isinstance(images, h5py.Group):
                 raise FormatError(f"{where(first, 'observations/images', 0)}: missing; expected ALOHA's "
                                   "/observations/images/<camera> datasets.")
-            cam = _pick_camera(_rgb_cameras(images), camera, where(first, "observations/images", 0))
+            cams = SourceViews.of(_pick_cameras(_rgb_cameras(images), camera, where(first, "observations/images", 0),
+                                                _attr_names(f.attrs.get("cameras"))))
+            cam = cams.sources[0]
             img = _dataset(images, cam, where(first, f"observations/images/{cam}", 0))
             if img.ndim == 4:
                 h, w = img.shape[1:3]
@@ -266,7 +302,7 @@ def read_aloha(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tu
     attrs: dict[str, Any] = {
         "task": _attr_text(root.get("task")) or (src if src.is_dir() else src.parent).name,
         "fps": positive_int(root.get("fps")) or ALOHA_FPS,
-        "camera": cam,
+        **cams.attrs(),
         "image_size": _square_or_hw(h, w),
     }
     names = _attr_names(root.get("action_names"))
@@ -276,7 +312,7 @@ def read_aloha(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tu
         attrs["action_names"] = names
     if isinstance(root.get("sim"), (bool, np.bool_, int, np.integer)):
         attrs["sim"] = bool(root["sim"])
-    return attrs, len(files), _aloha_episodes(files, cam)
+    return attrs, len(files), _aloha_episodes(files, cams)
 
 
 # --- robomimic: import -----------------------------------------------------------------------
@@ -321,7 +357,7 @@ def _env_args(data: h5py.Group, src: Path) -> dict[str, Any]:
     return args if isinstance(args, dict) else {}
 
 
-def _read_demo(f: h5py.File, src: Path, i: int, demo: str, camera: str,
+def _read_demo(f: h5py.File, src: Path, i: int, demo: str, cams: SourceViews,
                state_keys: list[tuple[str, int]], size: int) -> dict[str, np.ndarray]:
     base = f"data/{demo}"
     at = where(src, f"{base}/actions", i)
@@ -348,18 +384,19 @@ def _read_demo(f: h5py.File, src: Path, i: int, demo: str, camera: str,
             raise FormatError(f"{where(src, f'{base}/obs/{key}', i)}: expected {dim} numbers per step (as in "
                               f"the first demo), got {value.dtype} {value.shape}.")
         parts.append(value.reshape(t, dim).astype(np.float32))
-    ep = {"img": steps(camera), "state": np.concatenate(parts, axis=1), "action": actions}
-    return check_episode(ep, where(src, base, i))
+    ep = {**{key: steps(cam) for cam, key in cams.keys.items()}, "state": np.concatenate(parts, axis=1),
+          "action": actions}
+    return check_episode(ep, where(src, base, i), tuple(cams.keys.values()))
 
 
-def _robomimic_episodes(src: Path, demos: list[str], camera: str,
+def _robomimic_episodes(src: Path, demos: list[str], cams: SourceViews,
                         state_keys: list[tuple[str, int]]) -> Iterator[tuple[dict, int | None]]:
     with _open(src) as f:
         size = src.stat().st_size
         a_dim: int | None = None
         for i, demo in enumerate(demos):
             try:
-                ep = _read_demo(f, src, i, demo, camera, state_keys, size)
+                ep = _read_demo(f, src, i, demo, cams, state_keys, size)
             except FormatError:
                 raise
             except _READ_ERRORS as e:
@@ -372,10 +409,11 @@ def _robomimic_episodes(src: Path, demos: list[str], camera: str,
 
 
 def read_robomimic(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple[dict, int | None]]]:
-    """robomimic demos (``data/demo_<i>``, in the order of i): ``img`` (T, H, W, 3) uint8 from
-    ``obs/<camera>`` (default ``agentview_image``, else the only ``*_image`` key), ``state``
-    (T, S) the low-dimensional obs keys concatenated in sorted order (listed with their sizes
-    in the ``state_keys`` attribute), ``action`` (T, A) from ``actions``."""
+    """robomimic demos (``data/demo_<i>``, in the order of i): ``img`` (T, H, W, 3) uint8 and
+    ``img_<name>`` from the image obs keys (see the module docstring; ``camera`` reads that
+    key only), ``state`` (T, S) the low-dimensional obs keys concatenated in sorted order
+    (listed with their sizes in the ``state_keys`` attribute), ``action`` (T, A) from
+    ``actions``."""
     src = Path(src)
     if src.is_dir():
         raise FormatError(f"{src} is a directory; a robomimic dataset is one .hdf5 file.")
@@ -390,38 +428,38 @@ def read_robomimic(src: Path, *, camera: str | None) -> tuple[dict, int, Iterato
             if camera is not None:
                 if camera not in obs:
                     raise FormatError(f"{at}: no obs key {camera!r}; image keys: {', '.join(image_keys) or 'none'}.")
-                cam = camera
-            elif "agentview_image" in image_keys:
-                cam = "agentview_image"
-            elif len(image_keys) == 1:
-                cam = image_keys[0]
+                chosen = [camera]
+            elif image_keys:
+                chosen = sorted(image_keys, key=lambda k: k != ROBOMIMIC_CAMERA)  # stable: the rest by name
             else:
-                raise FormatError(f"{at}: {len(image_keys)} image keys ({', '.join(image_keys) or 'none'}); "
-                                  "choose one with --camera.")
-            state_keys = [(k, d) for k, d in state_keys if k != cam]
+                raise FormatError(f"{at}: no image observations (*_image keys of (T, H, W, 3) frames).")
+            cams = SourceViews.of(chosen, suffixes=(ROBOMIMIC_IMAGE_SUFFIX,))
+            state_keys = [(k, d) for k, d in state_keys if k not in chosen]
             if not state_keys:
                 raise FormatError(f"{at}: no low-dimensional observations to use as the state.")
-            img = _dataset(obs, cam, where(src, f"data/{demos[0]}/obs/{cam}", 0))
-            shape = img.shape
+            shapes = {cam: _dataset(obs, cam, where(src, f"data/{demos[0]}/obs/{cam}", 0)).shape for cam in chosen}
             env_args = _env_args(f["data"], src)
         except FormatError:
             raise
         except _READ_ERRORS as e:
             raise FormatError(f"{src}: unreadable ({reason(e)}).") from None
-    if len(shape) != 4:
-        raise FormatError(f"{where(src, f'data/{demos[0]}/obs/{cam}', 0)}: expected (T, H, W, 3) frames, got {shape}.")
+    for cam, shape in shapes.items():
+        if len(shape) != 4:
+            raise FormatError(f"{where(src, f'data/{demos[0]}/obs/{cam}', 0)}: expected (T, H, W, 3) frames, "
+                              f"got {shape}.")
+    shape = shapes[chosen[0]]
     env_kwargs = env_args.get("env_kwargs")
     kwargs = env_kwargs if isinstance(env_kwargs, dict) else {}
     attrs: dict[str, Any] = {
         "task": str(env_args.get("env_name") or src.stem),
         "fps": positive_int(kwargs.get("control_freq")) or ROBOMIMIC_FPS,
-        "camera": cam,
+        **cams.attrs(),
         "image_size": _square_or_hw(shape[1], shape[2]),
         "state_keys": [[k, d] for k, d in state_keys],
     }
     if env_args:
         attrs["env_args"] = env_args
-    return attrs, len(demos), _robomimic_episodes(src, demos, cam, state_keys)
+    return attrs, len(demos), _robomimic_episodes(src, demos, cams, state_keys)
 
 
 # --- validation ------------------------------------------------------------------------------
@@ -429,8 +467,9 @@ def _is_float(dtype: np.dtype) -> bool:
     return np.issubdtype(dtype, np.floating)
 
 
-def _aloha_problems(f: h5py.File, path: Path, i: int, dims: dict[str, int]) -> list[str]:
-    """What is wrong with one ALOHA episode file; ``dims`` carries the first file's sizes."""
+def _aloha_problems(f: h5py.File, path: Path, i: int, dims: dict[str, Any]) -> list[str]:
+    """What is wrong with one ALOHA episode file, each camera's frames on their own; ``dims``
+    carries the first file's sizes and cameras."""
     problems: list[str] = []
     size = path.stat().st_size
     lengths: dict[str, int] = {}
@@ -453,6 +492,11 @@ def _aloha_problems(f: h5py.File, path: Path, i: int, dims: dict[str, int]) -> l
     if not isinstance(images, h5py.Group) or not len(images):
         problems.append(f"{where(path, 'observations/images', i)}: missing (no cameras).")
         images = {}
+    rgb = sorted(c for c in images if "depth" not in c)
+    first_cams = dims.setdefault("cameras", rgb) if rgb else rgb
+    if rgb != first_cams:
+        problems.append(f"{where(path, 'observations/images', i)}: cameras {', '.join(rgb) or 'none'}; the first "
+                        f"episode has {', '.join(first_cams) or 'none'} (an import reads every camera of each).")
     jpeg_cams = 0
     for cam in images:
         key = f"observations/images/{cam}"
@@ -508,6 +552,7 @@ def _robomimic_problems(f: h5py.File, path: Path) -> list[str]:
     size = path.stat().st_size
     a_dim: int | None = None
     lowdim: dict[str, int] = {}
+    first_images: list[str] | None = None
     for i, demo in enumerate(demos):
         base = f"data/{demo}"
         try:
@@ -536,7 +581,7 @@ def _robomimic_problems(f: h5py.File, path: Path) -> list[str]:
             if not isinstance(obs, h5py.Group):
                 problems.append(f"{where(path, f'{base}/obs', i)}: missing.")
                 continue
-            n_images = 0
+            images: list[str] = []
             for key in sorted(obs):
                 at = where(path, f"{base}/obs/{key}", i)
                 ds = obs[key]
@@ -545,7 +590,7 @@ def _robomimic_problems(f: h5py.File, path: Path) -> list[str]:
                 if t is not None and (ds.shape[0] if ds.ndim else 0) != t:
                     problems.append(f"{at}: {ds.shape[0] if ds.ndim else 0} steps, but actions has {t}.")
                 if _is_image(key, ds):
-                    n_images += 1
+                    images.append(key)
                     if ds.dtype != np.uint8 or ds.ndim != 4 or ds.shape[-1] != 3:
                         problems.append(f"{at}: expected uint8 (T, H, W, 3) frames, got {ds.dtype} {ds.shape}.")
                 elif ds.ndim in (1, 2):
@@ -553,8 +598,13 @@ def _robomimic_problems(f: h5py.File, path: Path) -> list[str]:
                     first = lowdim.setdefault(key, d)
                     if d != first:
                         problems.append(f"{at}: {d} numbers per step; the first demo has {first}.")
-            if not n_images:
+            if not images:
                 problems.append(f"{where(path, f'{base}/obs', i)}: no image observations (*_image).")
+            elif first_images is None:
+                first_images = images
+            elif images != first_images:
+                problems.append(f"{where(path, f'{base}/obs', i)}: image keys {', '.join(images)}; the first demo "
+                                f"has {', '.join(first_images)} (an import reads every camera of each).")
         except FormatError as e:
             problems.append(str(e))
         except _READ_ERRORS as e:
@@ -562,7 +612,7 @@ def _robomimic_problems(f: h5py.File, path: Path) -> list[str]:
     return problems
 
 
-def _file_problems(path: Path, i: int | None, dims: dict[str, int]) -> tuple[str, list[str]]:
+def _file_problems(path: Path, i: int | None, dims: dict[str, Any]) -> tuple[str, list[str]]:
     """(kind, problems) of one HDF5 file; ``i`` is its episode index within an ALOHA directory."""
     try:
         f = _open(path, i)
@@ -592,7 +642,7 @@ def validate_hdf5(path: Path) -> tuple[str, list[str]]:
         files = _aloha_files(path)
     except FormatError as e:
         return "hdf5-aloha", [str(e)]
-    dims: dict[str, int] = {}
+    dims: dict[str, Any] = {}
     problems: list[str] = []
     for i, file in enumerate(files):
         problems += _file_problems(file, i, dims)[1]

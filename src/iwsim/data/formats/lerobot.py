@@ -19,6 +19,13 @@ v2.1 (one file per episode; JSON-lines metadata)::
     data/chunk-000/episode_000000.parquet
     videos/chunk-000/observation.image/episode_000000.mp4
 
+Cameras: a store of one view exports it as the feature ``observation.image`` (as ever); a
+store of several views (:mod:`iwsim.data.views`) exports one video feature
+``observation.images.<name>`` per view, in view order, each with its own video files (in
+v3 its own chunk and file indices per episode, LeRobot's ``videos/<feature>/...`` columns;
+in v2.1 ``total_videos`` counts episodes x cameras). An import reads every ``video`` or
+``image`` feature in info.json's order, the first into ``img``, or the one ``camera`` names.
+
 Checked against LeRobot's ``src/lerobot/datasets/utils.py`` (path templates, default
 features, ``create_empty_dataset_info``), ``compute_stats.py`` (stats keys and the image
 stats' (3, 1, 1) shape in [0, 1]), ``dataset_metadata.py`` (tasks.parquet indexed by task)
@@ -39,13 +46,16 @@ from typing import Any
 import numpy as np
 
 from iwsim.core.errors import InputError
+from iwsim.data import views
 from iwsim.data.formats.common import (
     FormatError,
+    SourceViews,
     check_episode,
     decode_images,
     positive_int,
     read_meta,
     store_episodes,
+    store_views,
     where,
 )
 from iwsim.data.formats.video import CODEC_NAME, PIX_FMT, VideoWriter, read_video, write_episode_video
@@ -59,7 +69,8 @@ V3_VIDEO = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4
 V3_EPISODES = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 V21_DATA = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
 V21_VIDEO = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
-IMAGE = "observation.image"
+IMAGE = "observation.image"  # the feature of a store's only view
+IMAGES = "observation.images"  # a store of several views: observation.images.<name> each
 STATE, ACTION = "observation.state", "action"
 FLOAT_DTYPES = ("float32", "float64", "float16")  # of the state and action features
 INDEX_FEATURES = {"timestamp": "float32", "frame_index": "int64", "episode_index": "int64", "index": "int64",
@@ -147,10 +158,26 @@ def _templates(info: dict, src: Path, default_data: str, default_video: str, dat
 
 # -- writing ------------------------------------------------------------------------------
 
+def video_features(store: EpisodeStore) -> dict[str, str]:
+    """{video feature: the store's data array} in view order: ``observation.image`` for a
+    store of one view, else ``observation.images.<name>`` per view."""
+    keys = store_views(store)
+    if len(keys) == 1:
+        return {IMAGE: views.IMAGE_KEY}
+    return {f"{IMAGES}.{name}": key for name, key in keys.items()}
+
+
+def _video_feature(shape: tuple[int, ...], fps: int) -> dict:
+    """info.json's entry of a video feature of (h, w, ...) frames, as LeRobot writes it."""
+    h, w = int(shape[0]), int(shape[1])
+    return {"dtype": "video", "shape": [h, w, 3], "names": ["height", "width", "channels"],
+            "info": {"video.height": h, "video.width": w, "video.codec": CODEC_NAME, "video.pix_fmt": PIX_FMT,
+                     "video.is_depth_map": False, "video.fps": fps, "video.channels": 3, "has_audio": False}}
+
+
 def features(store: EpisodeStore, fps: int) -> dict[str, dict]:
-    """The ``features`` block of info.json for a store's img / state / action."""
-    img, state, action = (store.array(k) for k in ("img", "state", "action"))
-    h, w = img.shape[1:3]
+    """The ``features`` block of info.json for a store's views / state / action."""
+    state, action = (store.array(k) for k in ("state", "action"))
     attrs = store.attrs
 
     def names(key: str, dim: int) -> list[str]:
@@ -158,9 +185,7 @@ def features(store: EpisodeStore, fps: int) -> dict[str, dict]:
         return list(given) if given is not None and len(given) == dim else [f"{key}_{i}" for i in range(dim)]
 
     return {
-        IMAGE: {"dtype": "video", "shape": [h, w, 3], "names": ["height", "width", "channels"],
-                "info": {"video.height": h, "video.width": w, "video.codec": CODEC_NAME, "video.pix_fmt": PIX_FMT,
-                         "video.is_depth_map": False, "video.fps": fps, "video.channels": 3, "has_audio": False}},
+        **{feat: _video_feature(store.array(key).shape[1:3], fps) for feat, key in video_features(store).items()},
         STATE: {"dtype": "float32", "shape": [state.shape[1]], "names": names("state", state.shape[1])},
         ACTION: {"dtype": "float32", "shape": [action.shape[1]], "names": names("action", action.shape[1])},
         **{k: {"dtype": d, "shape": [1], "names": None} for k, d in INDEX_FEATURES.items()},
@@ -201,15 +226,18 @@ def _episodes(store: EpisodeStore, fps: int, desc: str, progress: bool
     from tqdm import tqdm
 
     start = 0
+    keys = tuple(video_features(store).values())
     for e, ep in enumerate(tqdm(store_episodes(store), total=store.n_episodes, desc=desc, unit="ep",
                                 disable=not progress)):
-        ep = check_episode(ep, where(store.path, episode=e))
+        ep = check_episode(ep, where(store.path, episode=e), keys)
         yield e, ep, episode_columns(ep, e, start, fps), start
         start += len(ep["img"])
 
 
-def all_stats(columns: dict[str, np.ndarray], frames: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
-    return {IMAGE: feature_stats(frames, image=True), **{k: feature_stats(v) for k, v in columns.items()}}
+def all_stats(columns: dict[str, np.ndarray], frames: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
+    """Stats of every video feature's ``frames`` and of the per-frame ``columns``."""
+    return {**{f: feature_stats(x, image=True) for f, x in frames.items()},
+            **{k: feature_stats(v) for k, v in columns.items()}}
 
 
 def _table(columns: dict[str, np.ndarray]):
@@ -253,13 +281,14 @@ def export_v3(store: EpisodeStore, out: Path, *, fps: int, task: str, progress: 
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    video: VideoWriter | None = None
-    file = {"data": (0, 0), "video": (0, 0)}  # (chunk_index, file_index) being written
+    feats = video_features(store)
+    videos: dict[str, VideoWriter] = {}  # per video feature, the file being written
+    file = {"data": (0, 0), **{f: (0, 0) for f in feats}}  # (chunk_index, file_index) being written
     rows: list[dict[str, np.ndarray]] = []  # the current data file's episodes
     data_bytes = 0
     episodes_meta: list[dict[str, Any]] = []
     everything: list[dict[str, np.ndarray]] = []
-    sample_frames: list[np.ndarray] = []
+    sample_frames: dict[str, list[np.ndarray]] = {f: [] for f in feats}
     frame_budget = max(1, 10 * STATS_FRAMES // store.n_episodes + 1)  # ~1000 frames for the dataset stats
 
     def next_file(kind: str) -> None:
@@ -278,40 +307,46 @@ def export_v3(store: EpisodeStore, out: Path, *, fps: int, task: str, progress: 
 
     for e, ep, cols, start in _episodes(store, fps, "export lerobot-v3", progress):
         t = len(ep["img"])
-        if video is None or video.size > VIDEO_FILE_MB * 2**20:
-            if video is not None:
-                video.close()
-                next_file("video")
-            c, f = file["video"]
-            video = VideoWriter(out / V3_VIDEO.format(video_key=IMAGE, chunk_index=c, file_index=f), fps,
-                                *ep["img"].shape[1:3])
-        from_ts = video.frames / fps
-        video.write(ep["img"])
         rows.append(cols)
         data_bytes += sum(v.nbytes for v in cols.values())
-        meta = {"episode_index": e, "tasks": [task], "length": t,
-                "data/chunk_index": file["data"][0], "data/file_index": file["data"][1],
-                "dataset_from_index": start, "dataset_to_index": start + t,
-                f"videos/{IMAGE}/chunk_index": file["video"][0], f"videos/{IMAGE}/file_index": file["video"][1],
-                f"videos/{IMAGE}/from_timestamp": from_ts, f"videos/{IMAGE}/to_timestamp": from_ts + t / fps,
-                "meta/episodes/chunk_index": 0, "meta/episodes/file_index": 0}
-        for feat, stats in all_stats(cols, ep["img"]).items():
+        meta: dict[str, Any] = {"episode_index": e, "tasks": [task], "length": t,
+                                "data/chunk_index": file["data"][0], "data/file_index": file["data"][1],
+                                "dataset_from_index": start, "dataset_to_index": start + t}
+        for feat, key in feats.items():  # each camera's video files roll over on their own, as LeRobot's
+            video = videos.get(feat)
+            if video is None or video.size > VIDEO_FILE_MB * 2**20:
+                if video is not None:
+                    video.close()
+                    next_file(feat)
+                c, f = file[feat]
+                video = videos[feat] = VideoWriter(out / V3_VIDEO.format(video_key=feat, chunk_index=c, file_index=f),
+                                                   fps, *ep[key].shape[1:3])
+            from_ts = video.frames / fps
+            video.write(ep[key])
+            meta.update({f"videos/{feat}/chunk_index": file[feat][0], f"videos/{feat}/file_index": file[feat][1],
+                         f"videos/{feat}/from_timestamp": from_ts, f"videos/{feat}/to_timestamp": from_ts + t / fps})
+        meta.update({"meta/episodes/chunk_index": 0, "meta/episodes/file_index": 0})
+        for feat, stats in all_stats(cols, {f: ep[k] for f, k in feats.items()}).items():
             meta.update({f"stats/{feat}/{k}": v.tolist() for k, v in stats.items()})
         episodes_meta.append(meta)
         everything.append(cols)
-        sample_frames.append(ep["img"][np.linspace(0, t - 1, min(t, frame_budget)).round().astype(int)])
+        pick = np.linspace(0, t - 1, min(t, frame_budget)).round().astype(int)
+        for feat, key in feats.items():
+            sample_frames[feat].append(ep[key][pick])
         if data_bytes > DATA_FILE_MB * 2**20:
             flush_data()
     flush_data()
-    assert video is not None  # the store holds episodes (frame_budget divides by their count)
-    video.close()
+    assert videos  # the store holds episodes (frame_budget divides by their count)
+    for video in videos.values():
+        video.close()
 
     path = out / V3_EPISODES.format(chunk_index=0, file_index=0)
     path.parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(pa.Table.from_pylist(episodes_meta), path)
     _write_tasks_parquet(out / "meta/tasks.parquet", [task])
     merged = {k: np.concatenate([c[k] for c in everything]) for k in everything[0]}
-    _write_json(out / "meta/stats.json", _jsonable(all_stats(merged, np.concatenate(sample_frames))))
+    _write_json(out / "meta/stats.json", _jsonable(all_stats(merged, {f: np.concatenate(x)
+                                                                      for f, x in sample_frames.items()})))
     _write_json(out / "meta/info.json", _info(V3, store, fps, 1, {
         "data_files_size_in_mb": DATA_FILE_MB, "video_files_size_in_mb": VIDEO_FILE_MB,
         "data_path": V3_DATA, "video_path": V3_VIDEO}))
@@ -321,6 +356,7 @@ def export_v21(store: EpisodeStore, out: Path, *, fps: int, task: str, progress:
     """Write ``store`` as a LeRobotDataset v2.1 (one parquet and one mp4 per episode)."""
     import pyarrow.parquet as pq
 
+    feats = video_features(store)
     episodes, stats_lines = [], []
     for e, ep, cols, _ in _episodes(store, fps, "export lerobot-v2.1", progress):
         t = len(ep["img"])
@@ -328,10 +364,12 @@ def export_v21(store: EpisodeStore, out: Path, *, fps: int, task: str, progress:
         path = out / V21_DATA.format(episode_chunk=chunk, episode_index=e)
         path.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(_table(cols), path)
-        write_episode_video(out / V21_VIDEO.format(episode_chunk=chunk, video_key=IMAGE, episode_index=e), ep["img"],
-                            fps)
+        for feat, key in feats.items():
+            write_episode_video(out / V21_VIDEO.format(episode_chunk=chunk, video_key=feat, episode_index=e), ep[key],
+                                fps)
         episodes.append({"episode_index": e, "tasks": [task], "length": t})
-        stats = {f: {k: v for k, v in s.items() if k not in QUANTILES} for f, s in all_stats(cols, ep["img"]).items()}
+        frames = {f: ep[k] for f, k in feats.items()}
+        stats = {f: {k: v for k, v in s.items() if k not in QUANTILES} for f, s in all_stats(cols, frames).items()}
         stats_lines.append({"episode_index": e, "stats": _jsonable(stats)})
 
     def jsonl(name: str, items: list[dict]) -> None:
@@ -342,7 +380,7 @@ def export_v21(store: EpisodeStore, out: Path, *, fps: int, task: str, progress:
     jsonl("tasks.jsonl", [{"task_index": 0, "task": task}])
     jsonl("episodes_stats.jsonl", stats_lines)
     _write_json(out / "meta/info.json", _info(V21, store, fps, 1, {
-        "total_videos": store.n_episodes, "total_chunks": math.ceil(store.n_episodes / CHUNKS_SIZE),
+        "total_videos": store.n_episodes * len(feats), "total_chunks": math.ceil(store.n_episodes / CHUNKS_SIZE),
         "data_path": V21_DATA, "video_path": V21_VIDEO}))
 
 
@@ -377,18 +415,21 @@ def _load_info(src: Path, versions: tuple[str, ...]) -> dict:
     return info
 
 
-def _camera(info: dict, src: Path, camera: str | None) -> str:
+def _cameras(info: dict, src: Path, camera: str | None) -> SourceViews:
+    """The camera features to read: ``camera`` (a feature, or ``<name>`` of
+    ``observation.images.<name>``), else every video or image feature in info.json's order;
+    view names by :func:`~iwsim.data.formats.common.view_name` (``observation.images.wrist``
+    -> ``wrist``)."""
     cams = [k for k, f in info["features"].items() if isinstance(f, dict) and f.get("dtype") in ("video", "image")]
     if camera is not None:
-        full = camera if camera in cams else f"observation.images.{camera}"
+        full = camera if camera in cams else f"{IMAGES}.{camera}"
         if full not in cams:
             raise FormatError(f"{src}: no camera {camera!r}; cameras are {cams}.")
-        return full
-    if IMAGE in cams:
-        return IMAGE
-    if len(cams) != 1:
-        raise FormatError(f"{src}: {len(cams)} cameras {cams}; choose one with --camera.")
-    return cams[0]
+        cams = [full]
+    if not cams:
+        raise FormatError(f"{where(src / 'meta' / 'info.json', 'features')}: no camera (a feature of dtype video or "
+                          "image).")
+    return SourceViews.of(cams)
 
 
 def _read_parquet(path: Path):
@@ -435,9 +476,11 @@ def _images(table, key: str, path: Path, episode: int) -> np.ndarray:
     return decode_images(cells, where(path, key, episode))
 
 
-def _episode_from_rows(table, path: Path, e: int, cam: str, frames: np.ndarray | None,
+def _episode_from_rows(table, path: Path, e: int, cams: SourceViews, frames: dict[str, np.ndarray],
                        length: object = None) -> dict[str, np.ndarray]:
-    """Episode ``e`` from its rows of a data file; ``length``: what the episode metadata says."""
+    """Episode ``e`` from its rows of a data file and the decoded ``frames`` of its video
+    features (image features are decoded from the rows); ``length``: what the episode
+    metadata says."""
     if length is not None and (not isinstance(length, int) or length != table.num_rows):
         raise FormatError(f"{where(path, episode=e)}: the episode metadata says length {str(length)[:40]}, the data "
                           f"file holds {table.num_rows} rows.")
@@ -447,15 +490,21 @@ def _episode_from_rows(table, path: Path, e: int, cam: str, frames: np.ndarray |
                           f"{sorted(set(index.tolist()) - {e})[:3]} among episode {e}'s.")
     order = np.argsort(_column(table, "frame_index", path, e), kind="stable")
     ep = {"state": _column(table, STATE, path, e)[order], "action": _column(table, ACTION, path, e)[order]}
-    ep["img"] = frames if frames is not None else _images(table, cam, path, e)[order]
-    return check_episode(ep, where(path, episode=e))
+    for cam, key in cams.keys.items():
+        ep[key] = frames[cam] if cam in frames else _images(table, cam, path, e)[order]
+    return check_episode(ep, where(path, episode=e), tuple(cams.keys.values()))
 
 
-def _attrs(info: dict, tasks: list[str], cam: str) -> dict[str, Any]:
+def _attrs(info: dict, tasks: list[str], cams: SourceViews) -> dict[str, Any]:
     f = info["features"]
-    return {"task": tasks[0] if tasks else "", "tasks": tasks, "fps": info["fps"], "camera": cam,
-            "action_names": f[ACTION].get("names"), "state_names": f[STATE].get("names"),
-            "robot_type": info.get("robot_type")}
+    attrs = {"task": tasks[0] if tasks else "", "tasks": tasks, "fps": info["fps"], **cams.attrs(),
+             "action_names": f[ACTION].get("names"), "state_names": f[STATE].get("names"),
+             "robot_type": info.get("robot_type")}
+    hwc = _declared_hwc(f[cams.sources[0]]) if isinstance(f[cams.sources[0]].get("shape"), list) else ()
+    if len(hwc) == 3 and all(isinstance(v, int) and not isinstance(v, bool) for v in hwc):
+        # the frames' size as declared (an import that resizes sets its own)
+        attrs["image_size"] = hwc[0] if hwc[0] == hwc[1] else [hwc[0], hwc[1]]
+    return attrs
 
 
 def _slice(frames: np.ndarray, first: int, n: int, path: Path, e: int) -> np.ndarray:
@@ -468,8 +517,8 @@ def _slice(frames: np.ndarray, first: int, n: int, path: Path, e: int) -> np.nda
 def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple[dict, int | None]]]:
     """A LeRobotDataset v3.0 directory as (attrs, episodes, iterator of (episode, None))."""
     info = _load_info(src, ("v3",))
-    cam = _camera(info, src, camera)
-    is_video = info["features"][cam]["dtype"] == "video"
+    cams = _cameras(info, src, camera)
+    video_cams = [c for c in cams.sources if info["features"][c]["dtype"] == "video"]
     meta_files = sorted((src / "meta" / "episodes").glob("*/*.parquet"))
     if not meta_files:
         raise FormatError(f"{src / 'meta' / 'episodes'}: no episode metadata files.")
@@ -487,7 +536,7 @@ def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple
 
     def episodes() -> Iterator[tuple[dict, int | None]]:
         tables: dict[Path, Any] = {}
-        videos: dict[Path, np.ndarray] = {}
+        videos: dict[str, tuple[Path, np.ndarray]] = {}  # per camera, its video file read last
         for m in meta:
             e = m.get("episode_index")
             try:
@@ -505,8 +554,8 @@ def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple
             rows = table.filter(pa.array((index >= lo) & (index < hi)))
             if rows.num_rows != hi - lo or hi <= lo:
                 raise FormatError(f"{where(path, 'index', e)}: {rows.num_rows} rows for the range {lo}..{hi}.")
-            frames = None
-            if is_video:
+            frames = {}
+            for cam in video_cams:
                 try:
                     vpath = video_path.resolve(src, video_key=cam, chunk_index=m[f"videos/{cam}/chunk_index"],
                                                file_index=m[f"videos/{cam}/file_index"])
@@ -515,12 +564,12 @@ def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple
                     raise
                 except (KeyError, TypeError, ValueError):
                     raise FormatError(f"{where(meta_files[0], f'videos/{cam}', e)}: missing video location.") from None
-                if vpath not in videos:
-                    videos = {vpath: read_video(vpath)}
-                frames = _slice(videos[vpath], first, hi - lo, vpath, e)
-            yield _episode_from_rows(rows, path, e, cam, frames, m.get("length")), None
+                if cam not in videos or videos[cam][0] != vpath:
+                    videos[cam] = (vpath, read_video(vpath))  # each camera's files are read one at a time
+                frames[cam] = _slice(videos[cam][1], first, hi - lo, vpath, e)
+            yield _episode_from_rows(rows, path, e, cams, frames, m.get("length")), None
 
-    return _attrs(info, tasks, cam), len(meta), episodes()
+    return _attrs(info, tasks, cams), len(meta), episodes()
 
 
 def _jsonl(path: Path) -> list[dict]:
@@ -543,8 +592,8 @@ def _jsonl(path: Path) -> list[dict]:
 def read_v21(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple[dict, int | None]]]:
     """A LeRobotDataset v2.1 (or v2.0) directory as (attrs, episodes, iterator of (episode, None))."""
     info = _load_info(src, ("v2.",))
-    cam = _camera(info, src, camera)
-    is_video = info["features"][cam]["dtype"] == "video"
+    cams = _cameras(info, src, camera)
+    video_cams = [c for c in cams.sources if info["features"][c]["dtype"] == "video"]
     meta = sorted(_jsonl(src / "meta" / "episodes.jsonl"), key=lambda m: m.get("episode_index", -1))
     tasks = [str(t.get("task")) for t in _jsonl(src / "meta" / "tasks.jsonl")] if (src / "meta/tasks.jsonl").exists() \
         else []
@@ -562,13 +611,13 @@ def read_v21(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tupl
                 raise FormatError(f"{src / 'meta/episodes.jsonl'}: an entry without an integer episode_index.")
             path = data_path.resolve(src, episode_chunk=e // chunks, episode_index=e)
             table = _read_parquet(path)
-            frames = None
-            if is_video:
+            frames = {}
+            for cam in video_cams:
                 vpath = video_path.resolve(src, episode_chunk=e // chunks, video_key=cam, episode_index=e)
-                frames = _slice(read_video(vpath), 0, table.num_rows, vpath, e)
-            yield _episode_from_rows(table, path, e, cam, frames, m.get("length")), None
+                frames[cam] = _slice(read_video(vpath), 0, table.num_rows, vpath, e)
+            yield _episode_from_rows(table, path, e, cams, frames, m.get("length")), None
 
-    return _attrs(info, tasks, cam), len(meta), episodes()
+    return _attrs(info, tasks, cams), len(meta), episodes()
 
 
 # -- validation ---------------------------------------------------------------------------
@@ -639,25 +688,36 @@ def validate_lerobot(path: Path) -> tuple[str, list[str]]:
                 problems.append(str(e))
             except (json.JSONDecodeError, UnicodeDecodeError, AttributeError, TypeError):
                 problems.append(f"{stats_path}: not a JSON object of per-feature stats.")
-    # Reading every episode checks the files, their columns and the frame counts.
+    # Reading every episode checks the files, their columns and the frame counts; each camera
+    # is read on its own, so that what is wrong with one does not hide what is wrong with another.
     reader = read_v3 if v3 else read_v21
-    frames = episodes = 0
     try:
-        _, n, eps = reader(path, camera=None)
-        cam = _camera(raw, path, None)
-        declared = _declared_hwc(feats[cam])
-        for i, (ep, _) in enumerate(eps):
-            want = feats[STATE]["shape"][0], feats[ACTION]["shape"][0]
-            got = ep["state"].shape[1], ep["action"].shape[1]
-            if got != want:
-                problems.append(f"{where(path, episode=i)}: state/action sizes {got}, info.json says {want}.")
-            if tuple(ep["img"].shape[1:]) != declared:
-                problems.append(f"{where(path, episode=i)}: {cam} frames are (H, W, C) = "
-                                f"{tuple(ep['img'].shape[1:])}, info.json says {declared}.")
-            frames += len(ep["img"])
-            episodes += 1
+        cams = _cameras(raw, path, None).sources
     except FormatError as e:
-        problems.append(str(e))
+        return kind, [*problems, str(e)]
+    frames = episodes = 0
+    failed = False
+    for c, cam in enumerate(cams):
+        found: list[str] = []
+        try:
+            _, n, eps = reader(path, camera=cam)
+            declared = _declared_hwc(feats[cam])
+            for i, (ep, _) in enumerate(eps):
+                want = feats[STATE]["shape"][0], feats[ACTION]["shape"][0]
+                got = ep["state"].shape[1], ep["action"].shape[1]
+                if got != want and c == 0:
+                    found.append(f"{where(path, episode=i)}: state/action sizes {got}, info.json says {want}.")
+                if tuple(ep["img"].shape[1:]) != declared:
+                    found.append(f"{where(path, episode=i)}: {cam} frames are (H, W, C) = "
+                                 f"{tuple(ep['img'].shape[1:])}, info.json says {declared}.")
+                if c == 0:
+                    frames += len(ep["img"])
+                    episodes += 1
+        except FormatError as e:
+            found.append(str(e))
+            failed = True
+        problems += [p for p in found if p not in problems]  # a data file's fault shows once, not per camera
+    if failed:
         return kind, problems
     if episodes != raw["total_episodes"]:
         problems.append(f"{where(info_path, 'total_episodes')}: {raw['total_episodes']}, the files hold {episodes}.")

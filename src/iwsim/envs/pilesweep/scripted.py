@@ -27,6 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from iwsim.core.errors import InputError
+from iwsim.data.views import first_view
 from iwsim.envs import POLICIES as TASK_POLICIES
 from iwsim.envs.pilesweep.pixels import find_pieces, piece_fraction
 from iwsim.envs.pilesweep.sim import IMAGE_SIZE, PIECE_RADIUS, TRAY, in_tray, padded
@@ -57,7 +58,7 @@ EIGHT = np.ones((3, 3), bool)
 
 def see_pieces(obs: dict) -> np.ndarray:
     """The pieces seen in ``obs["pixels"]``: (n, 2) world positions."""
-    return find_pieces(piece_fraction(obs["pixels"]))
+    return find_pieces(piece_fraction(first_view(obs["pixels"])))
 
 
 def loose(pieces: np.ndarray) -> np.ndarray:
@@ -368,13 +369,13 @@ def pixel_policy(kind: str, seed: int, rng: np.random.Generator, miss: float = 0
 
 
 def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, image_size: int = IMAGE_SIZE,
-                 env: gym.Env | None = None) -> Generator[Transition, None, None]:
+                 env: gym.Env | None = None, cameras: tuple[str, ...] = ("top",)) -> Generator[Transition, None, None]:
     """Drive ``iwsim/PileSweep-v0`` (or ``env``) with a scripted policy (a name of
     :data:`POLICIES`, seeded by ``seed``, or a policy object) for ``steps`` steps from the
     reset with ``seed``, yielding each :class:`~iwsim.envs.tabletop.scripting.Transition`. An
     environment made here is closed when the loop ends or is abandoned."""
     pol = make_policy(policy, seed) if isinstance(policy, str) else policy
-    return run_policy(pol, "pilesweep" if env is None else env, seed, steps, image_size)
+    return run_policy(pol, "pilesweep" if env is None else env, seed, steps, image_size, cameras)
 
 
 # The per-step arrays of a recorded episode besides frames, state, action and target.
@@ -382,12 +383,14 @@ RECORD_INFO = {"pieces": np.float32, "score": np.float32, "n_in_tray": np.int32,
                "n_contacts": np.int32}
 
 
-def record_episode(policy: str, seed: int, steps: int, image_size: int = IMAGE_SIZE) -> dict[str, np.ndarray]:
+def record_episode(policy: str, seed: int, steps: int, image_size: int = IMAGE_SIZE,
+                   cameras: tuple[str, ...] = ("top",)) -> dict[str, np.ndarray]:
     """Run one seeded episode and return its arrays in the episode store's layout
-    (:func:`~iwsim.envs.tabletop.scripting.record`): ``img``, ``state``, ``action``, ``target``, then
+    (:func:`~iwsim.envs.tabletop.scripting.record`): ``img`` (and ``img_<camera>`` for each
+    camera after the first), ``state``, ``action``, ``target``, then
     ``pieces`` (T, 30, 2) float32 (NaN past the episode's pieces), ``score`` (T,) float32,
     ``n_in_tray``, ``n_pieces`` and ``n_contacts`` (T,) int32. The same arguments give the
     same arrays."""
     run = (dataclasses.replace(tr, info={**tr.info, "pieces": padded(tr.info["pieces"])})
-           for tr in run_scripted(policy, seed, steps, image_size))
+           for tr in run_scripted(policy, seed, steps, image_size, cameras=cameras))
     return record(run, RECORD_INFO)

@@ -129,9 +129,10 @@ class PileSweepEnv(TabletopEnv):
     """
 
     def __init__(self, image_size: int = IMAGE_SIZE, render_mode: str | None = "rgb_array",
-                 terminate_on_success: bool = False, max_step: float = MAX_STEP) -> None:
+                 terminate_on_success: bool = False, max_step: float = MAX_STEP,
+                 cameras: tuple[str, ...] = ("top",)) -> None:
         self.spec_info = TaskSpec()
-        super().__init__(scene_xml_pile(), image_size, render_mode, max_step, terminate_on_success)
+        super().__init__(scene_xml_pile(), image_size, render_mode, max_step, terminate_on_success, cameras)
         m = self.model
         self._piece_qpos = np.array([[m.joint(f"piece_{i}_{a}").qposadr[0] for a in "xy"] for i in range(MAX_PIECES)])
         self._piece_geoms = {m.geom(f"piece_{i}").id for i in range(MAX_PIECES)}

@@ -51,14 +51,16 @@ class PileSweepTask(TabletopTask):
     def read(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return read_frames(frames)
 
-    def ground_truth_env(self, image_size: int | None = None, start: str = "random") -> gym.Env:
-        return PaddedPieces(super().ground_truth_env(image_size, start))
+    def ground_truth_env(self, image_size: int | None = None, start: str = "random",
+                         cameras: tuple[str, ...] = ("top",)) -> gym.Env:
+        return PaddedPieces(super().ground_truth_env(image_size, start, cameras))
 
     def pixel_policy(self, kind: str, seed: int, rng: np.random.Generator, miss: float = 0.0) -> ScriptedPolicy:
         return pilesweep_scripted.pixel_policy(kind, seed, rng, miss)
 
-    def record_episode(self, policy: str, seed: int, steps: int, image_size: int) -> dict[str, np.ndarray]:
-        return pilesweep_scripted.record_episode(policy, seed, steps, image_size)
+    def record_episode(self, policy: str, seed: int, steps: int, image_size: int,
+                       cameras: tuple[str, ...] = ("top",)) -> dict[str, np.ndarray]:
+        return pilesweep_scripted.record_episode(policy, seed, steps, image_size, cameras)
 
 
 class PaddedPieces(gym.Wrapper):

@@ -31,6 +31,7 @@ import gymnasium as gym
 import numpy as np
 
 from iwsim.core.errors import InputError
+from iwsim.data.views import first_view
 from iwsim.envs import POLICIES as TASK_POLICIES
 from iwsim.envs.pusht import geometry as geo
 from iwsim.envs.pusht.geometry import to_block, to_world
@@ -377,7 +378,7 @@ class ExpertPolicy:
     def block_pose(self, obs: dict, info: dict) -> np.ndarray | None:
         if self.pose_source == "state":
             return np.asarray(info["block_pose"], dtype=np.float64)
-        est = estimate_block_pose(obs["pixels"])
+        est = estimate_block_pose(first_view(obs["pixels"]))
         return est.pose if est.found else None
 
     def __call__(self, obs: dict, info: dict) -> np.ndarray:
@@ -750,7 +751,7 @@ class _PixelPose:
         self._pose = np.zeros(3)
 
     def _info(self, obs: dict) -> dict:
-        est = estimate_block_pose(obs["pixels"])
+        est = estimate_block_pose(first_view(obs["pixels"]))
         if est.found:  # when the block is hidden, keep the last pose seen
             self._pose = est.pose
         return {"block_pose": self._pose}
@@ -784,21 +785,23 @@ def pixel_policy(kind: str, seed: int, rng: np.random.Generator, miss: float = 0
 
 
 def run_scripted(policy: str | ScriptedPolicy, seed: int, steps: int, task: str = "pusht",
-                 image_size: int = IMAGE_SIZE, env: gym.Env | None = None) -> Generator[Transition, None, None]:
+                 image_size: int = IMAGE_SIZE, env: gym.Env | None = None,
+                 cameras: tuple[str, ...] = ("top",)) -> Generator[Transition, None, None]:
     """Drive ``task`` (or ``env``) with a scripted policy (a name of :data:`POLICIES`,
     seeded by ``seed``, or a policy object) for ``steps`` steps from the reset with
-    ``seed``, yielding each :class:`Transition`. An environment made here is closed when
-    the loop ends or is abandoned."""
+    ``seed``, yielding each :class:`Transition`. An environment made here (its frames from
+    ``cameras``) is closed when the loop ends or is abandoned."""
     pol = make_policy(policy, seed) if isinstance(policy, str) else policy
-    return run_policy(pol, task if env is None else env, seed, steps, image_size)
+    return run_policy(pol, task if env is None else env, seed, steps, image_size, cameras)
 
 
 def record_episode(task: str, policy: str, seed: int, steps: int,
-                   image_size: int = IMAGE_SIZE) -> dict[str, np.ndarray]:
+                   image_size: int = IMAGE_SIZE, cameras: tuple[str, ...] = ("top",)) -> dict[str, np.ndarray]:
     """Run one seeded episode and return its arrays, in the episode store's layout
-    (:func:`~iwsim.envs.tabletop.scripting.record`): ``img``, ``state``, ``action``, ``target``, then
-    ``block_pose`` (T, 3) float32, ``iou`` (T,) float32 and ``n_contacts`` (T,) int32, with
-    T = ``steps``. The same arguments give the same arrays.
+    (:func:`~iwsim.envs.tabletop.scripting.record`): ``img`` (and ``img_<camera>`` for each
+    camera after the first), ``state``, ``action``, ``target``, then ``block_pose`` (T, 3)
+    float32, ``iou`` (T,) float32 and ``n_contacts`` (T,) int32, with T = ``steps``. The
+    same arguments give the same arrays.
     """
-    return record(run_scripted(policy, seed, steps, task, image_size),
+    return record(run_scripted(policy, seed, steps, task, image_size, cameras=cameras),
                   {"block_pose": np.float32, "iou": np.float32, "n_contacts": np.int32})

@@ -95,7 +95,8 @@ class BimanualPushTEnv(TabletopEnv):
 
     Action: ``[lx, ly, rx, ry]``, absolute pusher targets (m), clipped to the workspace
     and approached at bounded speed (:func:`limit_targets`, ``max_step`` m per step).
-    Observation: ``{"pixels": (H, W, 3) uint8, "agent_pos": (4,) float32}``.
+    Observation: ``{"pixels": (H, W, 3) uint8, "agent_pos": (4,) float32}``; with several
+    ``cameras`` (``("top", "side")``), ``pixels`` is ``{camera: (H, W, 3) uint8}``.
     Reward: the geometric IoU of block and goal. ``info``: ``iou``, ``block_pose``,
     ``goal_pose``, ``is_success`` (iou >= 0.9), ``n_contacts`` (pusher-block contacts) and
     ``target`` (the rate-limited setpoints the last step executed; the pushers' positions
@@ -113,11 +114,13 @@ class BimanualPushTEnv(TabletopEnv):
         terminate_on_success: bool = False,
         max_step: float = MAX_STEP,
         start: str = "random",
+        cameras: tuple[str, ...] = ("top",),
     ) -> None:
         self.start = check_start(start)
         self.spec_info = TaskSpec()
         self.goal_pose = GOAL_POSE.copy()
-        super().__init__(scene_xml(self.goal_pose), image_size, render_mode, max_step, terminate_on_success)
+        super().__init__(scene_xml(self.goal_pose), image_size, render_mode, max_step, terminate_on_success,
+                         cameras)
         m = self.model
         self._block_qpos = np.array([m.joint(f"block_{a}").qposadr[0] for a in ("x", "y", "z", "yaw")])
         self._block_geoms = {m.geom("block_bar").id, m.geom("block_stem").id}

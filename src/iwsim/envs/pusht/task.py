@@ -53,5 +53,6 @@ class PushTTask(TabletopTask):
     def pixel_policy(self, kind: str, seed: int, rng: np.random.Generator, miss: float = 0.0) -> ScriptedPolicy:
         return scripted.pixel_policy(kind, seed, rng, miss)
 
-    def record_episode(self, policy: str, seed: int, steps: int, image_size: int) -> dict[str, np.ndarray]:
-        return scripted.record_episode("pusht", policy, seed, steps, image_size)
+    def record_episode(self, policy: str, seed: int, steps: int, image_size: int,
+                       cameras: tuple[str, ...] = ("top",)) -> dict[str, np.ndarray]:
+        return scripted.record_episode("pusht", policy, seed, steps, image_size, cameras)

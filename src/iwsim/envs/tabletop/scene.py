@@ -19,7 +19,8 @@ import mujoco  # (iwsim.envs has set MUJOCO_GL: headless rendering)
 import numpy as np
 
 from iwsim.core.errors import InputError
-from iwsim.envs import IMAGE_SIZES
+from iwsim.data import views
+from iwsim.envs import IMAGE_SIZES, pixels_space
 
 CONTROL_HZ = 10
 TIMESTEP = 0.002  # physics step (s); 50 substeps per control step
@@ -47,6 +48,38 @@ LEFT, RIGHT = (0.18, 0.42, 0.92), (0.62, 0.22, 0.78)
 def palette(**surfaces: tuple[float, float, float]) -> dict[str, tuple[float, float, float]]:
     """A task's palette: the tabletop's surfaces (table, wall, the pushers) and the task's own."""
     return {"table": TABLE, "wall": WALL, **surfaces, "left": LEFT, "right": RIGHT}
+
+
+# The cameras. "top": straight down, orthographic, sees [-VIEW_HALF, VIEW_HALF]^2 (the task's
+# pixel scorers read it; it is every store's first view). "side": an oblique perspective view
+# of the table from the front edge (the -y side), SIDE_ELEVATION above the table plane, aimed at
+# the table's centre from SIDE_DISTANCE away, with a vertical field of view of SIDE_FOVY degrees.
+CAMERAS = ("top", "side")
+SIDE_ELEVATION = np.deg2rad(50.0)
+SIDE_DISTANCE = 0.85
+SIDE_FOVY = 40.0
+
+
+def side_camera() -> str:
+    """The MJCF of the "side" camera (its image's up is the far side of the table)."""
+    c, s = np.cos(SIDE_ELEVATION), np.sin(SIDE_ELEVATION)
+    return (f'<camera name="side" pos="0 {-SIDE_DISTANCE * c:.6f} {SIDE_DISTANCE * s:.6f}" '
+            f'xyaxes="1 0 0 0 {s:.6f} {c:.6f}" fovy="{SIDE_FOVY:g}"/>')
+
+
+def check_cameras(cameras: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """A tabletop env's ``cameras``: names of :data:`CAMERAS`, "top" first (the view its
+    pixel scorer reads and every store's ``data/img``)."""
+    if isinstance(cameras, str) or not isinstance(cameras, list | tuple):
+        raise InputError(f"cameras must be a tuple of camera names such as ('top', 'side'), got {cameras!r}.")
+    names = views.check_cameras(cameras, "cameras")
+    unknown = [c for c in names if c not in CAMERAS]
+    if unknown:
+        raise InputError(f"cameras: {unknown[0]!r} is not a camera of this task; it has {', '.join(CAMERAS)}.")
+    if names[0] != "top":
+        raise InputError(f"cameras: the first camera must be 'top' (the view the task's scores are read from), "
+                         f"got {list(names)}.")
+    return names
 
 
 # Collision bits: the table 1 (what rests on it: T-push's block), the walls 1|4 (all that is
@@ -98,11 +131,13 @@ def check_actions(actions: object, shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
-def spaces(image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
-    """A tabletop task's action and observation spaces (shared with ``iwsim/WorldModel-v0``)."""
+def spaces(image_size: int, cameras: tuple[str, ...] = ("top",)) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
+    """A tabletop task's action and observation spaces (shared with ``iwsim/WorldModel-v0``):
+    ``pixels`` is one frame with one camera, {camera: frame} with several (gym-aloha's
+    convention)."""
     low = np.full(4, -WORKSPACE, np.float32)
     action = gym.spaces.Box(low, -low, dtype=np.float32)
-    obs = gym.spaces.Dict({"pixels": gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
+    obs = gym.spaces.Dict({"pixels": pixels_space(image_size, cameras),
                            "agent_pos": gym.spaces.Box(low, -low, dtype=np.float32)})
     return action, obs
 
@@ -153,6 +188,7 @@ def scene_xml(model: str, palette: dict[str, tuple[float, float, float]], bodies
   <asset>{materials}</asset>
   <worldbody>
     <camera name="top" pos="0 0 1" projection="orthographic" fovy="{2 * VIEW_HALF:g}"/>
+    {side_camera()}
     <geom name="table" type="plane" size="1 1 0.01" material="table" contype="1" conaffinity="1"
           friction="0.5 0.005 0.0001"/>
     {walls}
@@ -169,20 +205,22 @@ class TabletopEnv(gym.Env):
 
     Action: ``[lx, ly, rx, ry]``, absolute pusher targets (m), clipped to the workspace and
     approached at bounded speed (:func:`limit_targets`, ``max_step`` m per step).
-    Observation: ``{"pixels": (H, W, 3) uint8, "agent_pos": (4,) float32}``.
+    Observation: ``{"pixels": (H, W, 3) uint8, "agent_pos": (4,) float32}``; with several
+    ``cameras`` (e.g. ``("top", "side")``), ``pixels`` is ``{camera: (H, W, 3) uint8}``.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
     reward_key = "score"  # the entry of ``info`` that is the reward
 
     def __init__(self, xml: str, image_size: int, render_mode: str | None, max_step: float,
-                 terminate_on_success: bool) -> None:
+                 terminate_on_success: bool, cameras: tuple[str, ...] = ("top",)) -> None:
         if image_size not in IMAGE_SIZES:
             raise InputError(f"image_size must be one of {IMAGE_SIZES}, got {image_size!r}.")
         if render_mode not in (None, "rgb_array"):
             raise InputError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}.")
         if not max_step > 0:
             raise InputError(f"max_step must be a positive distance in metres, got {max_step!r}.")
+        self.cameras = check_cameras(cameras)
         self.image_size = image_size
         self.render_mode = render_mode
         self.max_step = float(max_step)
@@ -194,7 +232,7 @@ class TabletopEnv(gym.Env):
         self._pusher_qpos = np.array([m.joint(f"{s}_{a}").qposadr[0] for s in ("left", "right") for a in "xy"])
         self._pusher_qvel = np.array([m.joint(f"{s}_{a}").dofadr[0] for s in ("left", "right") for a in "xy"])
         self._pusher_geoms = {m.geom("left").id, m.geom("right").id}
-        self.action_space, self.observation_space = spaces(image_size)
+        self.action_space, self.observation_space = spaces(image_size, self.cameras)
 
     @property
     def agent_pos(self) -> np.ndarray:
@@ -230,14 +268,20 @@ class TabletopEnv(gym.Env):
         self.data.ctrl[:] = limit_targets(self.data.ctrl, check_actions(action, (4,)), self.max_step)
         mujoco.mj_step(self.model, self.data, nstep=SUBSTEPS)
 
-    def _render(self) -> np.ndarray:
+    def _render(self, camera: str = "top") -> np.ndarray:
         if self._renderer is None:
             self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
-        self._renderer.update_scene(self.data, camera="top")
+        self._renderer.update_scene(self.data, camera=camera)
         return self._renderer.render().copy()
 
+    def _pixels(self) -> np.ndarray | dict[str, np.ndarray]:
+        """The observation's ``pixels``: the top view, or {camera: frame} with several cameras."""
+        if len(self.cameras) == 1:
+            return self._render()
+        return {c: self._render(c) for c in self.cameras}
+
     def _obs(self) -> dict:
-        return {"pixels": self._render(), "agent_pos": self.agent_pos}
+        return {"pixels": self._pixels(), "agent_pos": self.agent_pos}
 
     # --- what a task defines ---------------------------------------------------------------
     def sample_state(self, rng: np.random.Generator) -> np.ndarray:

@@ -19,6 +19,7 @@ import gymnasium as gym
 import numpy as np
 
 from iwsim.core.errors import InputError
+from iwsim.data import views
 from iwsim.envs import make_env
 from iwsim.envs.tabletop.scene import WORKSPACE
 
@@ -125,13 +126,13 @@ class Transition:
 
 
 def run_policy(policy: ScriptedPolicy, env: gym.Env | str, seed: int, steps: int,
-               image_size: int | None = None) -> Generator[Transition, None, None]:
+               image_size: int | None = None, cameras: tuple[str, ...] = ("top",)) -> Generator[Transition, None, None]:
     """Drive ``env`` (an environment, or a task's name: its environment, frames
-    ``image_size`` pixels square, made here and closed when the loop ends or is abandoned)
-    with ``policy`` for ``steps`` steps from the reset with ``seed``, yielding each
-    :class:`Transition`."""
+    ``image_size`` pixels square from ``cameras``, made here and closed when the loop ends
+    or is abandoned) with ``policy`` for ``steps`` steps from the reset with ``seed``,
+    yielding each :class:`Transition`."""
     own = isinstance(env, str)
-    sim = make_env(env, image_size) if isinstance(env, str) else env
+    sim = make_env(env, image_size, **camera_kwargs(cameras)) if isinstance(env, str) else env
     try:
         obs, info = sim.reset(seed=seed)
         policy.reset(obs, info)
@@ -145,20 +146,35 @@ def run_policy(policy: ScriptedPolicy, env: gym.Env | str, seed: int, steps: int
             sim.close()
 
 
+def camera_kwargs(cameras: tuple[str, ...]) -> dict[str, Any]:
+    """``make_env``'s keyword for ``cameras``: none for the one top view (every env's default)."""
+    return {} if tuple(cameras) == ("top",) else {"cameras": tuple(cameras)}
+
+
 def record(transitions: Iterable[Transition], info: Mapping[str, type]) -> dict[str, np.ndarray]:
     """An episode's arrays in the episode store's layout: step t holds the observation
     before action t and the action itself: ``img`` (T, H, W, 3) uint8, ``state`` (T, 4)
     float32 (agent_pos), ``action`` (T, 4) float32 (as commanded), ``target`` (T, 4)
     float32 (the rate-limited setpoints action t executed, what the world model is
-    conditioned on), then each key of ``info`` (the info before action t) as that dtype."""
+    conditioned on), then each key of ``info`` (the info before action t) as that dtype.
+    With several cameras (``pixels`` a {camera: frame} mapping) the first is ``img`` and each
+    other ``img_<camera>`` (:mod:`iwsim.data.views`)."""
     rows: dict[str, list] = {k: [] for k in ("img", "state", "action", "target", *info)}
     for tr in transitions:
-        rows["img"].append(tr.obs["pixels"])
+        for key, frame in _view_frames(tr.obs["pixels"]).items():
+            rows.setdefault(key, []).append(frame)
         rows["state"].append(tr.obs["agent_pos"])
         rows["action"].append(tr.action)
         rows["target"].append(tr.next_info["target"])
         for k in info:
             rows[k].append(tr.info[k])
-    dtypes: dict[str, type] = {"img": np.uint8, "state": np.float32, "action": np.float32, "target": np.float32,
-                               **info}
-    return {k: np.asarray(v, dtype=dtypes[k]) for k, v in rows.items()}
+    dtypes: dict[str, type] = {"state": np.float32, "action": np.float32, "target": np.float32, **info}
+    return {k: np.asarray(v, dtype=dtypes.get(k, np.uint8)) for k, v in rows.items()}
+
+
+def _view_frames(pixels: np.ndarray | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """{store array: frame} of an observation's ``pixels``."""
+    if not isinstance(pixels, Mapping):
+        return {views.IMAGE_KEY: pixels}
+    cameras = tuple(pixels)
+    return {views.view_key(cameras, c): pixels[c] for c in cameras}

@@ -14,11 +14,13 @@ import gymnasium as gym
 import numpy as np
 
 from iwsim.core.errors import InputError
+from iwsim.data.frames import stack_views
 from iwsim.envs import POLICIES, make_env
 from iwsim.envs.tabletop.palette import Palette
 from iwsim.envs.tabletop.scene import (
     ACTION_NAMES,
     ACTION_POINTS,
+    CAMERAS,
     CONTROL_HZ,
     MAX_STEP,
     VIEW_HALF,
@@ -29,6 +31,7 @@ from iwsim.envs.tabletop.scene import (
     limit_targets,
     spaces,
 )
+from iwsim.envs.tabletop.scripting import camera_kwargs
 from iwsim.envs.task import Bindings, Start, Task
 
 KEY_SPEED = 0.2  # m/s of a target under a held key or a full stick (one key tap: 2 cm)
@@ -68,6 +71,7 @@ class TabletopTask(Task):
     view_half: float | None = VIEW_HALF
     bindings: Bindings | None = BINDINGS
 
+    cameras = CAMERAS
     start_source = "mujoco"
     clip_commands = True  # MuJoCo clips targets to the workspace
     has_ground_truth = True
@@ -78,8 +82,8 @@ class TabletopTask(Task):
     def scripted_policies(self) -> tuple[str, ...]:
         return POLICIES[self.kind]
 
-    def spaces(self, image_size: int) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
-        return spaces(image_size)
+    def spaces(self, image_size: int, cameras: tuple[str, ...] = ("top",)) -> tuple[gym.spaces.Box, gym.spaces.Dict]:
+        return spaces(image_size, cameras)
 
     def check_actions(self, actions: object, shape: tuple[int, ...]) -> np.ndarray:
         return check_actions(actions, shape)
@@ -107,11 +111,13 @@ class TabletopTask(Task):
     def read_agent_pos(self, frames: np.ndarray, previous: np.ndarray) -> np.ndarray:
         return _hold_unseen(*self.palette.pusher_positions(frames), previous)
 
-    def initial_frames(self, image_size: int, store: str | None = None) -> MujocoStarts:
-        return MujocoStarts(self.kind, image_size)
+    def initial_frames(self, image_size: int, store: str | None = None,
+                       cameras: tuple[str, ...] = ("top",)) -> MujocoStarts:
+        return MujocoStarts(self.kind, image_size, cameras)
 
     def start_from_frame(self, frame: np.ndarray, agent_pos: object = None) -> Start:
-        pos = self.read_agent_pos(frame[None], np.zeros((1, 4), np.float32))[0] if agent_pos is None else \
+        top = frame[None, ..., :3]  # the first view (the top camera's) shows where the pushers are
+        pos = self.read_agent_pos(top, np.zeros((1, 4), np.float32))[0] if agent_pos is None else \
             np.asarray(agent_pos, np.float32)
         return Start(frame, pos, pos.astype(np.float64), None)
 
@@ -128,28 +134,33 @@ class TabletopTask(Task):
         spec["task"] = spec.pop("name")
         return spec
 
-    def ground_truth_env(self, image_size: int | None = None, start: str = "random") -> gym.Env:
+    def ground_truth_env(self, image_size: int | None = None, start: str = "random",
+                         cameras: tuple[str, ...] = ("top",)) -> gym.Env:
         if start not in self.starts:
             raise InputError(f"start must be one of {', '.join(self.starts)} for task {self.name!r}, got {start!r}.")
-        return make_env(self.kind, image_size, **({} if start == "random" else {"start": start}))
+        return make_env(self.kind, image_size, **({} if start == "random" else {"start": start}),
+                        **camera_kwargs(cameras))
 
 
 class MujocoStarts:
     """A tabletop task's initial frames: MuJoCo resets of task ``kind`` (seeded; or an
-    explicit state, as its environment's ``reset_to_state`` takes it)."""
+    explicit state, as its environment's ``reset_to_state`` takes it), seen by ``cameras``
+    (several: stacked along the channels)."""
 
-    def __init__(self, kind: str, image_size: int) -> None:
-        self.kind, self.image_size = kind, image_size
+    def __init__(self, kind: str, image_size: int, cameras: tuple[str, ...] = ("top",)) -> None:
+        self.kind, self.image_size, self.cameras = kind, image_size, tuple(cameras)
         self._env: gym.Env | None = None
 
     def draw(self, seed: int, state: object = None) -> Start:
         if self._env is None:
-            self._env = make_env(self.kind, self.image_size)
+            self._env = make_env(self.kind, self.image_size, **camera_kwargs(self.cameras))
         obs, _ = self._env.reset(seed=int(seed), options=None if state is None else {"reset_to_state": state})
         pos = obs["agent_pos"]
         sim = self._env.unwrapped
         assert isinstance(sim, TabletopEnv)  # what make_env makes of a tabletop task
-        return Start(obs["pixels"], pos, pos.astype(np.float64), sim.get_state())
+        pixels = obs["pixels"]
+        frame = stack_views([pixels[c] for c in self.cameras]) if isinstance(pixels, dict) else pixels
+        return Start(frame, pos, pos.astype(np.float64), sim.get_state())
 
     def close(self) -> None:
         if self._env is not None:

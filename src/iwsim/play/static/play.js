@@ -80,10 +80,12 @@ function onFrame(buf) {
   }
   state.header = header;
   header.views.forEach((name, v) => {
-    const canvas = name === "mujoco" ? twinCanvas : wmCanvas;
-    draw(canvas, new Uint8Array(buf, 4 + n + v * px, px), size, name === "world_model");
+    draw(viewCanvas(name), new Uint8Array(buf, 4 + n + v * px, px), size, name === "world_model");
   });
   $("twin-view").hidden = !header.views.includes("mujoco");
+  for (const [name, canvas] of Object.entries(extraViews)) {  // another camera's view, e.g. "mujoco:side"
+    canvas.parentElement.hidden = !header.views.includes(name);
+  }
   if (state.pending && header.ack >= state.pending.seq) {
     state.latencies.push(now - state.pending.t);
     if (state.latencies.length > 200) state.latencies.shift();
@@ -118,6 +120,29 @@ function updateHud(h, now) {
 }
 
 // ---- drawing --------------------------------------------------------------------------
+// The first camera's views are the page's own canvases; another camera's ("world_model:side",
+// "mujoco:side") gets a canvas of its own beside them when it first arrives.
+const extraViews = {};
+function viewCanvas(name) {
+  if (name === "world_model") return wmCanvas;
+  if (name === "mujoco") return twinCanvas;
+  if (!extraViews[name]) {
+    const [source, camera] = name.split(":");
+    const div = document.createElement("div");
+    div.className = "view";
+    const canvas = document.createElement("canvas");
+    canvas.className = "frame";
+    canvas.width = canvas.height = 512;
+    canvas.dataset.view = name;
+    const caption = document.createElement("span");
+    caption.textContent = `${source === "mujoco" ? "MuJoCo" : "world model"}, ${camera} camera`;
+    div.append(canvas, caption);
+    document.querySelector("main").insertBefore(div, document.querySelector("aside"));
+    extraViews[name] = canvas;
+  }
+  return extraViews[name];
+}
+
 const scratch = document.createElement("canvas");
 function draw(canvas, rgb, size, overlay) {
   scratch.width = scratch.height = size;

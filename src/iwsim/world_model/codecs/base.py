@@ -127,6 +127,30 @@ class EncoderCodec(nn.Module):
         pass
 
 
+def encode_views(codec: Codec, x: torch.Tensor, views: int) -> torch.Tensor:
+    """Frames of ``views`` views stacked along the channels (B, 3V, H, W) -> their latents
+    stacked alike (B, V*C, h, w), every view encoded by the one ``codec`` (in one batch)."""
+    if views == 1:
+        return codec.encode(x)
+    b, _, h, w = x.shape
+    z = codec.encode(x.reshape(b * views, 3, h, w))
+    return z.reshape(b, views * z.shape[1], *z.shape[2:])
+
+
+def decode_views(codec: Codec, z: torch.Tensor, views: int, noise: torch.Tensor | None = None, jumps: int = 1,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+    """Latents of ``views`` views stacked along the channels (B, V*C, h, w) -> the views'
+    images stacked alike (B, 3V, H, W), each view decoded alone (in one batch); ``noise``
+    (B, 3V, H, W) for a stochastic codec, as :meth:`Codec.decode` takes it."""
+    if views == 1:
+        return codec.decode(z, noise, jumps, generator)
+    b, c = z.shape[:2]
+    zz = z.reshape(b * views, c // views, *z.shape[2:]).contiguous(memory_format=torch.channels_last)
+    nn_ = None if noise is None else noise.reshape(b * views, 3, *noise.shape[2:])
+    x = codec.decode(zz, nn_, jumps, generator)
+    return x.reshape(b, views * 3, *x.shape[2:])
+
+
 def reconstruct(codec: Codec, x: torch.Tensor, jumps: int = 1, chunk: int = 64) -> torch.Tensor:
     """Encode then decode (B, 3, H, W) images in chunks; chunk i's decoder noise is seeded
     by its first index, so results do not depend on what else is in the batch."""
