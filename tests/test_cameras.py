@@ -272,3 +272,62 @@ def test_the_play_page_draws_a_canvas_per_view(two_view_model):
         finally:
             browser.close()
     eng.shutdown()
+
+
+# -- the block's pose from each view (item 5) ------------------------------------------------------------------
+
+
+def test_the_side_view_reads_the_blocks_pose_by_the_cameras_geometry():
+    from iwsim.envs.pusht import geometry as geo
+    from iwsim.envs.pusht.pixels import estimate_block_pose_side
+    from iwsim.envs.tabletop.scene import side_project
+
+    env = make_env("pusht", 64, cameras=("top", "side"))
+    errors = []
+    try:
+        centre = side_project(np.zeros(3), 64)  # the camera aims at the table's centre
+        np.testing.assert_allclose(centre, [31.5, 31.5], atol=1e-9)
+        for seed in range(12):
+            state = env.unwrapped.sample_state(np.random.default_rng(seed))
+            state[:4] = [-0.2, -0.2, 0.2, -0.2]  # the pushers out of the block's way
+            obs, info = env.reset(options={"reset_to_state": state})
+            est = estimate_block_pose_side(obs["pixels"]["side"])
+            assert est.found
+            truth = info["block_pose"]
+            errors.append((np.hypot(*(est.pose[:2] - truth[:2])), abs(geo.wrap_angle(est.pose[2] - truth[2]))))
+    finally:
+        env.close()
+    err = np.median(np.array(errors), axis=0)
+    assert err[0] < 0.002 and np.degrees(err[1]) < 1.0, err  # measured: ~1 mm, ~0.3 degrees
+
+
+def test_the_cross_view_bench_compares_one_model_of_both_views_with_two_of_one(two_view_model, tmp_path: Path):
+    """``bench/cross_view.py`` on the tiny two-view model and a pair of single-view models
+    (the shipped one for both views: the mechanics, no quality asserted); the readers on
+    MuJoCo's own frames agree within a few mm."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    store, out = tmp_path / "eval.zarr", tmp_path / "out"
+    collect("pusht", "play", 2, out=store, steps=8, image_size=64, seed=900, progress=False, cameras=("top", "side"))
+    subprocess.run([sys.executable, str(root / "bench" / "cross_view.py"), "--models",
+                    f"joint={two_view_model['checkpoint']}", "pair=checkpoints/pusht-64+checkpoints/pusht-64",
+                    "--store", str(store), "--steps", "6", "--out", str(out)], check=True, capture_output=True,
+                   env={**os.environ, "OMP_NUM_THREADS": "1"}, cwd=root)
+    report = json.loads((out / "results.json").read_text())
+    assert report["episodes"] == 2 and set(report["models"]) == {"joint", "pair"}
+    assert report["models"]["joint"]["kind"] == "joint" and report["models"]["pair"]["kind"] == "pair"
+    assert report["mujoco"]["disagreement_mm"]["median"] < 3.0 and report["mujoco"]["top"]["no_block"] == 0
+    for row in report["models"].values():
+        assert len(row["disagreement_curve_mm"]) == 6 and 0 < row["top"]["psnr_db"] < 100
+    assert (out / "disagreement_per_step.png").stat().st_size > 0
+    assert "cross_view.py" in (out / "results.md").read_text()
+    one = tmp_path / "one.zarr"  # a store of one view is refused in one line
+    collect("pusht", "play", 1, out=one, steps=8, image_size=64, progress=False)
+    bad = subprocess.run([sys.executable, str(root / "bench" / "cross_view.py"), "--models",
+                          "pair=checkpoints/pusht-64", "--store", str(one), "--out", str(out)],
+                         capture_output=True, text=True, cwd=root)
+    assert bad.returncode == 2 and "top,side" in bad.stderr

@@ -2,6 +2,8 @@
 
 These read nothing but an RGB frame of the T-pushing scene, so they score MuJoCo frames
 and world-model frames alike (the pixel grid and the colour model: :mod:`iwsim.envs.tabletop.palette`).
+The block's pose is read from the top camera's frames, or from the side camera's by the
+known geometry of that camera (:func:`estimate_block_pose_side`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from iwsim.envs.pusht import geometry as geo
 from iwsim.envs.pusht.sim import GOAL_POSE, PALETTE, VIEW_HALF
 from iwsim.envs.tabletop.palette import Palette, pixel_centers, pusher_centroids, world_to_pixel  # noqa: F401 - its T-push name
 from iwsim.envs.tabletop.palette import check_frames as _check_frame
+from iwsim.envs.tabletop.scene import side_project
 
 PALETTE_MODEL = Palette(PALETTE, first="block")  # the colour model of T-push's frames
 
@@ -186,3 +189,45 @@ def estimate_block_pose(frame: np.ndarray, init: np.ndarray | None = None) -> Po
     m = soft_t_mask(pose, size, pts)
     fit = float(np.minimum(m, obs).sum() / max(np.maximum(m, obs).sum(), 1e-9))
     return PoseEstimate(pose, fit, True)
+
+
+def side_footprint(frame: np.ndarray, supersample: int = 4) -> np.ndarray:
+    """The block's footprint on the table, seen by the "side" camera: (H, W) share of each
+    pixel of the top view's grid that the block covers, from one (H, W, 3) side-view frame.
+
+    A point of the table is under the block when the side camera sees block colour both at
+    the point raised to the block's top face and at the point itself: the ray to a point of
+    the top face meets the block, and so does the ray to the floor below it (the block hides
+    it), while in front of the block the floor is visible and behind it the ray to the raised
+    point passes over the block. The top view's grid is sampled ``supersample``^2 times per
+    pixel (nearest side-view pixel)."""
+    frame = _check_frame(frame)
+    if frame.ndim != 3:
+        raise InputError(f"side_footprint takes one (H, W, 3) frame, got {frame.shape}.")
+    size = frame.shape[0]
+    block = block_fraction(frame).astype(np.float64)
+    step = 2 * VIEW_HALF / size
+    offsets = ((np.arange(supersample) + 0.5) / supersample - 0.5) * step
+    grid = pixel_centers(size)
+    out = np.zeros((size, size))
+    for dx in offsets:
+        for dy in offsets:
+            xy = grid + np.array([dx, dy])
+            seen = np.ones((size, size))
+            for z in (geo.BLOCK_HEIGHT, 0.0):
+                at = np.rint(side_project(np.concatenate([xy, np.full((size, size, 1), z)], -1), size)).astype(int)
+                inside = ((at >= 0) & (at < size)).all(-1)
+                col, row = np.clip(at[..., 0], 0, size - 1), np.clip(at[..., 1], 0, size - 1)
+                seen *= np.where(inside, block[row, col], 0.0)
+            out += seen
+    return out / supersample ** 2
+
+
+def estimate_block_pose_side(frame: np.ndarray) -> PoseEstimate:
+    """:func:`estimate_block_pose` of one (H, W, 3) frame of the "side" camera: the T fitted
+    to its footprint (:func:`side_footprint`), drawn on the table as the top camera would.
+    On MuJoCo's frames at 64 px within ~1 mm and ~0.3 degrees of the true pose (median;
+    ``tests/test_cameras.py``)."""
+    share = side_footprint(frame)[..., None]
+    table, block = (np.round(np.asarray(PALETTE[n]) * 255) for n in ("table", "block"))
+    return estimate_block_pose((share * block + (1 - share) * table).round().astype(np.uint8))

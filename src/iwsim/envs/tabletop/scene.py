@@ -67,6 +67,20 @@ def side_camera() -> str:
             f'xyaxes="1 0 0 0 {s:.6f} {c:.6f}" fovy="{SIDE_FOVY:g}"/>')
 
 
+def side_project(points: np.ndarray, image_size: int) -> np.ndarray:
+    """World points (..., 3) (m) -> where the "side" camera sees them: continuous (col, row)
+    pixel coordinates (..., 2) of its ``image_size`` square frames (MuJoCo's pinhole model
+    of :func:`side_camera`; pixel (i, j) spans [j - 0.5, j + 0.5] x [i - 0.5, i + 0.5])."""
+    c, s = np.cos(SIDE_ELEVATION), np.sin(SIDE_ELEVATION)
+    eye = np.array([0.0, -SIDE_DISTANCE * c, SIDE_DISTANCE * s])
+    right, up, back = np.array([1.0, 0.0, 0.0]), np.array([0.0, s, c]), np.array([0.0, -c, s])
+    q = np.asarray(points, dtype=np.float64) - eye
+    depth = -(q @ back)  # along the viewing direction
+    f = (image_size / 2) / np.tan(np.deg2rad(SIDE_FOVY) / 2)
+    u, v = f * (q @ right) / depth, f * (q @ up) / depth
+    return np.stack([u + image_size / 2 - 0.5, image_size / 2 - v - 0.5], axis=-1)
+
+
 def check_cameras(cameras: tuple[str, ...] | list[str]) -> tuple[str, ...]:
     """A tabletop env's ``cameras``: names of :data:`CAMERAS`, "top" first (the view its
     pixel scorer reads and every store's ``data/img``)."""
