@@ -331,3 +331,20 @@ def test_the_cross_view_bench_compares_one_model_of_both_views_with_two_of_one(t
                           "pair=checkpoints/pusht-64", "--store", str(one), "--out", str(out)],
                          capture_output=True, text=True, cwd=root)
     assert bad.returncode == 2 and "top,side" in bad.stderr
+
+
+def test_demo_and_open_loop_roll_out_every_view(two_view_model, tmp_path: Path):
+    from iwsim.eval.rollout import against_mujoco, frame_scores, open_loop
+    from iwsim.world_model import WorldModel
+
+    wm = WorldModel.load(two_view_model["checkpoint"])
+    result = open_loop(wm, EpisodeStore.open(two_view_model["store"]), [0, 1], 4)
+    assert result.truth.shape == (2, 4, 64, 64, 6) and result.pred.shape == result.truth.shape
+    top, _ = frame_scores(result.truth[..., :3], result.pred[..., :3])
+    side, _ = frame_scores(result.truth[..., 3:], result.pred[..., 3:])
+    np.testing.assert_allclose(result.psnr, (top + side) / 2, rtol=1e-5)  # the views' mean
+    mj = against_mujoco(wm, 100000, 3)
+    assert mj.truth.shape == (1, 3, 64, 64, 6) and mj.iou_true is not None
+    out = tmp_path / "demo"
+    assert main(["demo", "--checkpoint", str(two_view_model["checkpoint"]), "--steps", "3", "--out", str(out)]) == 0
+    assert (out / "world_model_vs_mujoco.mp4").stat().st_size > 0

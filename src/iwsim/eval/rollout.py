@@ -1,5 +1,8 @@
 """Open-loop rollouts of recorded episodes: the world model under the recorded actions,
-against the recorded frames (the paper's video-prediction protocol)."""
+against the recorded frames (the paper's video-prediction protocol). A model of several
+views is rolled out on every view of the episodes (stacked along the channels): PSNR and
+SSIM are the views' mean, the task's score reads the first view, videos show the views one
+above the other."""
 
 from __future__ import annotations
 
@@ -12,8 +15,9 @@ import numpy as np
 
 from iwsim.core.errors import InputError
 from iwsim.core.metrics import psnr, ssim
-from iwsim.data.frames import to_model
+from iwsim.data.frames import stack_views, tile_views, to_model, unstack_views
 from iwsim.data.store import EpisodeStore, conditioning_key
+from iwsim.data.views import store_cameras, view_keys
 from iwsim.envs.registry import foreign_task, task_of
 from iwsim.eval.figures import plot_psnr
 from iwsim.eval.video import score_bar, upscale, write_video
@@ -22,7 +26,7 @@ from iwsim.world_model import WorldModel
 
 @dataclass
 class OpenLoop:
-    """Truth and prediction (E, S, H, W, 3) uint8 for E episodes and S steps, with
+    """Truth and prediction (E, S, H, W, 3 x views) uint8 for E episodes and S steps, with
     per-step PSNR and SSIM (E, S) and the task's pixel score (T-push: the IoU) of both
     videos (E, S), None when the task has no scorer."""
 
@@ -47,11 +51,12 @@ class OpenLoop:
 
 
 def frame_scores(truth: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """PSNR and SSIM of uint8 frames (..., H, W, 3) on [0, 1] images; each shaped (...)."""
-    lead = truth.shape[:-3]
-    a = (to_model(truth.reshape(-1, *truth.shape[-3:])) + 1) / 2
-    b = (to_model(pred.reshape(-1, *pred.shape[-3:])) + 1) / 2
-    return psnr(a, b).numpy().reshape(lead), ssim(a, b).numpy().reshape(lead)
+    """PSNR and SSIM of uint8 frames (..., H, W, 3) on [0, 1] images; each shaped (...).
+    Frames of several views (..., H, W, 3V): the mean over the views."""
+    lead, views = truth.shape[:-3], truth.shape[-1] // 3
+    a = (to_model(np.stack(unstack_views(truth, views), -4).reshape(-1, *truth.shape[-3:-1], 3)) + 1) / 2
+    b = (to_model(np.stack(unstack_views(pred, views), -4).reshape(-1, *pred.shape[-3:-1], 3)) + 1) / 2
+    return (psnr(a, b).numpy().reshape(*lead, views).mean(-1), ssim(a, b).numpy().reshape(*lead, views).mean(-1))
 
 
 def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: int, context: int = 1,
@@ -65,7 +70,12 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
     if other is not None:
         raise InputError(f"{store.path} holds episodes of task {other!r} but the world model is of {task.name!r}; "
                          f"roll it out on episodes of {task.name!r}.")
+    if store_cameras(store.attrs, store.keys) != tuple(wm.cameras):
+        raise InputError(f"{store.path} holds the views {list(store_cameras(store.attrs))} but the world model sees "
+                         f"{list(wm.cameras)}.")
+    keys = list(view_keys(tuple(wm.cameras)).values())
     eps = [store.episode(e) for e in episodes]  # raises on a bad index
+    eps = [{**ep, "img": stack_views([ep[k] for k in keys])} for ep in eps]
     for e, ep in zip(episodes, eps):
         if len(ep["img"]) < context + steps:
             raise InputError(f"episode {e} of {store.path} has {len(ep['img'])} frames; {context} context frames "
@@ -77,7 +87,7 @@ def open_loop(wm: WorldModel, store: EpisodeStore, episodes: list[int], steps: i
     truth = np.stack([ep["img"][context:context + steps] for ep in eps])
     pred = wm.rollout(frames, actions, ctx_actions, seed=seed, progress=progress)
     p, s = frame_scores(truth, pred)
-    return OpenLoop(list(episodes), truth, pred, p, s, task.score(truth), task.score(pred))
+    return OpenLoop(list(episodes), truth, pred, p, s, task.score(truth[..., :3]), task.score(pred[..., :3]))
 
 
 def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert", noise_seed: int = 0,
@@ -91,11 +101,14 @@ def against_mujoco(wm: WorldModel, seed: int, steps: int, policy: str = "expert"
     task = task_of(wm)
     if not task.has_ground_truth:
         raise InputError(f"the world model's task {task.name!r} has no simulator to compare it with.")
-    ep = task.record_episode(policy, seed, steps + 1, wm.image_size)  # frames 0..steps and the actions between
-    truth = ep["img"][None, 1:]
-    pred = wm.rollout(ep["img"][None, 0], ep["target"][None, :steps], seed=noise_seed, progress=progress)
+    cameras = tuple(wm.cameras)  # frames 0..steps of every view the model sees, and the actions between
+    ep = task.record_episode(policy, seed, steps + 1, wm.image_size, **({} if cameras == ("top",) else
+                                                                        {"cameras": cameras}))
+    frames = stack_views([ep[k] for k in view_keys(cameras).values()]) if len(cameras) > 1 else ep["img"]
+    truth = frames[None, 1:]
+    pred = wm.rollout(frames[None, 0], ep["target"][None, :steps], seed=noise_seed, progress=progress)
     p, s = frame_scores(truth, pred)
-    return OpenLoop([seed], truth, pred, p, s, task.score(truth), task.score(pred))
+    return OpenLoop([seed], truth, pred, p, s, task.score(truth[..., :3]), task.score(pred[..., :3]))
 
 
 def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10.0, scale: int = 4) -> Path:
@@ -103,7 +116,7 @@ def write_side_by_side(result: OpenLoop, out: str | os.PathLike, fps: float = 10
     green from 25 dB) under each frame; per-step scores in ``<out>.json`` and a plot in
     ``<out>_psnr.png``."""
     out = Path(out)
-    truth, pred = upscale(result.truth[0], scale), upscale(result.pred[0], scale)
+    truth, pred = upscale(tile_views(result.truth[0]), scale), upscale(tile_views(result.pred[0]), scale)
     gap = np.full((*truth.shape[:2], 4, 3), 255, np.uint8)
     video = np.concatenate([truth, gap, pred], axis=2)
     bar = score_bar((result.psnr[0] - 10) / 30, video.shape[2], 8, 0.5)
