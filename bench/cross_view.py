@@ -31,9 +31,9 @@ from tqdm import tqdm
 
 from iwsim.core.checkpoint import resolve_checkpoint, write_json_atomic, write_text_atomic
 from iwsim.core.errors import InputError, IwsimError, one_line
-from iwsim.data.frames import read_frames, stack_views, unstack_views
+from iwsim.data.frames import read_frames
 from iwsim.data.store import EpisodeStore, StoreError
-from iwsim.data.views import store_cameras
+from iwsim.data.views import stack_views, store_cameras, unstack_views
 from iwsim.envs.pusht import geometry as geo
 from iwsim.envs.pusht.pixels import estimate_block_pose, estimate_block_pose_side
 from iwsim.world_model import WorldModel

@@ -134,7 +134,8 @@ def two_view_model(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def test_a_two_view_model_sees_both_views_in_one_latent(two_view_model):
-    from iwsim.data.frames import read_frames, to_model, unstack_views
+    from iwsim.data.frames import read_frames, to_model
+    from iwsim.data.views import unstack_views
     from iwsim.world_model import WorldModel
 
     wm = WorldModel.load(two_view_model["checkpoint"])

@@ -11,7 +11,7 @@ import torch
 
 from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore
-from iwsim.data.views import store_cameras, view_keys
+from iwsim.data.views import stack_views, store_cameras, view_keys
 
 
 def to_model(frames: np.ndarray | torch.Tensor, views: int = 1) -> torch.Tensor:
@@ -37,22 +37,6 @@ def split_episodes(n_episodes: int, holdout_every: int) -> tuple[list[int], list
         held = [n_episodes - 1]  # small stores still get a held-out episode
     held_set = set(held)
     return [i for i in range(n_episodes) if i not in held_set], held
-
-
-def stack_views(frames: list[np.ndarray]) -> np.ndarray:
-    """The views' frames [(..., H, W, 3)] as one frame stacked along the channels (..., H, W, 3V)."""
-    return frames[0] if len(frames) == 1 else np.concatenate(frames, axis=-1)
-
-
-def unstack_views(frames: np.ndarray, views: int) -> list[np.ndarray]:
-    """A frame of ``views`` views stacked along the channels (..., H, W, 3V) -> [(..., H, W, 3)]."""
-    return [frames] if views == 1 else [frames[..., 3 * v:3 * v + 3] for v in range(views)]
-
-
-def tile_views(frames: np.ndarray) -> np.ndarray:
-    """Frames of views stacked along the channels (..., H, W, 3V) as pictures, the views one
-    above the other: (..., V*H, W, 3)."""
-    return np.concatenate(unstack_views(frames, frames.shape[-1] // 3), axis=-3)
 
 
 def view_arrays(store: EpisodeStore) -> list:

@@ -7,6 +7,10 @@ it unchanged); each further view ``<name>`` is ``data/img_<name>`` beside it, th
 (the first names ``data/img``). A store without it has one view, named by its ``camera``
 attribute where an import recorded one, else :data:`DEFAULT_CAMERA`; so every store written
 before views existed reads as one view.
+
+In memory, a frame of V views is one array stacked along the channels, (..., H, W, 3V),
+view v in channels 3v..3v+2 (:func:`stack_views`); what the Gymnasium envs observe is
+``{camera: (H, W, 3)}`` (:func:`split_views`, :func:`first_view`).
 """
 
 from __future__ import annotations
@@ -14,6 +18,8 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable, Mapping
 from typing import Any
+
+import numpy as np
 
 from iwsim.core.errors import InputError
 
@@ -91,3 +97,19 @@ def first_view(pixels: Any) -> Any:
     """The first view's frame of an observation's ``pixels`` (an array, or {view: frame}):
     what a one-camera reader (a pixel scorer, a scripted pixel policy) looks at."""
     return next(iter(pixels.values())) if isinstance(pixels, Mapping) else pixels
+
+
+def stack_views(frames: list[np.ndarray]) -> np.ndarray:
+    """The views' frames [(..., H, W, 3)] as one frame stacked along the channels (..., H, W, 3V)."""
+    return frames[0] if len(frames) == 1 else np.concatenate(frames, axis=-1)
+
+
+def unstack_views(frames: np.ndarray, views: int) -> list[np.ndarray]:
+    """A frame of ``views`` views stacked along the channels (..., H, W, 3V) -> [(..., H, W, 3)]."""
+    return [frames] if views == 1 else [frames[..., 3 * v:3 * v + 3] for v in range(views)]
+
+
+def tile_views(frames: np.ndarray) -> np.ndarray:
+    """Frames of views stacked along the channels (..., H, W, 3V) as pictures, the views one
+    above the other: (..., V*H, W, 3)."""
+    return np.concatenate(unstack_views(frames, frames.shape[-1] // 3), axis=-3)

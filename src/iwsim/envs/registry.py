@@ -26,7 +26,6 @@ from typing import Any
 import numpy as np
 
 from iwsim.core.errors import InputError
-from iwsim.data.frames import read_frames
 from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.data.views import store_cameras
 from iwsim.envs.pilesweep.task import PileSweepTask
@@ -123,7 +122,12 @@ class StoreStarts:
             i = int(rng.integers(start, ends[e]))
         record = {k: np.asarray(self.store.array(k)[i]) for k in (*RECORD_KEYS, *self.task.state_keys)
                   if k in self.store.keys}
-        frame = read_frames(self.store, slice(i, i + 1))[0] if self._multi else np.asarray(self.store.array("img")[i])
+        if self._multi:  # (frames imports torch, which the command line's parser must not)
+            from iwsim.data.frames import read_frames
+
+            frame = read_frames(self.store, slice(i, i + 1))[0]
+        else:
+            frame = np.asarray(self.store.array("img")[i])
         return self.task.start_from_record(frame, record)
 
     def close(self) -> None:

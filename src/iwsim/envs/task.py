@@ -46,7 +46,7 @@ MAX_GAMEPAD_AXES = 16
 @dataclass(frozen=True)
 class Start:
     """An initial frame (H, W, 3) uint8 (of several views: stacked along the channels,
-    :func:`iwsim.data.frames.stack_views`), the observation's ``agent_pos``, the command the
+    :func:`iwsim.data.views.stack_views`), the observation's ``agent_pos``, the command the
     robot holds there (A,) (the setpoint the first step moves from) and, when known, the
     ground-truth simulator's state that renders it."""
 
@@ -304,7 +304,7 @@ class Task:
     def initial_frames(self, image_size: int, store: str | None = None,
                        cameras: tuple[str, ...] = ("top",)) -> InitialFrames:
         """The source of this task's own initial frames (:meth:`InitialFrames.draw` per seed),
-        of ``cameras`` stacked along the channels (:func:`iwsim.data.frames.stack_views`)."""
+        of ``cameras`` stacked along the channels (:func:`iwsim.data.views.stack_views`)."""
         del image_size, store, cameras
         raise InputError(f"task {self.name!r} has no initial frames of its own; give a store of its episodes "
                          "(store=... / --store).")

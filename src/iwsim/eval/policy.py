@@ -14,6 +14,11 @@ posterior (uniform prior) and a Clopper-Pearson interval. The results name the s
 the world model's ``info`` does (:func:`iwsim.world_model.env.score_key`): T-push's
 ``max_iou``, ``mean_max_iou`` and ``iou.json``, as ever; another task's ``max_score``,
 ``mean_max_score`` and ``score.json``.
+
+A policy of several camera views (``policy.cameras``) runs in MuJoCo rendering those
+cameras, and in a world model of the same views only; each step's ``pixels``, {camera:
+frame}, are stacked along the channels in the policy's order. Its videos show the views one
+above the other.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +40,7 @@ from tqdm import tqdm
 from iwsim.core.checkpoint import check_finite_output, check_output_dir, write_json_atomic
 from iwsim.core.errors import InputError
 from iwsim.core.resources import require_memory
+from iwsim.data.views import first_view, stack_views, tile_views
 from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.collect import Recorder
 from iwsim.envs.registry import DEFAULT_TASK, REGISTRY, get_task, task_of
@@ -61,20 +67,25 @@ DISAGREE_WARN = 0.2
 
 
 def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, image_size: int | None = None,
-                    start: str = "random") -> SyncVectorEnv | WorldModelVectorEnv:
+                    start: str = "random", cameras: tuple[str, ...] | None = None
+                    ) -> SyncVectorEnv | WorldModelVectorEnv:
     """``n`` environments in lockstep as a Gymnasium vector env: task ``env``'s simulator
     in a :class:`~gymnasium.vector.SyncVectorEnv` (its initial states from the distribution
     ``start``, one of the task's ``starts``), or for ``env="world-model"`` the world model's
     batched :class:`~iwsim.world_model.env.WorldModelVectorEnv` (one forward pass per step).
     ``image_size``: the policy's frame size, which the environment must render (None: the
-    environment's own, the task's frame size in MuJoCo, the world model's)."""
+    environment's own, the task's frame size in MuJoCo, the world model's). ``cameras``: the
+    views the policy sees; with several, MuJoCo renders them and a world model must be a
+    model of them (None or one view: the environment's one view)."""
+    several: tuple[str, ...] | None = tuple(cameras) if cameras is not None and len(cameras) > 1 else None
     if env not in ENVS:
         raise InputError(f"unknown environment {env!r}; expected one of {', '.join(ENVS)}.")
     if env != WORLD_MODEL:
         task = get_task(env)
 
         def simulator() -> gym.Env:  # (a start the task has not fails as the first one is made)
-            sim = task.ground_truth_env(image_size, start)
+            sim = task.ground_truth_env(image_size, start) if several is None else \
+                task.ground_truth_env(image_size, start, cameras=several)
             assert sim is not None  # ENVS names the tasks with a simulator
             return sim
 
@@ -83,6 +94,10 @@ def make_vector_env(env: str, n: int, steps: int, *, world_model: Any = None, im
         raise InputError(f"the world model starts from MuJoCo's random initial states only, not start={start!r}.")
     if world_model is None:
         raise InputError("evaluating inside the world model needs --world-model CHECKPOINT.")
+    own = tuple(getattr(world_model, "cameras", ("top",)))
+    if cameras is not None and (several is not None or len(own) > 1) and own != tuple(cameras):
+        raise InputError(f"the policy sees the camera views {', '.join(cameras)}; the world model sees "
+                         f"{', '.join(own)}: evaluate it in a world model of the policy's views.")
     if image_size is not None and world_model.image_size != image_size:
         raise InputError(f"the policy was trained on {image_size}x{image_size} frames; the world model "
                          f"renders {world_model.image_size}x{world_model.image_size}.")
@@ -134,6 +149,24 @@ def env_task(venv: VectorEnv, env: str) -> Task:
     return venv.task if isinstance(venv, WorldModelVectorEnv) else get_task(env)
 
 
+def policy_frames(pixels: Any, cameras: tuple[str, ...] | None, name: str = "the policy") -> np.ndarray:
+    """An observation's ``pixels`` (a frame, or {camera: frame}) as the policy named ``name``
+    sees them: one view the frame itself, several stacked along the channels in the order of
+    its ``cameras`` (:func:`~iwsim.data.views.stack_views`). A policy without cameras (a
+    scripted one) sees the first view, as the task's pixel scorer."""
+    if cameras is None:
+        return first_view(pixels)
+    if isinstance(pixels, Mapping):
+        have = tuple(pixels)
+        if len(cameras) == 1 or not set(cameras) <= set(have):
+            raise InputError(f"{name} sees the camera view(s) {', '.join(cameras)}; the environment gives the views "
+                             f"{', '.join(have)}.")
+        return stack_views([np.asarray(pixels[c]) for c in cameras])
+    if len(cameras) > 1:
+        raise InputError(f"{name} sees the camera views {', '.join(cameras)}; the environment gives one view.")
+    return pixels
+
+
 def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world_model: Any = None,
             image_size: int | None = None, record: int = 0, progress: bool = True,
             stop: Callable[[dict[str, np.ndarray]], bool] | None = None, start: str = "random",
@@ -145,7 +178,8 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
     ``scorer``, the task's name in ``task``), ``agent_pos`` (E, T + 1, A) (a tabletop's: the
     pushers' positions), the commanded ``action`` and executed ``target`` (info["target"],
     for T-push the speed-limited setpoints) of every step (E, T, A) and the frames
-    ``frames`` (E', T + 1, H, W, 3) of the first ``record`` episodes; step t's action
+    ``frames`` (E', T + 1, H, W, 3V) of the first ``record`` episodes, as the policy sees
+    them (:func:`policy_frames`: its V camera views stacked along the channels); step t's action
     follows frame t. T = ``steps``, or fewer when ``stop(obs)``, called with each step's
     new observations, returns True. ``image_size`` (the policy's frames) and ``start``
     (MuJoCo's initial-state distribution): as in :func:`make_vector_env`. ``novelty`` (E, T):
@@ -158,7 +192,9 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
     another sample of the same episodes (the model's noise seeds shifted by it)."""
     if noise_offset and env != WORLD_MODEL:
         raise InputError("another sample (noise_offset) applies to a world model; MuJoCo has one outcome.")
-    venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size, start=start)
+    cameras = getattr(policy, "cameras", None)  # a learned policy's views (a scripted one has none)
+    venv = make_vector_env(env, len(seeds), steps, world_model=world_model, image_size=image_size, start=start,
+                           cameras=cameras)
     task = env_task(venv, env)
     key = score_key(task)
     want = {"action": getattr(policy, "action_dim", task.action_dim), "state": getattr(policy, "state_dim", None)}
@@ -171,10 +207,16 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
             raise InputError(f"the policy takes {want[what]}-D {what}s; task {task.name!r} in {env} has "
                              f"{have[what]}-D ones.")
     try:
-        obs, info = venv.reset(seed=list(seeds), options={"noise_offset": noise_offset} if noise_offset else None)
+        name = getattr(policy, "name", "the policy")
+
+        def seen(o: dict[str, Any]) -> dict[str, Any]:  # what the policy observes of o
+            return {"pixels": policy_frames(o["pixels"], cameras, name), "agent_pos": o["agent_pos"]}
+
+        raw, info = venv.reset(seed=list(seeds), options={"noise_offset": noise_offset} if noise_offset else None)
+        obs = seen(raw)
         iou = info[key]
         plausible: list[np.ndarray] = []
-        first = task.plausibility(obs["pixels"]) if plausibility_every > 0 else None
+        first = task.plausibility(first_view(raw["pixels"])) if plausibility_every > 0 else None
         judge = first is not None
         if first is not None:
             plausible.append(first)
@@ -194,7 +236,8 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
                 check_finite_output(chunk, getattr(policy, "name", "the policy"), "its actions")
                 queue = list(chunk.transpose(1, 0, 2))
             actions.append(queue.pop(0).astype(np.float32))
-            obs, _, _, _, info = venv.step(actions[-1])
+            raw, _, _, _, info = venv.step(actions[-1])
+            obs = seen(raw)
             history.append(obs)
             ious.append(info[key])
             frames.append(obs["pixels"][:record])
@@ -204,10 +247,11 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
                 kept[k].append(info[k])
             if "novelty" in info:
                 novelty.append(info["novelty"])
-            if judge and len(actions) % plausibility_every == 0 and (p := task.plausibility(obs["pixels"])) is not None:
+            if (judge and len(actions) % plausibility_every == 0
+                    and (p := task.plausibility(first_view(raw["pixels"]))) is not None):
                 plausible.append(p)
             bar.update()
-            if stop is not None and stop(obs):
+            if stop is not None and stop(raw):
                 break
         bar.close()
         seconds = time.perf_counter() - t0
@@ -251,7 +295,9 @@ def recorder(policy: PolicyLike, task: str, steps: int, *, image_size: int | Non
             run = rollout(policy, task, chunk, steps, image_size=image_size, record=len(chunk), progress=False,
                           keep=keep)
             for e in range(len(chunk)):
-                yield {"img": run["frames"][e, :steps], "state": run["agent_pos"][e, :steps].astype(np.float32),
+                # the first view, the one a store of a learned policy's episodes holds (iwsim collect)
+                yield {"img": run["frames"][e, :steps, ..., :3],
+                       "state": run["agent_pos"][e, :steps].astype(np.float32),
                        "action": run["action"][e], "target": run["target"][e].astype(np.float32),
                        score: run["iou"][e, :steps].astype(np.float32),
                        **{k: v[e, :steps] for k, v in run["info"].items()}}
@@ -440,7 +486,9 @@ def evaluate(policy: PolicyLike, env: str, *, episodes: int, seed: int, steps: i
         head = {} if command is None else {"command": command}
         write_json_atomic(out / "results.json", {**head, **result}, sort_keys=False)
         for i in range(0 if run["frames"] is None else len(run["frames"])):
-            write_video(out / f"episode_{seeds[i]}.mp4", upscale(run["frames"][i], 4), fps=10)
+            frames = run["frames"][i]  # several views: one above the other
+            write_video(out / f"episode_{seeds[i]}.mp4", upscale(frames if frames.shape[-1] == 3 else
+                                                                 tile_views(frames), 4), fps=10)
         if run["iou"] is not None:
             (out / f"{key}.json").write_text(json.dumps({**head, "seeds": seeds,
                                                          f"{key}_per_step": run["iou"].round(4).tolist()}))

@@ -15,9 +15,9 @@ import numpy as np
 
 from iwsim.core.errors import InputError
 from iwsim.core.metrics import psnr, ssim
-from iwsim.data.frames import stack_views, tile_views, to_model, unstack_views
+from iwsim.data.frames import to_model
 from iwsim.data.store import EpisodeStore, conditioning_key
-from iwsim.data.views import store_cameras, view_keys
+from iwsim.data.views import stack_views, store_cameras, tile_views, unstack_views, view_keys
 from iwsim.envs.registry import foreign_task, task_of
 from iwsim.eval.figures import plot_psnr
 from iwsim.eval.video import score_bar, upscale, write_video

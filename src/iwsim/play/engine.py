@@ -47,9 +47,8 @@ import torch
 import iwsim
 from iwsim.core.errors import InputError
 from iwsim.core.resources import MiB, human_bytes, require_memory
-from iwsim.data.frames import unstack_views
 from iwsim.data.store import EpisodeStore, StoreError
-from iwsim.data.views import DEFAULT_CAMERA, view_keys
+from iwsim.data.views import DEFAULT_CAMERA, unstack_views, view_keys
 from iwsim.envs import SMALLEST_FRAME_BYTES
 from iwsim.envs.task import Bindings, Start, Task
 from iwsim.play import protocol as proto

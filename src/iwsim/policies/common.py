@@ -3,8 +3,13 @@ train on, a small image encoder, and the execution interface.
 
 Observations, as the policies take them (LeRobot's names)::
 
-    obs["image"]      (B, To, H, W, 3) uint8 or (B, To, 3, H, W) float in [-1, 1]
+    obs["image"]      (B, To, H, W, 3V) uint8 or (B, To, 3V, H, W) float in [-1, 1]
     obs["agent_pos"]  (B, To, S) float, in the data's units
+
+V is the number of camera views the policy sees (``policy.cameras``, as its training store
+named them, :mod:`iwsim.data.views`), stacked along the channels in that order
+(:func:`iwsim.data.views.stack_views`): view v in channels 3v..3v+2; one view is the
+frame itself.
 
 ``predict_action(obs) -> (B, Ta, A)`` returns the actions to execute next, in the data's
 units; the caller executes them in order and asks again. A policy trained with
@@ -25,13 +30,15 @@ from torch.nn import functional as F
 
 from iwsim.core.errors import InputError
 from iwsim.core.normalize import Normalizer
+from iwsim.data.views import DEFAULT_CAMERA
 from iwsim.envs.task import Task
 from iwsim.policies.registry import policy_name
 
 
 @dataclass
 class PolicyBatch:
-    """Training windows. image (B, To, 3, H, W) in [-1, 1]; agent_pos (B, To, S) and
+    """Training windows. image (B, To, 3V, H, W) in [-1, 1] (V views stacked along the
+    channels); agent_pos (B, To, S) and
     action (B, Tp, A) normalised to [-1, 1]; action_is_pad (B, Tp) marks actions past the
     episode's end (repeats of the last one)."""
 
@@ -84,6 +91,16 @@ class Policy(nn.Module):
         return self.cfg.horizon
 
     @property
+    def cameras(self) -> tuple[str, ...]:
+        """The camera views it sees, in the order they are stacked along the channels (a
+        policy whose config has no ``cameras`` sees one view)."""
+        return tuple(getattr(self.cfg, "cameras", (DEFAULT_CAMERA,)))
+
+    @property
+    def views(self) -> int:
+        return len(self.cameras)
+
+    @property
     def relative(self) -> bool:
         """Whether the network predicts actions as offsets from the current agent_pos."""
         return self.cfg.relative_actions
@@ -105,13 +122,22 @@ class Policy(nn.Module):
         raise NotImplementedError
 
 
-def random_shift(image: torch.Tensor, pad: int, offsets: torch.Tensor | None = None) -> torch.Tensor:
+def random_shift(image: torch.Tensor, pad: int, offsets: torch.Tensor | None = None, views: int = 1
+                 ) -> torch.Tensor:
     """Shift augmentation (DrQ, Kostrikov et al. 2021; Diffusion Policy's random crop):
     each window of (B, To, C, H, W) images moves by up to ``pad`` pixels in x and y, the
     same for its To frames (motion between them stays true), the border repeated.
-    ``offsets`` (2, B) in [0, 2 * pad] are drawn from torch's generator when not given."""
+    ``offsets`` (2, B) in [0, 2 * pad] are drawn from torch's generator when not given.
+    With ``views`` > 1 (views stacked along the channels) each view of a window moves by
+    its own offsets, as Diffusion Policy crops each camera's image on its own: ``offsets``
+    (2, B * views), window b's views at b * views .. b * views + views - 1."""
     if pad <= 0:
         return image
+    if views > 1:
+        b, to, c, h, w = image.shape
+        one = image.reshape(b, to, views, c // views, h, w).transpose(1, 2).reshape(b * views, to, c // views, h, w)
+        out = random_shift(one, pad, offsets)
+        return out.reshape(b, views, to, c // views, h, w).transpose(1, 2).reshape(b, to, c, h, w)
     b, to, c, h, w = image.shape
     padded = F.pad(image.reshape(b, to * c, h, w), (pad, pad, pad, pad), mode="replicate")
     dy, dx = torch.randint(0, 2 * pad + 1, (2, b)) if offsets is None else offsets
@@ -158,20 +184,28 @@ class ImageEncoder(nn.Module):
         return self.proj(self.pool(self.net(x)))
 
 
-def prepare_obs(obs: dict, state_norm: Normalizer, obs_horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """obs dict (see the module docstring) -> image (B, To, 3, H, W) in [-1, 1] and the
-    normalised agent_pos (B, To, S), on the normaliser's device; checks the horizon."""
+def prepare_obs(obs: dict, state_norm: Normalizer, obs_horizon: int, cameras: tuple[str, ...] = (DEFAULT_CAMERA,)
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """obs dict (see the module docstring) -> image (B, To, 3V, H, W) in [-1, 1] and the
+    normalised agent_pos (B, To, S), on the normaliser's device; checks the horizon and
+    that the images hold the V views of ``cameras``."""
     device = state_norm.low.device
     image = torch.as_tensor(np.asarray(obs["image"]) if not torch.is_tensor(obs["image"]) else obs["image"])
     pos = torch.as_tensor(np.asarray(obs["agent_pos"]), dtype=torch.float32)
+    c = 3 * len(cameras)
     if image.ndim != 5 or pos.ndim != 3 or image.shape[:2] != pos.shape[:2]:
-        raise InputError(f"expected image (B, To, H, W, 3) and agent_pos (B, To, S), got {tuple(image.shape)} "
+        raise InputError(f"expected image (B, To, H, W, {c}) and agent_pos (B, To, S), got {tuple(image.shape)} "
                          f"and {tuple(pos.shape)}.")
     if image.shape[1] != obs_horizon:
         raise InputError(f"this policy observes {obs_horizon} steps, got {image.shape[1]}.")
-    if image.dtype == torch.uint8:
-        if image.shape[-1] != 3:
-            raise InputError(f"uint8 images must be (B, To, H, W, 3), got {tuple(image.shape)}.")
+    uint8 = image.dtype == torch.uint8
+    have = image.shape[-1] if uint8 else image.shape[2]
+    if have != c:
+        layout = f"(B, To, H, W, {c}) uint8" if uint8 else f"(B, To, {c}, H, W) float"
+        got = f"{have // 3} view(s)" if have % 3 == 0 else f"{have} channels"
+        raise InputError(f"this policy sees {len(cameras)} camera view(s) ({', '.join(cameras)}) stacked along the "
+                         f"channels, images {layout}; got {tuple(image.shape)}: {got}.")
+    if uint8:
         image = image.permute(0, 1, 4, 2, 3).float() / 127.5 - 1
     if pos.shape[-1] != state_norm.low.shape[0]:
         raise InputError(f"this policy takes a {state_norm.low.shape[0]}-D agent_pos, got {pos.shape[-1]}.")

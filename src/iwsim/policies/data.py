@@ -6,6 +6,10 @@ window at step t of an episode holds the observations of steps t-To+1 .. t and t
 actions of steps t-To+1 .. t-To+Tp, as Diffusion Policy's sampler: steps before the
 episode's start repeat its first step, actions past its end repeat the last one and are
 marked as padding.
+
+A store of several camera views (:mod:`iwsim.data.views`) gives frames of every view
+stacked along the channels, (H, W, 3V) a step (:func:`iwsim.data.views.stack_views`); the
+stores of a mixture must hold the same views.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import torch
 
 from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore
+from iwsim.data.views import check_cameras, stack_views, store_cameras, view_key
 from iwsim.policies.common import Normalizer, PolicyBatch
 
 
@@ -55,22 +60,31 @@ def parse_mixture(spec: str) -> list[Source]:
 class PolicyData:
     """The chosen episodes of every source, in memory, and random windows of them."""
 
-    def __init__(self, sources: list[Source], obs_horizon: int, horizon: int, actions: str = "action") -> None:
-        """``actions``: the array the policy learns to output (``action`` or ``target``)."""
+    def __init__(self, sources: list[Source], obs_horizon: int, horizon: int, actions: str = "action",
+                 cameras: tuple[str, ...] | None = None, first_only: bool = False) -> None:
+        """``actions``: the array the policy learns to output (``action`` or ``target``).
+        ``cameras``: the views to read from every store, in this order (None: every view of
+        the first store, which every other store must hold alike; stores of one view each
+        may name it differently). ``first_only``: each store's first view alone."""
         if not sources:
             raise InputError("the data mixture is empty; give at least one STORE[:N].")
         self.obs_horizon, self.horizon = obs_horizon, horizon
+        chosen = cameras is not None
+        self.cameras: tuple[str, ...] = () if cameras is None else check_cameras(cameras, "the policy's cameras")
         imgs, states, labels, lengths, self.counts, self.hashes = [], [], [], [], {}, {}
         for src in sources:
             store = EpisodeStore.open(src.path, "r")
             for key in ("img", "state", actions):
                 if key not in store.keys:
                     raise InputError(f"{src.path} has no data/{key}; policies need img, state and {actions}.")
+            views = store_cameras(store.attrs, store.keys)
+            self.cameras = self.cameras or (views[:1] if first_only else views)  # by default, the first store's
+            keys = ["img"] if first_only else self._view_keys(src.path, views, chosen, sources[0].path)
             n = store.n_episodes if src.episodes is None else src.episodes
             if n > store.n_episodes or n < 1:
                 raise InputError(f"{src.path} holds {store.n_episodes} episodes; {n} were asked for.")
             end = int(store.episode_ends[n - 1])
-            imgs.append(np.asarray(store.array("img")[:end]))
+            imgs.append(stack_views([np.asarray(store.array(k)[:end]) for k in keys]))
             states.append(np.asarray(store.array("state")[:end], np.float32))
             labels.append(np.asarray(store.array(actions)[:end], np.float32))
             ends = store.episode_ends[:n]
@@ -88,6 +102,21 @@ class PolicyData:
         self.starts = torch.from_numpy(ends - np.asarray(lengths))
         self.ends = torch.from_numpy(ends)
         self.episode_of = torch.repeat_interleave(torch.arange(len(lengths)), torch.as_tensor(lengths))
+
+    def _view_keys(self, path: Path, views: tuple[str, ...], chosen: bool, first: Path) -> list[str]:
+        """The data arrays of the policy's views (:attr:`cameras`) in the store at ``path``,
+        which holds ``views``: with the views not ``chosen``, the same as the first store's."""
+        if not chosen and len(views) == len(self.cameras) == 1:
+            return ["img"]  # one view each, whatever the stores call it
+        if not set(self.cameras) <= set(views) or (not chosen and set(views) != set(self.cameras)):
+            whose = "" if chosen else f" (the views of {first})"
+            raise InputError(f"{path} holds the camera views {', '.join(views)}; the policy sees "
+                             f"{', '.join(self.cameras)}{whose}: a mixture's stores must hold the same views.")
+        return [view_key(views, name) for name in self.cameras]
+
+    @property
+    def views(self) -> int:
+        return len(self.cameras)
 
     @property
     def n_episodes(self) -> int:

@@ -28,12 +28,17 @@ class PolicyTask:
 
     def __init__(self, cfg: PolicyStageConfig, sources: list[Source]) -> None:
         model: Any = from_dict(config_class(cfg.policy), cfg.model)  # the registered policy's config dataclass
-        self.data = PolicyData(sources, model.obs_horizon, model.horizon, cfg.actions)
+        # The camera views come from the data (every view of its stores) unless the config names
+        # some; a policy whose config has no cameras sees each store's first view.
+        has_views = hasattr(model, "cameras")
+        self.data = PolicyData(sources, model.obs_horizon, model.horizon, cfg.actions,
+                               cameras=model.cameras if "cameras" in cfg.model else None, first_only=not has_views)
         self.relative = model.relative_actions
         self.action_norm, self.state_norm = self.data.normalizers(self.relative)
+        fields = {**cfg.model, "cameras": self.data.cameras} if has_views else cfg.model
         with torch.random.fork_rng():  # initial weights from the run's seed, global RNG untouched
             torch.manual_seed(cfg.train.seed)
-            self.module = make_policy(cfg.policy, cfg.model, self.action_norm, self.state_norm)
+            self.module = make_policy(cfg.policy, fields, self.action_norm, self.state_norm)
         self.cfg, self.sources = cfg, sources
         self.task = mixture_task(sources)
         g = torch.Generator().manual_seed(12345)
@@ -41,12 +46,14 @@ class PolicyTask:
 
     def batch(self, step: int, generator: torch.Generator, part: slice, device: torch.device):
         t = torch.randint(0, self.data.n_frames, (self.cfg.train.batch_size,), generator=generator)
-        shifts = torch.randint(0, 2 * self.cfg.shift + 1, (2, len(t)), generator=generator)
+        views = self.data.views  # each view of a window shifts by its own offsets (random_shift)
+        shifts = torch.randint(0, 2 * self.cfg.shift + 1, (2, len(t) * views), generator=generator)
         # The policies draw their noise (diffusion steps, CVAE samples, dropout) from torch's
         # global generator; seeding it from the step's generator keeps resumption exact.
         torch.manual_seed(int(torch.randint(2**62, (1,), generator=generator)))
         batch = self.data.batch(t[part], self.action_norm, self.state_norm, self.relative)
-        batch.image = random_shift(batch.image, self.cfg.shift, shifts[:, part])
+        batch.image = random_shift(batch.image, self.cfg.shift, shifts.view(2, len(t), views)[:, part].flatten(1),
+                                   views)
         return batch.to(device)
 
     @torch.no_grad()

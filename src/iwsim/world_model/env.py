@@ -47,7 +47,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from iwsim.core.errors import InputError
-from iwsim.data.frames import stack_views, tile_views, unstack_views
+from iwsim.data.views import stack_views, tile_views, unstack_views
 from iwsim.envs.registry import StoreStarts, get_task, task_of
 from iwsim.envs.task import Start, Task
 from iwsim.world_model import StreamState, WorldModel

@@ -30,7 +30,7 @@ The codec is any :class:`~iwsim.world_model.codecs.base.Codec` (frames <-> laten
 them) encodes each view with the one codec and stacks the views' latents along the
 channels, so one dynamics pass predicts the next state of every view together; its frames
 are the views stacked along the channels, uint8 (..., H, W, 3 x views), view v in channels
-3v..3v+2 (:func:`iwsim.data.frames.stack_views`). The dynamics network is called through a
+3v..3v+2 (:func:`iwsim.data.views.stack_views`). The dynamics network is called through a
 :class:`~iwsim.world_model.denoiser.Denoiser`. Objectives: a new latent comes from one
 consistency jump from noise (ours), or, for the benchmark's baselines, Euler steps of an
 EDM denoiser or one pass of a regressor (``cfg.objective``,
@@ -263,7 +263,7 @@ class WorldModel(nn.Module):
     @property
     def cameras(self) -> tuple[str, ...]:
         """The views of a frame, in order: a frame is (H, W, 3 x views), view v in channels
-        3v..3v+2 (:func:`iwsim.data.frames.unstack_views`)."""
+        3v..3v+2 (:func:`iwsim.data.views.unstack_views`)."""
         return tuple(self.cfg.cameras)
 
     @property

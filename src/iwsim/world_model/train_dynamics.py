@@ -44,7 +44,8 @@ from iwsim.core.checkpoint import last_checkpoint, load_json, load_tensors, reso
 from iwsim.core.errors import InputError
 from iwsim.core.metrics import psnr
 from iwsim.core.normalize import unscale
-from iwsim.data.frames import read_frames, tile_views, to_model, to_uint8
+from iwsim.data.frames import read_frames, to_model, to_uint8
+from iwsim.data.views import tile_views
 from iwsim.envs.registry import task_from_store
 from iwsim.world_model.denoiser import Denoiser
 from iwsim.world_model.dynamics import Dynamics, add_state, widen_window

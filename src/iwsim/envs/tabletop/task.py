@@ -14,7 +14,7 @@ import gymnasium as gym
 import numpy as np
 
 from iwsim.core.errors import InputError
-from iwsim.data.frames import stack_views
+from iwsim.data.views import stack_views
 from iwsim.envs import POLICIES, make_env
 from iwsim.envs.tabletop.palette import Palette
 from iwsim.envs.tabletop.scene import (

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from iwsim.core.config import TrainConfig
 from iwsim.core.errors import InputError
+from iwsim.data.views import DEFAULT_CAMERA, check_cameras
 from iwsim.policies.registry import TINY_TRAIN, PolicyStageConfig, register_policy
 
 # The paper-sized-down defaults, and a tiny one for tests.
@@ -47,6 +48,9 @@ class ACTConfig:
     kl_weight: float = 10.0  # beta, as the paper
     observe_state: bool = True  # False: act from the image alone (the agent_pos token is blanked)
     relative_actions: bool = False  # predict offsets from the current agent_pos (same size as the action)
+    # the camera views it sees, in order (iwsim.data.views), stacked along the channels; set from
+    # the training store's views (a checkpoint saved before views existed: one, the top view)
+    cameras: tuple[str, ...] = (DEFAULT_CAMERA,)
 
     @property
     def horizon(self) -> int:
@@ -54,6 +58,7 @@ class ACTConfig:
         return self.chunk_size
 
     def __post_init__(self) -> None:
+        check_cameras(self.cameras, "the policy's cameras")
         if self.obs_horizon != 1:
             raise InputError(f"ACT observes the current step only: obs_horizon must be 1, got {self.obs_horizon}.")
         if not 1 <= self.n_action_steps <= self.chunk_size:

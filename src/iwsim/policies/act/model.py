@@ -5,7 +5,11 @@ The current image goes through a CNN trained from scratch; every cell of its fea
 is a token, with DETR's 2D sine position embedding (the paper uses ResNet-18 cells); or,
 with ``image_tokens="keypoints"``, every spatial-softmax keypoint of the map is a token made
 from its (x, y) by its own linear map (Diffusion Policy's pooling, which reads positions
-finer than a cell). A transformer encoder reads ``[z, agent_pos, image tokens]``; a
+finer than a cell). With several camera views the one CNN reads each view (one backbone
+for all cameras, as LeRobot's ACT and the original code's ``backbones[0]``) and every
+view's tokens join the sequence, each view's positions its cells' plus a learned embedding
+of the view (the original gives every camera's cells the same 2D positions, so attention
+cannot tell the views apart). A transformer encoder reads ``[z, agent_pos, image tokens]``; a
 decoder with ``chunk_size`` learned queries cross-attends to it and regresses the next
 ``k`` actions at once.
 
@@ -158,6 +162,8 @@ class ACTPolicy(Policy):
             self.keypoint_weight = nn.Parameter(torch.randn(cfg.keypoints, 2, d) / math.sqrt(2))
             self.keypoint_bias = nn.Parameter(torch.randn(cfg.keypoints, d) * 0.02)  # also tells the keypoints apart
             self.keypoint_pos = nn.Embedding(cfg.keypoints, d)
+        if len(cfg.cameras) > 1:  # (one view: the weights of before views, no such embedding)
+            self.view_pos = nn.Embedding(len(cfg.cameras), d)  # added to the positions of each view's tokens
         self.state_proj = nn.Linear(self.state_dim, d)
         self.latent_proj = nn.Linear(cfg.latent_dim, d)
         self.token_pos = nn.Embedding(2, d)  # learned positions of the [z, agent_pos] tokens
@@ -194,19 +200,22 @@ class ACTPolicy(Policy):
         return mu, logvar
 
     def decode(self, image: torch.Tensor, agent_pos: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """image (B, 3, H, W) in [-1, 1], agent_pos (B, S) normalised, z (B, L) ->
-        normalised action chunk (B, k, A)."""
+        """image (B, 3V, H, W) in [-1, 1] (V views stacked along the channels), agent_pos
+        (B, S) normalised, z (B, L) -> normalised action chunk (B, k, A)."""
         if not self.cfg.observe_state:
             agent_pos = torch.zeros_like(agent_pos)  # the token stays, carrying no information
-        feat = self.backbone(image)  # (B, D or K, h, w)
-        b, d = feat.shape[0], self.cfg.dim
+        b, d, views = image.shape[0], self.cfg.dim, self.views
+        feat = self.backbone(image.unflatten(1, (views, 3)).flatten(0, 1))  # (B * V, D or K, h, w): one shared CNN
         if self.cfg.image_tokens == "keypoints":
-            xy = self.pool(feat).view(b, 2, -1).transpose(1, 2)  # (B, K, 2)
+            xy = self.pool(feat).view(b * views, 2, -1).transpose(1, 2)  # (B * V, K, 2)
             cells = torch.einsum("bkc,kcd->bkd", xy, self.keypoint_weight) + self.keypoint_bias
             cell_pos = self.keypoint_pos.weight
         else:
             h, w = feat.shape[2:]
             cells, cell_pos = feat.flatten(2).transpose(1, 2), sine_2d(h, w, d, feat.device)
+        if views > 1:  # every view's tokens in the sequence, view after view, told apart by their view's embedding
+            cells = cells.reshape(b, views * cells.shape[1], d)
+            cell_pos = (cell_pos[None] + self.view_pos.weight[:, None]).flatten(0, 1)  # (V * N, D)
         tokens = torch.cat([self.latent_proj(z)[:, None], self.state_proj(agent_pos)[:, None], cells], 1)
         pos = torch.cat([self.token_pos.weight, cell_pos])[None]  # (1, 2 + cells, D)
         for layer in self.encoder:
@@ -217,11 +226,12 @@ class ACTPolicy(Policy):
         return self.action_head(self.decoder_norm(x))
 
     def _check_batch(self, batch: PolicyBatch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The batch's current image (B, 3, H, W), agent_pos (B, S), and its first k
+        """The batch's current image (B, 3V, H, W), agent_pos (B, S), and its first k
         actions (B, k, A) and padding (B, k)."""
         image, pos, action, pad = batch.image, batch.agent_pos, batch.action, batch.action_is_pad
-        if image.ndim != 5 or image.shape[1:3] != (1, 3) or pos.shape[1:] != (1, self.state_dim):
-            raise InputError(f"expected image (B, 1, 3, H, W) and agent_pos (B, 1, {self.state_dim}), got "
+        c = 3 * self.views
+        if image.ndim != 5 or image.shape[1:3] != (1, c) or pos.shape[1:] != (1, self.state_dim):
+            raise InputError(f"expected image (B, 1, {c}, H, W) and agent_pos (B, 1, {self.state_dim}), got "
                              f"{tuple(image.shape)} and {tuple(pos.shape)}.")
         k = self.cfg.chunk_size
         if (action.ndim != 3 or action.shape[1] < k or action.shape[2] != self.action_dim
@@ -248,7 +258,7 @@ class ACTPolicy(Policy):
     def predict_chunk(self, obs: dict) -> torch.Tensor:
         """The whole chunk (B, k, A) in the data's units for the observation (see
         :mod:`iwsim.policies.common`), with z = 0 and dropout off; no state is kept."""
-        image, pos = prepare_obs(obs, self.state_norm, self.cfg.obs_horizon)
+        image, pos = prepare_obs(obs, self.state_norm, self.cfg.obs_horizon, self.cameras)
         was_training = self.training
         self.eval()
         try:

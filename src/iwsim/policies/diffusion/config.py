@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from iwsim.core.config import TrainConfig
 from iwsim.core.errors import InputError
+from iwsim.data.views import DEFAULT_CAMERA, check_cameras
 from iwsim.policies.registry import TINY_TRAIN, PolicyStageConfig, register_policy
 
 # The paper-sized-down defaults, and a tiny one for tests.
@@ -35,8 +36,12 @@ class DiffusionConfig:
     train_steps: int = 100  # DDPM timesteps
     inference_steps: int = 10  # DDIM steps
     relative_actions: bool = False  # predict offsets from the current agent_pos (same size as the action)
+    # the camera views it sees, in order (iwsim.data.views), stacked along the channels; set from
+    # the training store's views (a checkpoint saved before views existed: one, the top view)
+    cameras: tuple[str, ...] = (DEFAULT_CAMERA,)
 
     def __post_init__(self) -> None:
+        check_cameras(self.cameras, "the policy's cameras")
         if not 1 <= self.n_action_steps <= self.horizon - self.obs_horizon + 1:
             raise InputError(f"n_action_steps must be in 1..{self.horizon - self.obs_horizon + 1} "
                              f"(horizon {self.horizon}, obs_horizon {self.obs_horizon}), got {self.n_action_steps}.")

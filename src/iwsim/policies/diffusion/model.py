@@ -2,10 +2,12 @@
 
 An image encoder (trained from scratch) and the agent positions of the last ``To`` steps
 condition a 1D temporal UNet, through FiLM in every residual block, that denoises a chunk
-of ``Tp`` actions. Training: DDPM noise prediction (100 steps, squared-cosine betas, as
-the paper's code). Inference: DDIM, a few deterministic steps. Execution: receding
-horizon, the ``Ta`` actions starting at the current step, then replan (the paper's
-To = 2, Tp = 16, Ta = 8). The trainer keeps EMA weights, which are what gets exported.
+of ``Tp`` actions; with several camera views, an encoder per view, their features side by
+side in the condition (the paper's code's default, ``share_rgb_model=False``). Training:
+DDPM noise prediction (100 steps, squared-cosine betas, as the paper's code). Inference:
+DDIM, a few deterministic steps. Execution: receding horizon, the ``Ta`` actions starting
+at the current step, then replan (the paper's To = 2, Tp = 16, Ta = 8). The trainer keeps
+EMA weights, which are what gets exported.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from iwsim.core.errors import InputError
 from iwsim.diffusion.ddpm import EpsDenoiser, ddim_timesteps, sample_ddim, squared_cosine_alphas_cumprod
 from iwsim.models.blocks import sinusoidal
 from iwsim.policies.common import (
@@ -93,8 +96,15 @@ class DiffusionPolicy(Policy):
 
     def __init__(self, cfg: DiffusionConfig, action_norm: Normalizer, state_norm: Normalizer) -> None:
         super().__init__(cfg, action_norm, state_norm)
-        self.encoder = ImageEncoder(cfg.image_features, cfg.encoder_channels, first_stride=cfg.encoder_stride)
-        self.unet = ConditionalUnet1D(self.action_dim, cfg.obs_horizon * (cfg.image_features + self.state_dim), cfg)
+        def encoder() -> ImageEncoder:
+            return ImageEncoder(cfg.image_features, cfg.encoder_channels, first_stride=cfg.encoder_stride)
+
+        # One encoder per view, none shared (Diffusion Policy's share_rgb_model=False; LeRobot's
+        # use_separate_rgb_encoder_per_camera); one view keeps the weights' names of before views.
+        views = len(cfg.cameras)
+        self.encoder: nn.Module = encoder() if views == 1 else nn.ModuleList(encoder() for _ in range(views))
+        cond_dim = cfg.obs_horizon * (views * cfg.image_features + self.state_dim)
+        self.unet = ConditionalUnet1D(self.action_dim, cond_dim, cfg)
         self.register_buffer("alphas_cumprod", squared_cosine_alphas_cumprod(cfg.train_steps))
 
     @property
@@ -102,10 +112,20 @@ class DiffusionPolicy(Policy):
         """The noise predictor in the samplers' convention (:mod:`iwsim.diffusion`)."""
         return EpsDenoiser(self.unet, self.alphas_cumprod)
 
+    @property
+    def encoders(self) -> list[ImageEncoder]:
+        """The image encoder of each view, in the views' order."""
+        return cast(list[ImageEncoder], [self.encoder] if self.views == 1 else list(self.encoder.children()))
+
     def condition(self, image: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
-        """image (B, To, 3, H, W), normalised agent_pos (B, To, S) -> (B, To * (F + S))."""
+        """image (B, To, 3V, H, W), normalised agent_pos (B, To, S) -> the global condition
+        (B, To * (V * F + S)): per step, each view's features in the views' order, then agent_pos."""
+        if image.ndim != 5 or image.shape[2] != 3 * self.views:
+            raise InputError(f"this policy sees {self.views} camera view(s) ({', '.join(self.cameras)}): expected "
+                             f"images (B, To, {3 * self.views}, H, W), got {tuple(image.shape)}.")
         b, to = image.shape[:2]
-        feats = self.encoder(image.flatten(0, 1)).view(b, to, -1)
+        views = image.flatten(0, 1).chunk(self.views, 1)  # V x (B * To, 3, H, W)
+        feats = torch.cat([enc(x) for enc, x in zip(self.encoders, views, strict=True)], -1).view(b, to, -1)
         return torch.cat([feats, agent_pos], -1).flatten(1)
 
     def forward(self, batch: PolicyBatch) -> tuple[torch.Tensor, dict[str, float]]:
@@ -130,7 +150,7 @@ class DiffusionPolicy(Policy):
     @torch.no_grad()
     def predict_action(self, obs: dict, generator: torch.Generator | None = None) -> np.ndarray:
         """The next ``Ta`` actions (B, Ta, A) in the data's units, from the current step."""
-        image, pos = prepare_obs(obs, self.state_norm, self.cfg.obs_horizon)
+        image, pos = prepare_obs(obs, self.state_norm, self.cfg.obs_horizon, self.cameras)
         chunk = self.sample(self.condition(image, pos), generator)
         start = self.cfg.obs_horizon - 1
         act = self.action_norm.unnormalize(chunk[:, start:start + self.cfg.n_action_steps])
