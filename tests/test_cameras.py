@@ -349,3 +349,15 @@ def test_demo_and_open_loop_roll_out_every_view(two_view_model, tmp_path: Path):
     out = tmp_path / "demo"
     assert main(["demo", "--checkpoint", str(two_view_model["checkpoint"]), "--steps", "3", "--out", str(out)]) == 0
     assert (out / "world_model_vs_mujoco.mp4").stat().st_size > 0
+
+
+def test_one_view_of_a_two_view_store_imports_under_its_name(tmp_path: Path):
+    from iwsim.data.formats import import_
+
+    two = tmp_path / "two.zarr"
+    collect("pusht", "play", 1, out=two, steps=3, image_size=64, progress=False, cameras=("top", "side"))
+    src = EpisodeStore.open(two)
+    for view, key in (("top", "img"), ("side", "img_side")):
+        one = import_("zarr", two, tmp_path / f"{view}.zarr", camera=view, image_size=None, progress=False)
+        assert store_cameras(one.attrs, one.keys) == (view,) and one.attrs["task"] == "pusht"
+        np.testing.assert_array_equal(one.episode(0)["img"], src.episode(0)[key])

@@ -50,6 +50,7 @@ def test_store_cameras_defaults_and_checks():
     assert views.store_cameras({}) == (views.DEFAULT_CAMERA,) == ("top",)  # a store written before views
     assert views.store_cameras({"camera": "observation.images.wrist"}) == ("wrist",)  # an import's one camera
     assert views.store_cameras({"camera": "agentview_image"}) == ("agentview_image",)
+    assert views.store_cameras({"camera": "img_side"}) == ("side",)  # one view of a store, imported alone
     assert views.store_cameras({"camera": "Bad Name!"}) == ("top",)
     assert views.store_cameras({"camera": 3}) == ("top",)
     assert views.store_cameras({"cameras": ["top", "side"], "camera": "x"}) == ("top", "side")

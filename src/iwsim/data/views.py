@@ -63,11 +63,14 @@ def view_keys(cameras: tuple[str, ...]) -> dict[str, str]:
 
 def store_cameras(attrs: Mapping[str, Any], keys: Iterable[str] | None = None) -> tuple[str, ...]:
     """The views of a store with root attributes ``attrs`` (and, when given, data arrays
-    ``keys``, checked to hold every view). A store without ``cameras`` has one view."""
+    ``keys``, checked to hold every view). A store without ``cameras`` has one view, named by
+    its ``camera`` attribute (its last dotted part, without ``img_``: ``observation.images.top``
+    and ``img_top`` are ``top``), else :data:`DEFAULT_CAMERA`."""
     raw = attrs.get("cameras")
     if raw is None:
         name = attrs.get("camera")
         name = name.rsplit(".", 1)[-1].lower() if isinstance(name, str) else DEFAULT_CAMERA
+        name = name[len(VIEW_PREFIX):] if name.startswith(VIEW_PREFIX) else name  # a store's view imported alone
         cameras: tuple[str, ...] = (name if _NAME.fullmatch(name) else DEFAULT_CAMERA,)
     elif isinstance(raw, list | tuple):
         cameras = check_cameras(raw, "the store's 'cameras' attribute")

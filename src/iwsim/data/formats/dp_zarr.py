@@ -119,7 +119,9 @@ def _pick(arrays: dict[str, zarr.Array], src: Path, camera: str | None,
         by_name = dict(zip(every.names, every.sources)) if every is not None else {}
         if camera not in arrays and camera not in by_name:
             raise FormatError(f"{where(src, f'data/{camera}')}: no such array; data/ holds {have}.")
-        cams = SourceViews.of([camera if camera in arrays else by_name[camera]])
+        key = camera if camera in arrays else by_name[camera]
+        named = {k: n for n, k in by_name.items()}  # the view's own name where the store names it
+        cams = SourceViews.of([key], [named[key]] if key in named and "cameras" in attrs else None)
     elif IMAGE_KEY in arrays and not _is_image(arrays[IMAGE_KEY]):
         cams = SourceViews.of([IMAGE_KEY])  # refused below, naming it
     elif every is None:
@@ -196,7 +198,7 @@ def read_zarr(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tup
     attrs.update({
         "task": str(source.get("task") or src.name.removesuffix(".zarr")),
         "fps": positive_int(source.get("fps")) or ZARR_FPS,
-        **cams.attrs(),
+        **(cams.attrs() if len(cams.names) > 1 or "cameras" not in source else {"camera": cams.names[0]}),
         "image_size": int(h) if h == w else [int(h), int(w)],
     })
     seeds = source.get("seeds")
