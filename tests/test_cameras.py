@@ -361,3 +361,11 @@ def test_one_view_of_a_two_view_store_imports_under_its_name(tmp_path: Path):
         one = import_("zarr", two, tmp_path / f"{view}.zarr", camera=view, image_size=None, progress=False)
         assert store_cameras(one.attrs, one.keys) == (view,) and one.attrs["task"] == "pusht"
         np.testing.assert_array_equal(one.episode(0)["img"], src.episode(0)[key])
+
+
+def test_demonstrations_recorded_in_a_two_view_model_are_scored_on_the_top_view(two_view_model, tmp_path: Path):
+    out = tmp_path / "demos.zarr"
+    assert main(["demos", "--world-model", str(two_view_model["checkpoint"]), "--episodes", "1", "--steps", "4",
+                 "--accept-iou", "0", "--tail", "0", "--batch", "1", "--out", str(out), "--no-progress"]) == 0
+    s = EpisodeStore.open(out)
+    assert s.n_episodes == 1 and s.episode(0)["img"].shape == (4, 64, 64, 3)  # the first view (top) only, for now

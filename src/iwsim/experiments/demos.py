@@ -76,6 +76,7 @@ from tqdm import tqdm
 from iwsim.core.checkpoint import check_finite_output
 from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore, attrs_mismatch
+from iwsim.data.views import first_view
 from iwsim.envs import IMAGE_SIZES
 from iwsim.envs.collect import store_attrs
 from iwsim.envs.registry import ANY_EXPERTS, REGISTRY, get_task
@@ -475,7 +476,7 @@ class _Scores:
         self.first = np.full(len(handover), np.inf)  # first step from the handover whose frame reached accept_iou
 
     def __call__(self, obs: dict[str, np.ndarray]) -> bool:
-        self.ious.append(np.atleast_1d(_pixel_score(self.task, obs["pixels"])))
+        self.ious.append(np.atleast_1d(_pixel_score(self.task, first_view(obs["pixels"]))))  # the scorer's view
         t = len(self.ious)
         reached = (self.ious[-1] >= self.accept_iou) & (t >= self.handover)
         self.first = np.where(np.isinf(self.first) & reached, t, self.first)
