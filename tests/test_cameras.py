@@ -363,9 +363,18 @@ def test_one_view_of_a_two_view_store_imports_under_its_name(tmp_path: Path):
         np.testing.assert_array_equal(one.episode(0)["img"], src.episode(0)[key])
 
 
-def test_demonstrations_recorded_in_a_two_view_model_are_scored_on_the_top_view(two_view_model, tmp_path: Path):
+def test_demonstrations_in_a_two_view_model_record_every_view_scored_on_the_top_one(two_view_model, tmp_path: Path):
+    from iwsim.envs.pusht.pixels import pixel_iou
+
     out = tmp_path / "demos.zarr"
-    assert main(["demos", "--world-model", str(two_view_model["checkpoint"]), "--episodes", "1", "--steps", "4",
-                 "--accept-iou", "0", "--tail", "0", "--batch", "1", "--out", str(out), "--no-progress"]) == 0
+    argv = ["demos", "--world-model", str(two_view_model["checkpoint"]), "--episodes", "2", "--steps", "4",
+            "--accept-iou", "0", "--tail", "0", "--batch", "2", "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
     s = EpisodeStore.open(out)
-    assert s.n_episodes == 1 and s.episode(0)["img"].shape == (4, 64, 64, 3)  # the first view (top) only, for now
+    assert s.n_episodes == 2 and store_cameras(s.attrs, s.keys) == ("top", "side")
+    ep = s.episode(0)
+    assert ep["img"].shape == ep["img_side"].shape == (4, 64, 64, 3)
+    assert not np.array_equal(ep["img"], ep["img_side"])
+    np.testing.assert_allclose(ep["iou"], pixel_iou(ep["img"]), atol=1e-6)  # scored on the top view
+    assert main([*argv[:4], "3", *argv[5:]]) == 0  # resumes
+    assert EpisodeStore.open(out).n_episodes == 3

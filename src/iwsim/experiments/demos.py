@@ -76,7 +76,7 @@ from tqdm import tqdm
 from iwsim.core.checkpoint import check_finite_output
 from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore, attrs_mismatch
-from iwsim.data.views import first_view
+from iwsim.data.views import IMAGE_KEY, VIEW_PREFIX, first_view, unstack_views, view_keys
 from iwsim.envs import IMAGE_SIZES
 from iwsim.envs.collect import store_attrs
 from iwsim.envs.registry import ANY_EXPERTS, REGISTRY, get_task
@@ -183,12 +183,12 @@ class DemoStats:
 def demo_attrs(env: str, steps: int, image_size: int, world_model: str | None, seed: int, accept_iou: float,
                tail: int | None, dart_noise: float = 0.0, start: str = "random",
                demonstrator: str = "expert", task: Task = PUSHT, takeover: str | None = None,
-               takeover_steps: tuple[int, int] = (40, 200)) -> dict[str, Any]:
+               takeover_steps: tuple[int, int] = (40, 200), cameras: tuple[str, ...] = ("top",)) -> dict[str, Any]:
     """Root attributes of a demonstration store of ``task``: ``iwsim collect``'s (the task
     spec, policy, steps, ...) plus the teleoperator, the source and the acceptance rule (and
     with ``takeover`` the policy that drives first, its fingerprint and ``takeover_steps``)."""
     where = WORLD_MODEL if env == WORLD_MODEL else "simulator"
-    return {**store_attrs(task.kind, POLICY_NAMES[where], steps, image_size), "source": SOURCES[where],
+    return {**store_attrs(task.kind, POLICY_NAMES[where], steps, image_size, cameras), "source": SOURCES[where],
             "world_model": world_model, "world_model_sha256": None if world_model is None else fingerprint(world_model),
             "teleoperator": f"{demonstrator} ({task.pixel_reading} from pixels)", "demonstrator": demonstrator,
             "keys": list(episode_keys(task)), "first_seed": seed, "accept_iou": accept_iou, "tail_steps": tail,
@@ -256,7 +256,8 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     policy = None if takeover is None else _takeover_policy(takeover, task, image_size)
     wm_name = None if world_model is None or env != WORLD_MODEL else os.fspath(world_model)
     attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise), start,
-                       demonstrator, task, None if takeover is None else os.fspath(takeover), takeover_steps)
+                       demonstrator, task, None if takeover is None else os.fspath(takeover), takeover_steps,
+                       ("top",) if model is None else tuple(model.cameras))
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs, task),
                                      blank=lambda s: not s.attrs.get("candidates_tried"),
                                      wait=wait_for_lock) as store:
@@ -289,8 +290,10 @@ class _NoisyExecution:
 
     obs_horizon = n_action_steps = 1
 
-    def __init__(self, noise: float, seeds: list[int], demonstrator: str, task: Task) -> None:
-        self.expert, self.noise, self.seeds, self.task = ScriptedBatch(demonstrator, task), noise, seeds, task
+    def __init__(self, noise: float, seeds: list[int], demonstrator: str, task: Task,
+                 cameras: tuple[str, ...] | None = None) -> None:
+        self.expert, self.noise, self.seeds, self.task = ScriptedBatch(demonstrator, task, cameras), noise, seeds, task
+        self.cameras = cameras
 
     def reset(self) -> None:
         self.expert.reset()
@@ -315,6 +318,7 @@ class _Takeover:
     def __init__(self, policy: Policy, seeds: list[int], takeover_steps: tuple[int, int], demonstrator: str,
                  task: Task) -> None:
         self.policy, self.demonstrator, self.task = policy, demonstrator, task
+        self.cameras = policy.cameras if policy.views > 1 else None  # the views the policy and the experts see
         self.obs_horizon = policy.obs_horizon
         self.handover = np.array([handover_step(s, takeover_steps) for s in seeds])
 
@@ -336,7 +340,7 @@ class _Takeover:
         for i in np.flatnonzero(self.handover <= self.t):
             expert = self.experts[i]
             if expert is None:
-                expert = self.experts[i] = ScriptedBatch(self.demonstrator, self.task)
+                expert = self.experts[i] = ScriptedBatch(self.demonstrator, self.task, self.cameras)
             now = {"image": obs["image"][i:i + 1, -1:], "agent_pos": obs["agent_pos"][i:i + 1, -1:]}
             action[i] = expert.predict_action(now)[0, 0]
         self.t += 1
@@ -408,27 +412,29 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: 
         seeds = [seed + tried + i for i in range(n)]
         t0 = time.perf_counter()
         expert: ScriptedBatch | _NoisyExecution | _Takeover
+        views = None if model is None or len(model.cameras) == 1 else tuple(model.cameras)  # every view is recorded
         if takeover is not None:
             expert = _Takeover(takeover, seeds, takeover_steps, demonstrator, task)
             seed_sampling(seeds)  # the policy's sampling noise: a rerun records the same takes
         elif dart_noise:
-            expert = _NoisyExecution(dart_noise, seeds, demonstrator, task)
+            expert = _NoisyExecution(dart_noise, seeds, demonstrator, task, views)
         else:
-            expert = ScriptedBatch(demonstrator, task)
+            expert = ScriptedBatch(demonstrator, task, views)
         handover = expert.handover if isinstance(expert, _Takeover) else np.zeros(n, int)
         scores = _Scores(task, handover, accept_iou, tail)
         run = rollout(expert, env, seeds, steps, world_model=model,
                       image_size=store.attrs["image_size"], record=n, progress=progress, stop=scores, start=start)
         if isinstance(expert, _NoisyExecution):  # dart_noise
             run["action"] = np.stack(expert.clean, 1)  # the labels: what the expert meant
-        ious = np.stack([_pixel_score(task, run["frames"][:, 0]), *scores.ious], 1).astype(np.float32)  # (n, T + 1)
+        ious = np.stack([_pixel_score(task, run["frames"][:, 0, ..., :3]), *scores.ious], 1).astype(np.float32)
         for i, s in enumerate(seeds):
             tried += 1
             take = ious[i, handover[i]:]  # the expert's part; a take that starts solved shows nothing
             max_ious.append(round(float(take.max()), 4))
             if take.max() >= accept_iou and (takeover is None or take[0] < accept_iou):
                 if s not in kept_seeds:
-                    store.append(_episode(run, ious, i, accept_iou, tail, score_key(task), handover[i]), seed=s)
+                    store.append(_episode(run, ious, i, accept_iou, tail, score_key(task), handover[i],
+                                          views or ("top",)), seed=s)
                     kept_seeds.add(s)
                     bar.update()
                 if store.n_episodes >= episodes and tried >= last_kept:
@@ -484,14 +490,17 @@ class _Scores:
 
 
 def _episode(run: dict[str, Any], ious: np.ndarray, i: int, accept_iou: float, tail: int | None,
-             key: str, handover: int = 0) -> dict[str, np.ndarray]:
+             key: str, handover: int = 0, cameras: tuple[str, ...] = ("top",)) -> dict[str, np.ndarray]:
     """Episode ``i`` of a rollout in the store's layout (its pixel scores ``ious`` under
     ``key``) from step ``handover``, cut ``tail`` steps after its first frame from there
     scoring >= ``accept_iou`` (to the end with ``tail=None``)."""
     first = handover + int(np.argmax(ious[i, handover:] >= accept_iou))
     steps = run["action"].shape[1]  # the steps run (a batch stops once no episode needs more)
     t = steps if tail is None else min(first + tail, steps)
-    return {"img": run["frames"][i, handover:t], "state": run["agent_pos"][i, handover:t].astype(np.float32),
+    frames = run["frames"][i, handover:t]
+    views = unstack_views(frames, frames.shape[-1] // 3)  # several views: img, then img_<camera> (their order)
+    return {**dict(zip([IMAGE_KEY, *(f"{VIEW_PREFIX}{c}" for c in cameras[1:])], views, strict=True)),
+            "state": run["agent_pos"][i, handover:t].astype(np.float32),
             "action": run["action"][i, handover:t].astype(np.float32),
             "target": run["target"][i, handover:t].astype(np.float32), key: ious[i, handover:t]}
 
@@ -555,7 +564,7 @@ def _check_existing(store: EpisodeStore, attrs: dict[str, Any], task: Task) -> N
     mismatch = attrs_mismatch(store, attrs, keys, absent=OLDER_ATTRS)
     if mismatch:
         raise InputError(f"{store.path} holds demonstrations with {mismatch}; choose another store.")
-    arrays = episode_keys(task)
+    arrays = (*episode_keys(task), *list(view_keys(tuple(attrs["cameras"])).values())[1:])
     if store.n_episodes and set(store.keys) != set(arrays):
         raise InputError(f"{store.path} holds arrays {store.keys}, not the recorded {sorted(arrays)}; "
                          "choose another store.")

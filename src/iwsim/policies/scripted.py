@@ -92,8 +92,12 @@ class ScriptedBatch:
     n_action_steps = 1
     kind = "scripted"
 
-    def __init__(self, cfg: ScriptedConfig | str = "expert", task: Task | str | None = None, **overrides) -> None:
-        """``task``: whose scripted policies (a Task or a built-in task's name; None: T-push's)."""
+    def __init__(self, cfg: ScriptedConfig | str = "expert", task: Task | str | None = None,
+                 cameras: tuple[str, ...] | None = None, **overrides) -> None:
+        """``task``: whose scripted policies (a Task or a built-in task's name; None: T-push's).
+        ``cameras``: the views it is given (stacked along the channels, so that a rollout
+        records every view); it reads the first, as the task's pixel scorer (None: one view)."""
+        self.cameras = cameras
         self.cfg = ScriptedConfig(cfg, **overrides) if isinstance(cfg, str) else cfg
         self.task = DEFAULT_TASK() if task is None else get_task(task) if isinstance(task, str) else task
         if self.cfg.kind not in (*self.task.pixel_policies, STILL):
@@ -112,6 +116,8 @@ class ScriptedBatch:
     def predict_action(self, obs: dict) -> np.ndarray:
         """obs: image (B, 1, H, W, 3) uint8 and agent_pos (B, 1, 4) -> actions (B, 1, 4) float32."""
         image, pos = np.asarray(obs["image"]), np.asarray(obs["agent_pos"], dtype=np.float32)
+        if self.cameras is not None and image.ndim == 5 and image.shape[-1] == 3 * len(self.cameras):
+            image = image[..., :3]  # the first view
         if image.ndim != 5 or image.shape[-1] != 3 or image.dtype != np.uint8 or pos.ndim != 3 or pos.shape[-1] != 4:
             raise InputError(f"scripted policies take image (B, T, H, W, 3) uint8 and agent_pos (B, T, 4), got "
                              f"{image.shape} {image.dtype} and {pos.shape}.")
