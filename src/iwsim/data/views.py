@@ -88,7 +88,7 @@ def split_views(pixels: Any, cameras: tuple[str, ...]) -> dict[str, Any]:
     """An observation's ``pixels`` as {view: frame}: one array is the only view's frame, a
     mapping must name exactly ``cameras``."""
     if isinstance(pixels, Mapping):
-        if tuple(pixels) != cameras and set(pixels) != set(cameras):
+        if set(pixels) != set(cameras):
             raise InputError(f"expected the views {list(cameras)}, got {list(pixels)}.")
         return {name: pixels[name] for name in cameras}
     if len(cameras) != 1:

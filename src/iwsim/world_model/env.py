@@ -38,6 +38,7 @@ run in lockstep (all start together and are truncated together after
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +48,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from iwsim.core.errors import InputError
-from iwsim.data.views import stack_views, tile_views, unstack_views
+from iwsim.data.views import split_views, stack_views, tile_views, unstack_views
 from iwsim.envs.registry import StoreStarts, get_task, task_of
 from iwsim.envs.task import Start, Task
 from iwsim.world_model import StreamState, WorldModel
@@ -151,10 +152,8 @@ class Views:
         """Frames given as ``pixels`` are ({camera: frame} or, for one view, a frame) -> (..., H, W, 3V)."""
         if len(self.cameras) == 1:
             return np.asarray(pixels)
-        if isinstance(pixels, dict):
-            if set(pixels) != set(self.cameras):
-                raise InputError(f"expected frames of the views {list(self.cameras)}, got {list(pixels)}.")
-            return stack_views([np.asarray(pixels[c]) for c in self.cameras])
+        if isinstance(pixels, Mapping):
+            return stack_views([np.asarray(v) for v in split_views(pixels, self.cameras).values()])
         return np.asarray(pixels)  # already stacked (checked by the model)
 
     def picture(self, frames: np.ndarray) -> np.ndarray:
