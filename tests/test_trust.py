@@ -50,6 +50,20 @@ def test_signals_summaries_and_the_error_ranking():
     assert trust.spearman(np.ones(5), np.arange(5)) is None  # a constant signal ranks nothing
 
 
+def test_the_command_lead_is_the_larger_pushers_distance_in_half_views():
+    task = get_task("pusht")  # its points: (lx, ly) and (rx, ry)
+    pos = np.zeros((2, 3, 4))
+    cmd = pos.copy()
+    cmd[0, 1, :2] = (0.03, 0.04)  # the left pusher's setpoint 50 mm ahead
+    cmd[1, 2, 2:] = (0.0, -0.1)  # the right one's 100 mm
+    lead = task.command_lead(cmd, pos)
+    np.testing.assert_allclose(lead, np.array([[0, 0.05, 0], [0, 0, 0.1]]) / task.view_half)
+    assert Task("generic", (0.0,) * 4, (1.0,) * 4).command_lead(cmd, pos) is None  # no positions declared
+    assert task.command_lead(cmd, pos[..., :2]) is None  # a state in another space
+    s = episode_signals(None, None, np.linspace(0, 1, 101)[None].repeat(2, 0))
+    np.testing.assert_allclose(s["command_lead"], [0.9, 0.9])  # the episode's 90th percentile
+
+
 def test_the_error_predictor_recovers_a_linear_error_and_the_calibration_flags_it():
     rng = np.random.default_rng(0)
     x = {"a": rng.normal(size=400), "b": rng.normal(size=400), "noise": rng.normal(size=400)}
@@ -69,6 +83,9 @@ def test_a_world_model_rollout_measures_plausibility_and_other_samples(one_threa
     run = rollout(ScriptedBatch("still"), "world-model", [0, 1], 5, world_model=wm, progress=False,
                   plausibility_every=2)
     assert run["plausibility"].shape == (2, 3) and np.all((run["plausibility"] >= 0) & (run["plausibility"] <= 1))
+    lead = run["command_lead"]  # the still pushers' commands are where they are
+    assert lead.shape == (2, 5) and np.all(lead < 1e-3)
+    assert rollout(ScriptedBatch("still"), "pusht", [0], 2, progress=False)["command_lead"] is None  # MuJoCo's: none
     assert rollout(ScriptedBatch("still"), "world-model", [0], 2, world_model=wm, progress=False)[
         "plausibility"] is None  # not asked
     def frames(offset: int) -> np.ndarray:
@@ -98,9 +115,10 @@ def test_eval_policy_reports_the_trust_signals(play_store, tmp_path, capsys, one
                  "--samples", "2", "--episodes", "2", "--steps", "10", "--videos", "0",
                  "--out", str(tmp_path / "ev"), "--no-progress"]) == 0
     printed = capsys.readouterr().out
-    assert "plausibility:" in printed and "samples:" in printed
+    assert "plausibility:" in printed and "samples:" in printed and "command lead:" in printed
     result = json.loads((tmp_path / "ev" / "results.json").read_text())
     assert len(result["implausibility"]["per_episode"]) == 2 and len(result["sample_spread"]["per_episode"]) == 2
+    assert len(result["command_lead"]["per_episode"]) == 2
     assert main(["eval", "policy", "--checkpoint", str(pol), "--env", "pusht", "--samples", "2",
                  "--episodes", "1", "--steps", "2", "--videos", "0", "--out", str(tmp_path / "ev2")]) == 1
     assert "--samples applies to --env world-model" in capsys.readouterr().err

@@ -139,6 +139,11 @@ def _eval_policy(args: argparse.Namespace) -> int:
         spread = result["sample_spread"]
         print(f"samples: {args.samples} samples of the model per first state differ by {spread['mean']:.3f} on "
               f"average; {100 * spread['above_warn']:.0f}% of episodes by more than {spread['warn']:g}")
+    if "command_lead" in result:
+        lead = result["command_lead"]
+        print(f"command lead: the policy's commands run {lead['mean']:.3f} of the half view ahead of the robot it "
+              f"saw (each episode's 90th percentile, averaged); {100 * lead['above_warn']:.0f}% of episodes beyond "
+              f"{lead['warn']:g}, pressing where the model's training data rarely went")
     if "novelty" in result:
         nov = result["novelty"]
         print(f"novelty: {nov['mean']:.2f} on average (about 1 on the model's training data); "

@@ -290,6 +290,20 @@ class Task:
         del frames
         return None
 
+    def command_lead(self, commands: np.ndarray, agent_pos: np.ndarray) -> np.ndarray | None:
+        """How far each command (..., A) runs ahead of where the robot was when it was
+        given (``agent_pos`` (..., A)): per step the largest distance over the
+        ``action_points``, in units of ``view_half`` (..., ); None where the task declares no
+        positions in the image or its ``agent_pos`` is not in the commands' space. A policy
+        that presses its setpoints far beyond the robot (a learned policy against a block)
+        drives a world model where its training data rarely went."""
+        commands, agent_pos = np.asarray(commands, np.float64), np.asarray(agent_pos, np.float64)
+        if not self.action_points or self.view_half is None or agent_pos.shape != commands.shape:
+            return None
+        gap = commands - agent_pos
+        lead = np.stack([np.hypot(gap[..., x], gap[..., y]) for x, y in self.action_points], -1)
+        return lead.max(-1) / self.view_half
+
     def observe(self, frames: np.ndarray, setpoint: np.ndarray, previous: np.ndarray
                 ) -> tuple[np.ndarray | None, np.ndarray]:
         """Scores (B,) of frames (B, H, W, 3) (None without a scorer) and ``agent_pos``

@@ -188,8 +188,11 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
     ``info``: the environment's per-step info arrays named in ``keep`` (E, T + 1, ...), from the reset on.
     ``plausibility`` (E, K): with ``plausibility_every`` > 0, the task's
     :meth:`~iwsim.envs.task.Task.plausibility` of every such step's frames from the first
-    on, else (or for a task that cannot tell) None. ``noise_offset``: in a world model,
-    another sample of the same episodes (the model's noise seeds shifted by it)."""
+    on, else (or for a task that cannot tell) None. ``command_lead`` (E, T): in a world
+    model, how far each command runs ahead of the robot the policy saw
+    (:meth:`~iwsim.envs.task.Task.command_lead`), else (or for a task that cannot tell) None.
+    ``noise_offset``: in a world model, another sample of the same episodes (the model's
+    noise seeds shifted by it)."""
     if noise_offset and env != WORLD_MODEL:
         raise InputError("another sample (noise_offset) applies to a world model; MuJoCo has one outcome.")
     cameras = getattr(policy, "cameras", None)  # a learned policy's views (a scripted one has none)
@@ -257,12 +260,15 @@ def rollout(policy: PolicyLike, env: str, seeds: list[int], steps: int, *, world
         seconds = time.perf_counter() - t0
     finally:
         venv.close()
+    # each command against the pushers the policy saw when it gave it
+    lead = task.command_lead(np.stack(actions, 1), np.stack(positions[:-1], 1)) \
+        if env == WORLD_MODEL and actions else None
     return {"iou": None if task.score_name is None else np.stack(ious, 1), "scorer": task.score_name,
             "score_key": key, "task": task.name, "success_score": task.success_score,
             "frames": np.stack(frames, 1) if record else None,
             "agent_pos": np.stack(positions, 1), "action": np.stack(actions, 1), "target": np.stack(targets, 1),
             "novelty": np.stack(novelty, 1) if novelty else None,
-            "plausibility": np.stack(plausible, 1) if plausible else None,
+            "plausibility": np.stack(plausible, 1) if plausible else None, "command_lead": lead,
             "info": {k: np.stack(v, 1) for k, v in kept.items()},
             "seconds": seconds}
 
@@ -326,7 +332,7 @@ def trust(run: dict[str, Any], sample_max_scores: list[np.ndarray] | None = None
     :func:`rollout` (and the max scores of its other samples, :func:`sampled_rollout`):
     per signal each episode's value, their mean and the share of episodes above its warning
     level (``novelty``'s :data:`NOVELTY_WARN`); nothing for MuJoCo."""
-    out = trust_summary(episode_signals(run["plausibility"], sample_max_scores))
+    out = trust_summary(episode_signals(run["plausibility"], sample_max_scores, run.get("command_lead")))
     if run["novelty"] is not None:
         per_episode = run["novelty"].mean(1)
         out["novelty"] = {"per_episode": np.round(per_episode, 3).tolist(), "mean": float(per_episode.mean()),

@@ -10,6 +10,10 @@ episode's error |model score - real score|, known without the real episode.
 - ``sample_spread``: the range of the episode's max score over several samples of the
   model (the same policy from the same first state, the model's noise drawn again): where
   the data pins the outcome down the samples agree.
+- ``command_lead``: how far the policy's commands run ahead of where the model shows the
+  robot (:meth:`~iwsim.envs.task.Task.command_lead`, in units of the task's half view), the
+  episode's 90th percentile over its steps: a policy pressing its setpoints far beyond a
+  blocked pusher drives the model where its training data rarely went.
 - ``disagreement`` (:func:`iwsim.eval.policy.disagreement`): the same against a second
   model trained differently.
 
@@ -37,16 +41,22 @@ SAMPLE_OFFSET = 0x9E3779B1
 # Above these an episode's score is flagged as least to be trusted: a mean T fit below the
 # yardstick's "crisp" 0.9 (iwsim.yardstick.families.CRISP), a spread as large as the
 # ensemble's DISAGREE_WARN.
-WARN = {"implausibility": 0.1, "implausibility_worst": 0.25, "sample_spread": 0.2}
-SIGNALS = ("novelty", "implausibility", "implausibility_worst", "sample_spread", "disagreement")
+# command_lead: 0.1 of the half view is 26 mm on the tabletop tasks, the most the play and
+# expert data lead their pushers by (bench/probes/setpoint_gap.py).
+WARN = {"implausibility": 0.1, "implausibility_worst": 0.25, "sample_spread": 0.2, "command_lead": 0.1}
+SIGNALS = ("novelty", "implausibility", "implausibility_worst", "sample_spread", "command_lead", "disagreement")
+LEAD_QUANTILE = 90  # the percentile of an episode's per-step command lead that is its signal
 
 
-def episode_signals(plausibility: np.ndarray | None, sample_max_scores: list[np.ndarray] | None
-                    ) -> dict[str, np.ndarray]:
+def episode_signals(plausibility: np.ndarray | None, sample_max_scores: list[np.ndarray] | None,
+                    command_lead: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The signals an evaluation measures itself, per episode (E,): from the plausibility
-    of its frames (E, K) (``rollout``'s, None when the task cannot tell) and the max
-    scores (E,) of each of two or more samples of the model (None: one sample)."""
+    of its frames (E, K) (``rollout``'s, None when the task cannot tell), the max scores
+    (E,) of each of two or more samples of the model (None: one sample) and each step's
+    command lead (E, T) (``rollout``'s, None when the task cannot tell)."""
     out: dict[str, np.ndarray] = {}
+    if command_lead is not None and command_lead.shape[-1]:
+        out["command_lead"] = np.percentile(np.asarray(command_lead, np.float64), LEAD_QUANTILE, axis=-1)
     if plausibility is not None:
         p = np.asarray(plausibility, np.float64)
         out["implausibility"] = 1.0 - p.mean(1)

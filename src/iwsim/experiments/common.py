@@ -41,7 +41,7 @@ from iwsim.envs.registry import DEFAULT_TASK, get_task, task_from_config, task_o
 from iwsim.envs.task import Task
 from iwsim.eval.policy import WORLD_MODEL, sampled_rollout, summarize, trust
 from iwsim.eval.records import command_line
-from iwsim.eval.trust import PLAUSIBILITY_EVERY
+from iwsim.eval.trust import PLAUSIBILITY_EVERY, SIGNALS
 from iwsim.policies import PRESETS, PolicyStageConfig, config_class
 from iwsim.policies.data import Source
 from iwsim.policies.factory import checkpoint_dir, load_policy
@@ -345,7 +345,7 @@ def evaluate_policies(policies: Mapping[str, PolicySource], env: str, *, seeds: 
         key = {"policy": _describe(source), "env": env, "seeds": seeds, "steps": steps,
                "world_model_sha256": wm_sha256}  # identities by content: the same files at another path match
         if wm is not None:  # the trust signals a world-model evaluation measures (iwsim.eval.trust)
-            key.update(plausibility_every=PLAUSIBILITY_EVERY, samples=samples)
+            key.update(plausibility_every=PLAUSIBILITY_EVERY, samples=samples, signals=list(SIGNALS))
         if path.is_file() and load_json(path).get("key") == key:
             results[name] = load_json(path)
         else:
