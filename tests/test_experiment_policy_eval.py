@@ -247,6 +247,10 @@ def test_a_tiny_study_with_paired_estimates(inputs, tmp_path, capsys):
     md = (tmp_path / "out" / "results.md").read_text()
     assert "## Paired estimates" in md and "| 2 |" in md
     assert "--paired-episodes 2" in report["command"]
+    assert (tmp_path / "out" / "paired.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    weighted = paired["trust_weighted"]["command_lead"]  # the model distrusted where its commands press ahead
+    assert set(weighted["by_n"]["2"]["policies"]) == set(rows) and 0 <= weighted["by_n"]["2"]["coverage"] <= 1
+    assert "Distrusted where `command_lead`" in md and "Per policy (95% intervals" in md
     for bad, says in (("1", "--paired-episodes must be counts in 2..2"), ("a,b", "takes counts N,N")):
         assert main(_argv(inputs, tmp_path, "--paired-episodes", bad)) == 1
         assert says in capsys.readouterr().err

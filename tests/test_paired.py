@@ -6,7 +6,7 @@ import pytest
 from scipy import stats
 
 from iwsim.core.errors import InputError
-from iwsim.eval.paired import paired_estimate, paired_rate, power_tuned_lambda
+from iwsim.eval.paired import distrust, paired_estimate, paired_rate, power_tuned_lambda
 
 
 def test_a_model_without_error_gives_its_own_mean_and_a_constant_bias_is_removed_exactly():
@@ -129,3 +129,36 @@ def test_eval_policy_paired_with_real_episodes_and_its_refusals(tmp_path, capsys
     assert main([*base, "--checkpoint", str(dp), "--episodes", "1", "--paired", str(real),
                  "--out", str(tmp_path / "mujoco")]) == 1
     assert "--paired applies to --env world-model" in capsys.readouterr().err
+
+
+def test_distrusted_states_keep_the_models_level_not_its_variation():
+    f = np.array([0.2, 0.4, 0.9, 0.5, 0.7])
+    u = np.array([0.0, 0.3, 0.05, 0.5, 0.1])
+    np.testing.assert_allclose(distrust(f, u, 0.2), [0.2, 0.45, 0.9, 0.45, 0.7])  # the warned two: their mean
+    np.testing.assert_array_equal(distrust(f, u, 1.0), f)  # none warned: the model as it is
+    flat = distrust(f, u, -1.0)  # all warned: the model says nothing per state, the pairs alone decide
+    y = np.array([0.1, 0.3])
+    out = paired_estimate(flat, y, [0, 3])
+    assert out["estimate"] == pytest.approx(y.mean())
+    with pytest.raises(InputError, match="one per model episode"):
+        distrust(f, u[:3], 0.2)
+
+
+def test_distrusting_where_the_model_errs_narrows_the_interval_and_keeps_it_valid():
+    """Synthetic policy: the model tracks the real score on half the states and is noise on
+    the others, which a signal flags; distrusting them keeps coverage and narrows."""
+    rng = np.random.default_rng(5)
+    reps, big_n, n, truth = 2000, 20, 5, 0.5
+    covered, plain, weighted = 0, [], []
+    for _ in range(reps):
+        y_all = np.clip(truth + rng.normal(0, 0.25, big_n), -1, 2)
+        bad = np.arange(big_n) % 2 == 1
+        f = np.where(bad, rng.uniform(0, 1, big_n), y_all + 0.1)
+        idx = rng.choice(big_n, n, replace=False)
+        a = paired_estimate(f, y_all[idx], idx)
+        b = paired_estimate(distrust(f, bad.astype(float), 0.5), y_all[idx], idx)
+        covered += b["interval"][0] <= truth <= b["interval"][1]
+        plain.append(a["std_error"])
+        weighted.append(b["std_error"])
+    assert covered / reps >= 0.93, covered / reps
+    assert np.median(weighted) < np.median(plain)

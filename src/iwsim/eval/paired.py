@@ -26,6 +26,12 @@ n - 2 with a fitted slope), which is conservative when the unpaired term matters
 synthetic policies the 95% interval covers 96-100% of the time for n = 2-10).
 ``effective_n`` is how many real episodes alone would give the estimate's variance. Success
 rates are the same estimator on 0/1 scores, their interval clipped to [0, 1].
+
+A per-episode trust signal (:mod:`iwsim.eval.trust`) known for all N model episodes can
+weight the model state by state (:func:`distrust`): where the signal warns, the model's
+episode score is replaced by its mean over the warned states, so the estimate keeps the
+model's level for those states but not its per-episode variation there. The replacement
+is a function of the model's episodes alone, so the estimate stays unbiased.
 """
 
 from __future__ import annotations
@@ -108,3 +114,19 @@ def paired_rate(model: Sequence[bool], real: Sequence[bool], paired: Sequence[in
     """:func:`paired_estimate` of a success rate (0/1 outcomes), its interval clipped to [0, 1]."""
     return paired_estimate(np.asarray(model, np.float64), np.asarray(real, np.float64), paired, level,
                            bounds=(0.0, 1.0))
+
+
+def distrust(model: Sequence[float] | np.ndarray, signal: Sequence[float] | np.ndarray, warn: float) -> np.ndarray:
+    """``model`` (N,) scores with those of the states whose trust ``signal`` (N,) is above
+    ``warn`` replaced by their mean: the model's level kept where it is least to be trusted,
+    its per-episode variation dropped (where every state warns, the estimate is the paired
+    real episodes' own mean)."""
+    f = np.asarray(model, np.float64).copy()
+    u = np.asarray(signal, np.float64)
+    if u.shape != f.shape or not np.isfinite(u).all():
+        raise InputError(f"the trust signal must be {len(f)} finite numbers, one per model episode, got shape "
+                         f"{u.shape}.")
+    warned = u > warn
+    if warned.any():
+        f[warned] = f[warned].mean()
+    return f

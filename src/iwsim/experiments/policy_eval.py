@@ -46,10 +46,10 @@ from iwsim.data.store import EpisodeStore
 from iwsim.envs.registry import foreign_task, get_task
 from iwsim.envs.task import Task
 from iwsim.eval.figures import pyplot, save_figure
-from iwsim.eval.paired import METHOD, paired_estimate
+from iwsim.eval.paired import METHOD, distrust, paired_estimate
 from iwsim.eval.policy import WORLD_MODEL, check_args
 from iwsim.eval.ranking import agreement
-from iwsim.eval.trust import SIGNALS
+from iwsim.eval.trust import SIGNALS, WARN
 from iwsim.experiments.common import (
     STUDY,
     STUDY_TASK,
@@ -83,6 +83,9 @@ FLAGS = {"world_model": "--world-model", "episodes": "--episodes", "steps": "--s
          "demos": "--demos", "demo_episodes": "--demo-episodes", "small_demos": "--small-demos",
          "paired": "--paired-episodes", "holdout_episodes": "--holdout-episodes"}
 HOLDOUT_SEED_OFFSET = 10_000  # the held-out MuJoCo first states start this far after the study's own
+# Per-episode trust signals that also weight the paired estimates (iwsim.eval.paired.distrust):
+# those every world-model evaluation measures.
+TRUST_WEIGHTS = ("command_lead", "implausibility")
 
 
 def envs(task: Task) -> tuple[str, str]:
@@ -340,6 +343,8 @@ def _run_policy_eval(cfg: PolicyEvalConfig, task: Task, out: Path, work: Path, r
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "results.json", report, sort_keys=False)
     scatter(report, out / "scatter.png")
+    if holdout is not None:
+        paired_figure(report, out / "paired.png")
     write_text_atomic(out / "results.md", markdown(report))
     log.info("policy-eval: %s -> %s", headline(report), out)
     return report
@@ -359,27 +364,45 @@ def paired_report(cfg: PolicyEvalConfig, results: dict[str, dict[str, dict[str, 
                            "holdout_seeds": [cfg.seed + HOLDOUT_SEED_OFFSET, cfg.seed + HOLDOUT_SEED_OFFSET
                                              + cfg.holdout_episodes - 1], "method": METHOD, "by_n": {}}
     truth = {name: float(holdout[name][f"mean_max_{key}"]) for name in names}
+    model = {name: np.array([e[f"max_{key}"] for e in results[proxy][name]["episodes"]]) for name in names}
+    real = {name: [e[f"max_{key}"] for e in results[reference][name]["episodes"]] for name in names}
     for n in cfg.paired:
-        rows = {}
-        for name in names:
-            model = [e[f"max_{key}"] for e in results[proxy][name]["episodes"]]
-            real = [e[f"max_{key}"] for e in results[reference][name]["episodes"]][:n]
-            est = paired_estimate(model, real, list(range(n)), bounds=(0.0, 1.0))  # the scores lie in [0, 1]
-            lo, hi = est["interval"]
-            alone = float(stats.t.ppf(0.975, n - 1) * np.std(real, ddof=1) / math.sqrt(n))
-            rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
-                          "truth": truth[name], "covered": bool(lo <= truth[name] <= hi),
-                          "half_width": (hi - lo) / 2, "half_width_mujoco_alone": alone}
-        widths = [(r["half_width"], r["half_width_mujoco_alone"]) for r in rows.values()
-                  if r["half_width_mujoco_alone"] > 0]
-        out["by_n"][str(n)] = {
-            "policies": rows, "coverage": float(np.mean([r["covered"] for r in rows.values()])),
+        out["by_n"][str(n)] = _paired_rows(model, real, truth, n, task)
+    # the same with the model distrusted state by state where a trust signal warns (iwsim.eval.paired.distrust)
+    for signal in TRUST_WEIGHTS:
+        if all(signal in results[proxy][name] for name in names):
+            u = {name: np.asarray(results[proxy][name][signal]["per_episode"]) for name in names}
+            weighted = {name: distrust(model[name], u[name], WARN[signal]) for name in names}
+            out.setdefault("trust_weighted", {})[signal] = {
+                "warn": WARN[signal],
+                "by_n": {str(n): _paired_rows(weighted, real, truth, n, task) for n in cfg.paired},
+                "warned_share": {name: float(np.mean(u[name] > WARN[signal])) for name in names}}
+    return out
+
+
+def _paired_rows(model: dict[str, np.ndarray], real: dict[str, list[float]], truth: dict[str, float], n: int,
+                 task: Task) -> dict[str, Any]:
+    """Every policy's paired estimate from its ``model`` scores (N,) and the first ``n`` of
+    its ``real`` ones, judged against ``truth``: the per-policy rows, the coverage, the
+    widths against n real episodes alone and the ranking of the estimates."""
+    rows = {}
+    for name in model:
+        y = real[name][:n]
+        est = paired_estimate(model[name], y, list(range(n)), bounds=(0.0, 1.0))  # the scores lie in [0, 1]
+        lo, hi = est["interval"]
+        alone = float(stats.t.ppf(0.975, n - 1) * np.std(y, ddof=1) / math.sqrt(n))
+        rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
+                      "truth": truth[name], "covered": bool(lo <= truth[name] <= hi),
+                      "half_width": (hi - lo) / 2, "half_width_mujoco_alone": alone}
+    widths = [(r["half_width"], r["half_width_mujoco_alone"]) for r in rows.values()
+              if r["half_width_mujoco_alone"] > 0]
+    names = list(model)
+    return {"policies": rows, "coverage": float(np.mean([r["covered"] for r in rows.values()])),
             "median_half_width": float(np.median([r["half_width"] for r in rows.values()])),
             "median_half_width_ratio": float(np.median([a / b for a, b in widths])) if widths else None,
             "agreement": agreement([truth[m] for m in names], [rows[m]["estimate"] for m in names],
                                    labels=(f"held-out MuJoCo mean max {task.score_name}s",
                                            f"paired estimates (n={n})"))}
-    return out
 
 
 def _agreement(policies: list[dict[str, Any]], task: Task) -> dict[str, dict[str, Any]]:
@@ -486,7 +509,8 @@ def markdown(report: dict[str, Any]) -> str:
     t = report["timings"]
     lines += ["", "## Time", ""]
     lines += [f"- {k.removesuffix('_s').replace('_', ' ')}: {v / 60:.1f} min" for k, v in t.items()]
-    lines += ["", f"({report['note']})", "", "Plot: `scatter.png`.", ""]
+    plots = "`scatter.png`" + (", the paired estimates `paired.png`" if report.get("paired") else "")
+    lines += ["", f"({report['note']})", "", f"Plots: {plots}.", ""]
     return "\n".join(lines)
 
 
@@ -497,10 +521,34 @@ def _paired_markdown(paired: dict[str, Any] | None, name: str | None) -> list[st
     lo, hi = paired["holdout_seeds"]
     lines = ["", "## Paired estimates (the model corrected by n MuJoCo episodes of the same first states)", "",
              f"Judged against MuJoCo's mean max {name} over {paired['holdout_episodes']} held-out first states "
-             f"(seeds {lo}-{hi}). {paired['method']}.", "",
-             "| n | coverage of the 95% intervals | median half-width | against n MuJoCo episodes alone | "
-             "Pearson r | Spearman rho | MMRV |", "|---|---|---|---|---|---|---|"]
-    for n, r in paired["by_n"].items():
+             f"(seeds {lo}-{hi}). {paired['method']}.", "", *PAIRED_HEADER, *_paired_table(paired["by_n"])]
+    for signal, t in paired.get("trust_weighted", {}).items():
+        warned = np.mean(list(t["warned_share"].values()))
+        lines += ["", f"Distrusted where `{signal}` > {t['warn']:g} ({warned:.0%} of the model's episodes): the "
+                  "model's episode scores there replaced by their mean over those episodes (still unbiased):", "",
+                  *PAIRED_HEADER, *_paired_table(t["by_n"])]
+    ns = list(paired["by_n"])
+    first = paired["by_n"][ns[0]]["policies"]
+    lines += ["", "Per policy (95% intervals; * : the interval misses the held-out mean):", "",
+              "| policy | held-out MuJoCo | " + " | ".join(f"n = {n}" for n in ns) + " |",
+              "|---|---|" + "---|" * len(ns)]
+    for policy in sorted(first, key=lambda m: -first[m]["truth"]):
+        cells = [policy, f"{first[policy]['truth']:.3f}"]
+        for n in ns:
+            r = paired["by_n"][n]["policies"][policy]
+            cells.append(f"{r['estimate']:.3f} ({r['interval'][0]:.2f}-{r['interval'][1]:.2f})"
+                         f"{'' if r['covered'] else ' *'}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+PAIRED_HEADER = ("| n | coverage of the 95% intervals | median half-width | against n MuJoCo episodes alone | "
+                 "Pearson r | Spearman rho | MMRV |", "|---|---|---|---|---|---|---|")
+
+
+def _paired_table(by_n: dict[str, Any]) -> list[str]:
+    lines = []
+    for n, r in by_n.items():
         a, ratio = r["agreement"], r["median_half_width_ratio"]
         lines.append(f"| {n} | {r['coverage']:.0%} | {r['median_half_width']:.3f} | "
                      f"{'-' if ratio is None else f'{ratio:.2f}x'} | {_fmt(a['pearson'])} | "
@@ -553,5 +601,48 @@ def scatter(report: dict[str, Any], path: Path) -> None:
     s = report["scale"]
     fig.suptitle(f"{s['policies']} policies x {s['episodes']} episodes x {s['steps']} steps; 95% intervals "
                  f"(max {task.score_name}: bootstrap; success: Clopper-Pearson)", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def paired_figure(report: dict[str, Any], path: Path) -> None:
+    """One panel per n of the paired estimates: each policy's estimate of its real mean max
+    score with its 95% interval against MuJoCo's mean over the held-out first states (a
+    hollow marker: the interval misses it), the model's own score beside it (grey), the
+    y = x line, and the coverage, half-width and ranking in the title."""
+    plt = pyplot()
+    paired, task = report["paired"], report_task(report)
+    by_n = paired["by_n"]
+    proxy = envs(task)[1]
+    kinds = {p["name"]: p["kind"] for p in report["policies"]}
+    own = {p["name"]: p[proxy][f"mean_max_{score_key(task)}"] for p in report["policies"]}
+    fig, axes = plt.subplots(1, len(by_n), figsize=(5.2 * len(by_n), 5.4), squeeze=False)
+    for ax, (n, r) in zip(axes[0], by_n.items()):
+        for name, row in r["policies"].items():
+            color = COLORS.get(kinds.get(name, ""), "black")
+            lo, hi = row["interval"]
+            x, y = row["truth"], row["estimate"]
+            ax.plot([x, x], [own[name], y], color="grey", lw=0.5, alpha=0.6)
+            ax.plot(x, own[name], "x", color="grey", ms=4)
+            ax.errorbar(x, y, yerr=[[max(y - lo, 0)], [max(hi - y, 0)]], fmt="o", color=color, ms=5,
+                        mfc=color if row["covered"] else "white", elinewidth=0.9, capsize=2)
+        for kind, color in COLORS.items():
+            if kind in kinds.values():
+                ax.plot([], [], "o", color=color, label=kind)
+        ax.plot([], [], "x", color="grey", label="the model's own score")
+        ax.plot([], [], "o", color="black", mfc="white", label="interval misses the held-out mean")
+        ax.plot([0, 1], [0, 1], color="grey", lw=0.8, ls="--")
+        ax.set_xlim(-0.03, 1.03)
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"MuJoCo mean max {task.score_name}, {paired['holdout_episodes']} held-out first states")
+        ax.set_ylabel(f"paired estimate (n = {n}), 95% interval")
+        a, ratio = r["agreement"], r["median_half_width_ratio"]
+        ax.set_title(f"n = {n}: coverage {r['coverage']:.0%}, half-width {r['median_half_width']:.3f}"
+                     f"{'' if ratio is None else f' ({ratio:.2f}x MuJoCo alone)'}\nr = {_fmt(a['pearson'], 2)}, "
+                     f"rho = {_fmt(a['spearman'], 2)}, MMRV = {_fmt(a['mmrv'], 3)}", fontsize=9)
+        ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"{len(kinds)} policies: the model's score corrected by n paired MuJoCo episodes "
+                 "(prediction-powered, Student t)", fontsize=9)
     fig.tight_layout()
     save_figure(fig, path)
