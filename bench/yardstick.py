@@ -34,6 +34,13 @@ For each model, on one thread by default (about 20 minutes a model on this CPU):
    against the codec's rendering of MuJoCo's (the share back within 0.02 of it), and the
    pose error.
 
+With ``--paired-episodes N,N,...`` the families part also judges the paired estimates
+(:mod:`iwsim.eval.paired`): each family is a policy whose real mean max IoU is estimated
+from the model's episodes and MuJoCo's first N of the same first states, against MuJoCo's
+mean over ``--paired-holdout`` other first states (seeds from
+:data:`iwsim.yardstick.families.HOLDOUT_SEED`): the intervals' coverage, their width
+against N MuJoCo episodes alone, and the ranking of the estimates.
+
 ``--parts`` picks which of these to run (``families,idle`` alone: about 20 minutes a
 model); a model's row keeps the parts measured before.
 
@@ -53,6 +60,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from iwsim.commands.common import numbers
 from iwsim.core.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
 from iwsim.core.errors import InputError, check_positive, reporting_errors
 from iwsim.core.resources import set_threads
@@ -111,6 +119,9 @@ def generalisation(name: str, ckpt: str, args: argparse.Namespace, work: Path, m
                                         args.jobs, samples=args.trust_samples)
     result = fam.compare(mujoco["families"], scores, seen, signals)
     result.update(seen=seen, scores=scores, signals=signals, minutes=(time.perf_counter() - t0) / 60)
+    if args.paired_episodes:
+        result["paired"] = fam.paired_families(mujoco["families"], scores, mujoco["families_holdout"],
+                                               args.paired_episodes, signals)
     return result
 
 
@@ -259,6 +270,7 @@ def generalisation_markdown(report: dict) -> list[str]:
             rho = "undefined" if t["spearman_error"] is None else f"{t['spearman_error']:.2f}"
             lines.append(f"| {pair} | {rho} | {t['episodes']} |")
     lines += trust_markdown(rows)
+    lines += paired_markdown(rows)
     for n, r in rows.items():
         g = r.get("generalisation")
         if not g:
@@ -272,6 +284,49 @@ def generalisation_markdown(report: dict) -> list[str]:
                          f"{row['offset']:+.3f} [{lo:+.2f}, {hi:+.2f}] | {'seen' if row['seen'] else 'unseen'} "
                          f"| {nov} |")
     return lines
+
+
+def paired_markdown(rows: dict) -> list[str]:
+    """The paired estimates of each model with them: per n the coverage, the widths and the
+    ranking of the estimates beside the model's own scores, then per family."""
+    lines: list[str] = []
+    for n, r in rows.items():
+        pr = (r.get("generalisation") or {}).get("paired")
+        if not pr:
+            continue
+        lines += ["", f"Paired estimates of `{n}`: each family's real mean max IoU from the model's episodes and "
+                  f"MuJoCo's first n of the same first states, judged against MuJoCo's mean over "
+                  f"{pr['holdout_episodes']} other first states (seeds from {pr['holdout_seed']}); {pr['method']}. "
+                  "Targets: coverage >= 90%, half-width <= 0.75x of n MuJoCo episodes alone, r >= 0.9 and "
+                  "MMRV <= 0.05 at n = 5.", "",
+                  "| n | weighting | coverage | median half-width | against n MuJoCo alone | r (the model's own) | "
+                  "MMRV (the model's own) |", "|---|---|---|---|---|---|---|"]
+        parts = {"the model as it is": pr["by_n"], **{f"distrusted where `{s}` > {t['warn']:g}": t["by_n"]
+                                                    for s, t in pr.get("trust_weighted", {}).items()}}
+        for k in pr["by_n"]:
+            for what, by_n in parts.items():
+                j = by_n[k]
+                a, m, ratio = j["agreement"], j["agreement_model"], j["median_half_width_ratio"]
+                lines.append(f"| {k} | {what} | {j['coverage']:.0%} | {j['median_half_width']:.3f} | "
+                             f"{'-' if ratio is None else f'{ratio:.2f}x'} | {fmt(a['pearson'])} ({fmt(m['pearson'])}) "
+                             f"| {fmt(a['mmrv'], 3)} ({fmt(m['mmrv'], 3)}) |")
+        ks = list(pr["by_n"])
+        lines += ["", "| family | held-out MuJoCo | model | " + " | ".join(f"n = {k}" for k in ks) + " |",
+                  "|---|---|---|" + "---|" * len(ks)]
+        first = pr["by_n"][ks[0]]["policies"]
+        for f, row in first.items():
+            cells = [f, f"{row['truth']:.3f}", f"{row['model']:.3f}"]
+            for k in ks:
+                e = pr["by_n"][k]["policies"][f]
+                cells.append(f"{e['estimate']:.3f} ({e['interval'][0]:.2f}-{e['interval'][1]:.2f})"
+                             f"{'' if e['covered'] else ' *'}")
+            lines.append("| " + " | ".join(cells) + " |")
+        lines += ["", "(* : the interval misses the held-out mean.)"]
+    return lines
+
+
+def fmt(x: float | None, digits: int = 2) -> str:
+    return "undefined" if x is None else f"{x:.{digits}f}"
 
 
 def novelty_rho(trust: dict) -> str:
@@ -441,6 +496,10 @@ def main(argv: list[str] | None = None) -> int:
                    "each family episode's |MODEL - PARTNER| against MODEL's error (both with the families part)")
     p.add_argument("--merge", nargs="*", default=[], help="reports (results.json) of yardstick runs made side by "
                    "side into other --out directories: their models' rows join this report's")
+    p.add_argument("--paired-episodes", help="N,N,...: judge the paired estimates of each family from its first N "
+                   "first states in both (e.g. 2,5,10; default: none)")
+    p.add_argument("--paired-holdout", type=int, default=50, help="MuJoCo episodes per family, from other first "
+                   "states, that judge the paired estimates (default: %(default)s)")
     p.add_argument("--work", default="runs/yardstick", help="cache (default: %(default)s)")
     p.add_argument("--out", default="bench/results/yardstick", help="report directory (default: %(default)s)")
     args = p.parse_args(argv)
@@ -451,7 +510,14 @@ def main(argv: list[str] | None = None) -> int:
     if not args.zoo and fam.LEARNED in args.families:
         args.families.remove(fam.LEARNED)
     check_positive(args, "episodes", "steps", "candidates", "stability_steps", "horizon", "speed_calls", "threads",
-                   "trust_samples", "jobs", "family_seeds", "idle_episodes", "rest_episodes")
+                   "trust_samples", "jobs", "family_seeds", "idle_episodes", "rest_episodes", "paired_holdout")
+    if args.paired_episodes is not None:
+        args.paired_episodes = list(numbers("--paired-episodes", args.paired_episodes, int, "counts N,N,..."))
+        if not all(2 <= n <= args.family_seeds for n in args.paired_episodes):
+            raise InputError(f"--paired-episodes must be counts in 2..{args.family_seeds} (--family-seeds), got "
+                             f"{args.paired_episodes}.")
+        if "families" not in parts:
+            raise InputError("--paired-episodes judges the families part: add families to --parts.")
     models = named_checkpoints(args.models)
     for name, ckpt in models.items():
         check_model_task(WorldModel.load(ckpt), PUSHT, f"--models {name}={ckpt}")
@@ -496,6 +562,9 @@ def main(argv: list[str] | None = None) -> int:
         mujoco["families"] = fam.family_scores(None, work, args.families, args.family_seeds, args.steps, args.zoo,
                                                args.jobs)[0]
         report.update(family_seeds=args.family_seeds)
+        if args.paired_episodes:
+            mujoco["families_holdout"] = fam.family_scores(None, work, args.families, args.paired_holdout, args.steps,
+                                                           args.zoo, args.jobs, first_seed=fam.HOLDOUT_SEED)[0]
     if "idle" in parts:
         mujoco["idle"] = {k: v for k, v in fam.idle(None, work, args.idle_episodes).items() if k != "pose"}
         report.update(idle_episodes=args.idle_episodes)

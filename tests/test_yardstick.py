@@ -75,7 +75,7 @@ def test_yardstick_families_and_idle_run_on_a_tiny_model(play_store, tmp_path):
     cmd = [sys.executable, str(ROOT / "bench" / "yardstick.py"), "--models", f"tiny={ckpt}", f"partner={partner}",
            "--parts", "families,idle", "--steps", "4", "--family-seeds", "3", "--idle-episodes", "2",
            "--zoo", str(zoo), "--trained-on", "tiny=play", "--trust-pairs", "tiny=partner",
-           "--work", str(tmp_path / "work"), "--out", str(out)]
+           "--paired-episodes", "2,3", "--paired-holdout", "2", "--work", str(tmp_path / "work"), "--out", str(out)]
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     r = json.loads((out / "results.json").read_text())
@@ -92,8 +92,16 @@ def test_yardstick_families_and_idle_run_on_a_tiny_model(play_store, tmp_path):
     assert r["mujoco"]["idle"]["fit_first"] > 0.8  # MuJoCo's own frames fit the T
     pair = r["trust_pairs"]["tiny=partner"]
     assert pair["episodes"] == 3 * len(FAMILIES) and set(pair["families"]) == set(FAMILIES)
+    paired = g["paired"]  # each family's paired estimate, judged on 2 other first states (issue 66)
+    assert paired["holdout_episodes"] == 2 and set(paired["by_n"]) == {"2", "3"}
+    assert len(r["mujoco"]["families_holdout"]["expert"]) == 2
+    for row in paired["by_n"]["3"]["policies"].values():
+        lo, hi = row["interval"]
+        assert lo <= row["estimate"] <= hi and row["covered"] == (lo <= row["truth"] <= hi)
+    assert set(paired["trust_weighted"]) == {"command_lead", "implausibility"}
     md = (out / "results.md").read_text()
     assert "## Generalisation" in md and "| tiny |" in md and "| miss |" in md and "| tiny=partner |" in md
+    assert "Paired estimates of `tiny`" in md and "distrusted where `command_lead` > 0.1" in md
 
 
 def test_yardstick_refuses_bad_input_in_one_line_before_any_work(tmp_path, capsys):
@@ -113,7 +121,9 @@ def test_yardstick_refuses_bad_input_in_one_line_before_any_work(tmp_path, capsy
                         (["--trust-pairs", "a=nobody"], "--trust-pairs takes MODEL=PARTNER, two models of --models "
                                                         "or of the report, got 'a=nobody' ('nobody' unknown)."),
                         (["--merge", str(tmp_path / "broken.json")], "--merge report"),
-                        (["--merge", str(tmp_path / "list.json")], "is not a report of bench/yardstick.py")):
+                        (["--merge", str(tmp_path / "list.json")], "is not a report of bench/yardstick.py"),
+                        (["--paired-episodes", "1,5"], "--paired-episodes must be counts in 2..24"),
+                        (["--paired-episodes", "5", "--parts", "core"], "judges the families part")):
         models = ["--models", f"a={tpush}"] + ([flags.pop(0)] if "=" in flags[0] else [])
         argv = [*models, *flags, "--work", str(tmp_path / "work"), "--out", str(out)]
         code = yardstick.reporting_errors("yardstick.py", lambda argv=argv: yardstick.main(argv))

@@ -37,19 +37,24 @@ is a function of the model's episodes alone, so the estimate stays unbiased.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from iwsim.core.errors import InputError
+from iwsim.eval.ranking import agreement
+from iwsim.eval.trust import WARN
 
 METHOD = ("prediction-powered (PPI; PPI++ power tuning from 5 pairs, lam in [0, 1]); Student t on the paired "
           "term's degrees of freedom")
 # Pairs from which the weight is fitted; with fewer, the slope of 3-4 points costs more than
 # it saves (measured on synthetic policies: wider intervals than lam = 1).
 TUNE_FROM = 5
+# Per-episode trust signals that also weight the paired estimates (:func:`distrust`): those
+# every world-model evaluation measures, each distrusting where it passes its WARN level.
+TRUST_WEIGHTS = ("command_lead", "implausibility")
 
 
 def power_tuned_lambda(real: np.ndarray, model_paired: np.ndarray) -> float:
@@ -130,3 +135,47 @@ def distrust(model: Sequence[float] | np.ndarray, signal: Sequence[float] | np.n
     if warned.any():
         f[warned] = f[warned].mean()
     return f
+
+
+def judge_paired(model: Mapping[str, Sequence[float]], real: Mapping[str, Sequence[float]],
+                 truth: Mapping[str, float], ns: Sequence[int], label: str,
+                 signals: Mapping[str, Mapping[str, Sequence[float]]] | None = None) -> dict[str, Any]:
+    """How the paired estimates do over a set of policies: per policy its ``model`` scores
+    (N,) and its ``real`` ones of the same first states (at least max(ns)); for each n of
+    ``ns`` every policy's estimate from its first n real episodes, judged against ``truth``
+    (its real mean on other first states): whether the 95% interval covers it, its
+    half-width against n real episodes alone (Student t), and the ranking of the estimates
+    against the truths (r, rho, MMRV; ``label``: what the scores are). ``signals`` (signal
+    -> policy -> per-episode values of the model's episodes): the same again with the model
+    distrusted where each signal passes its :data:`~iwsim.eval.trust.WARN` level."""
+    out: dict[str, Any] = {"by_n": {str(n): _judge(model, real, truth, n, label) for n in ns}}
+    for signal, per_policy in (signals or {}).items():
+        u = {name: np.asarray(per_policy[name], np.float64) for name in model}
+        weighted = {name: distrust(model[name], u[name], WARN[signal]) for name in model}
+        out.setdefault("trust_weighted", {})[signal] = {
+            "warn": WARN[signal], "by_n": {str(n): _judge(weighted, real, truth, n, label) for n in ns},
+            "warned_share": {name: float(np.mean(u[name] > WARN[signal])) for name in model}}
+    return out
+
+
+def _judge(model: Mapping[str, Sequence[float] | np.ndarray], real: Mapping[str, Sequence[float]],
+           truth: Mapping[str, float], n: int, label: str) -> dict[str, Any]:
+    rows = {}
+    for name in model:
+        y = np.asarray(real[name][:n], np.float64)
+        est = paired_estimate(model[name], y, list(range(n)), bounds=(0.0, 1.0))  # the scores lie in [0, 1]
+        lo, hi = est["interval"]
+        alone = float(stats.t.ppf(0.975, n - 1) * np.std(y, ddof=1) / math.sqrt(n))
+        rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
+                      "model": float(np.mean(model[name])), "truth": float(truth[name]),
+                      "covered": bool(lo <= truth[name] <= hi), "half_width": (hi - lo) / 2,
+                      "half_width_real_alone": alone}
+    widths = [(r["half_width"], r["half_width_real_alone"]) for r in rows.values() if r["half_width_real_alone"] > 0]
+    names = list(model)
+    return {"policies": rows, "coverage": float(np.mean([r["covered"] for r in rows.values()])),
+            "median_half_width": float(np.median([r["half_width"] for r in rows.values()])),
+            "median_half_width_ratio": float(np.median([a / b for a, b in widths])) if widths else None,
+            "agreement": agreement([truth[m] for m in names], [rows[m]["estimate"] for m in names],
+                                   labels=(f"held-out real {label}", f"paired estimates (n={n})")),
+            "agreement_model": agreement([truth[m] for m in names], [float(np.mean(model[m])) for m in names],
+                                         labels=(f"held-out real {label}", f"the model's {label}"))}

@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from iwsim.core.checkpoint import write_json_atomic, write_text_atomic
 from iwsim.core.config import to_dict
@@ -46,10 +45,10 @@ from iwsim.data.store import EpisodeStore
 from iwsim.envs.registry import foreign_task, get_task
 from iwsim.envs.task import Task
 from iwsim.eval.figures import pyplot, save_figure
-from iwsim.eval.paired import METHOD, distrust, paired_estimate
+from iwsim.eval.paired import METHOD, TRUST_WEIGHTS, judge_paired
 from iwsim.eval.policy import WORLD_MODEL, check_args
 from iwsim.eval.ranking import agreement
-from iwsim.eval.trust import SIGNALS, WARN
+from iwsim.eval.trust import SIGNALS
 from iwsim.experiments.common import (
     STUDY,
     STUDY_TASK,
@@ -83,9 +82,6 @@ FLAGS = {"world_model": "--world-model", "episodes": "--episodes", "steps": "--s
          "demos": "--demos", "demo_episodes": "--demo-episodes", "small_demos": "--small-demos",
          "paired": "--paired-episodes", "holdout_episodes": "--holdout-episodes"}
 HOLDOUT_SEED_OFFSET = 10_000  # the held-out MuJoCo first states start this far after the study's own
-# Per-episode trust signals that also weight the paired estimates (iwsim.eval.paired.distrust):
-# those every world-model evaluation measures.
-TRUST_WEIGHTS = ("command_lead", "implausibility")
 
 
 def envs(task: Task) -> tuple[str, str]:
@@ -362,47 +358,13 @@ def paired_report(cfg: PolicyEvalConfig, results: dict[str, dict[str, dict[str, 
     names = list(results[proxy])
     out: dict[str, Any] = {"holdout_episodes": cfg.holdout_episodes,
                            "holdout_seeds": [cfg.seed + HOLDOUT_SEED_OFFSET, cfg.seed + HOLDOUT_SEED_OFFSET
-                                             + cfg.holdout_episodes - 1], "method": METHOD, "by_n": {}}
+                                             + cfg.holdout_episodes - 1], "method": METHOD}
     truth = {name: float(holdout[name][f"mean_max_{key}"]) for name in names}
-    model = {name: np.array([e[f"max_{key}"] for e in results[proxy][name]["episodes"]]) for name in names}
+    model = {name: [e[f"max_{key}"] for e in results[proxy][name]["episodes"]] for name in names}
     real = {name: [e[f"max_{key}"] for e in results[reference][name]["episodes"]] for name in names}
-    for n in cfg.paired:
-        out["by_n"][str(n)] = _paired_rows(model, real, truth, n, task)
-    # the same with the model distrusted state by state where a trust signal warns (iwsim.eval.paired.distrust)
-    for signal in TRUST_WEIGHTS:
-        if all(signal in results[proxy][name] for name in names):
-            u = {name: np.asarray(results[proxy][name][signal]["per_episode"]) for name in names}
-            weighted = {name: distrust(model[name], u[name], WARN[signal]) for name in names}
-            out.setdefault("trust_weighted", {})[signal] = {
-                "warn": WARN[signal],
-                "by_n": {str(n): _paired_rows(weighted, real, truth, n, task) for n in cfg.paired},
-                "warned_share": {name: float(np.mean(u[name] > WARN[signal])) for name in names}}
-    return out
-
-
-def _paired_rows(model: dict[str, np.ndarray], real: dict[str, list[float]], truth: dict[str, float], n: int,
-                 task: Task) -> dict[str, Any]:
-    """Every policy's paired estimate from its ``model`` scores (N,) and the first ``n`` of
-    its ``real`` ones, judged against ``truth``: the per-policy rows, the coverage, the
-    widths against n real episodes alone and the ranking of the estimates."""
-    rows = {}
-    for name in model:
-        y = real[name][:n]
-        est = paired_estimate(model[name], y, list(range(n)), bounds=(0.0, 1.0))  # the scores lie in [0, 1]
-        lo, hi = est["interval"]
-        alone = float(stats.t.ppf(0.975, n - 1) * np.std(y, ddof=1) / math.sqrt(n))
-        rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
-                      "truth": truth[name], "covered": bool(lo <= truth[name] <= hi),
-                      "half_width": (hi - lo) / 2, "half_width_mujoco_alone": alone}
-    widths = [(r["half_width"], r["half_width_mujoco_alone"]) for r in rows.values()
-              if r["half_width_mujoco_alone"] > 0]
-    names = list(model)
-    return {"policies": rows, "coverage": float(np.mean([r["covered"] for r in rows.values()])),
-            "median_half_width": float(np.median([r["half_width"] for r in rows.values()])),
-            "median_half_width_ratio": float(np.median([a / b for a, b in widths])) if widths else None,
-            "agreement": agreement([truth[m] for m in names], [rows[m]["estimate"] for m in names],
-                                   labels=(f"held-out MuJoCo mean max {task.score_name}s",
-                                           f"paired estimates (n={n})"))}
+    signals = {signal: {name: results[proxy][name][signal]["per_episode"] for name in names}
+               for signal in TRUST_WEIGHTS if all(signal in results[proxy][name] for name in names)}
+    return {**out, **judge_paired(model, real, truth, cfg.paired, f"mean max {task.score_name}s", signals)}
 
 
 def _agreement(policies: list[dict[str, Any]], task: Task) -> dict[str, dict[str, Any]]:

@@ -33,6 +33,7 @@ import torch
 from iwsim.core.checkpoint import load_json, write_json_atomic
 from iwsim.envs.pusht import pixels
 from iwsim.envs.registry import DEFAULT_TASK, get_task
+from iwsim.eval.paired import METHOD, TRUST_WEIGHTS, judge_paired
 from iwsim.eval.policy import rollout
 from iwsim.eval.ranking import agreement
 from iwsim.eval.trust import SIGNALS, ErrorPredictor, calibration, spearman
@@ -43,6 +44,9 @@ from iwsim.world_model import WorldModel
 from iwsim.world_model.env import score_key
 
 SEED = 700000  # first states of the families: MuJoCo seeds SEED, SEED + 1, ...
+# Other first states of the families, in MuJoCo only: the real means that judge the paired
+# estimates (iwsim.eval.paired) made from the families' own episodes.
+HOLDOUT_SEED = 750000
 LEARNED = "learned"
 FAMILIES: dict[str, tuple[ScriptedConfig | None, str]] = {
     "expert": (ScriptedConfig("expert"), "the pixel expert"),
@@ -109,17 +113,20 @@ def zoo_sources(zoo: list[str]) -> list[str]:
 
 
 def family_scores(model: str | None, work: Path, families: list[str], seeds: int, steps: int,
-                  zoo: list[str], jobs: int = 1, task: str = DEFAULT_TASK.kind, samples: int = 1
-                  ) -> tuple[dict[str, list[float]], dict[str, dict[str, list[float]]]]:
+                  zoo: list[str], jobs: int = 1, task: str = DEFAULT_TASK.kind, samples: int = 1,
+                  first_seed: int = SEED) -> tuple[dict[str, list[float]], dict[str, dict[str, list[float]]]]:
     """Per family, the max score (T-push's IoU, ``task``'s score) of each episode (``seeds``
-    of them) in ``task``'s MuJoCo (``model`` None) or in the world model ``model``, and (in a
-    model) each episode's trust signals (:mod:`iwsim.eval.trust`: signal -> family ->
-    per-episode; ``samples`` samples of the model for the spread); cached under ``work`` by
+    of them, MuJoCo seeds from ``first_seed``) in ``task``'s MuJoCo (``model`` None) or in the
+    world model ``model``, and (in a model) each episode's trust signals
+    (:mod:`iwsim.eval.trust`: signal -> family -> per-episode; ``samples`` samples of the
+    model for the spread); cached under ``work`` by
     :func:`iwsim.experiments.common.evaluate_policies`, up to ``jobs`` families at a time."""
     env = task if model is None else "world-model"
     best = f"max_{score_key(get_task(task))}"
-    all_seeds = [SEED + i for i in range(seeds)]
+    all_seeds = [first_seed + i for i in range(seeds)]
     work = work / "families" / ("mujoco" if model is None else fingerprint(model))  # a cache per model
+    if first_seed != SEED:
+        work = work.with_name(f"{work.name}-from{first_seed}")
     sources: dict[str, Any] = {f: FAMILIES[f][0] for f in families if f != LEARNED}
     results = evaluate_policies(sources, env, seeds=all_seeds, steps=steps, world_model=model, out=work,
                                 jobs=jobs, progress=False, samples=samples)
@@ -212,6 +219,22 @@ def trust_measures(mujoco: dict[str, list[float]], model: dict[str, list[float]]
                             "per_episode_unseen": np.round(predicted, 4).tolist()}
     out["error_unseen"] = np.round(err["unseen"], 4).tolist()
     return out
+
+
+def paired_families(mujoco: dict[str, list[float]], model: dict[str, list[float]],
+                    holdout: dict[str, list[float]], ns: list[int],
+                    signals: dict[str, dict[str, list[float]]] | None = None) -> dict[str, Any]:
+    """Each family treated as a policy to evaluate: its paired estimate of the real mean max
+    IoU from the model's episodes and the first n of MuJoCo's of the same first states, for
+    each n of ``ns``, judged against MuJoCo's mean over the ``holdout`` first states
+    (:func:`iwsim.eval.paired.judge_paired`; also distrusting the model by the trust signals
+    of :data:`~iwsim.eval.paired.TRUST_WEIGHTS` found in ``signals``)."""
+    fams = [f for f in model if f in holdout]
+    weights = {n: v for n, v in (signals or {}).items() if n in TRUST_WEIGHTS and set(fams) <= set(v)}
+    out = judge_paired({f: model[f] for f in fams}, mujoco, {f: float(np.mean(holdout[f])) for f in fams}, ns,
+                       "mean max IoUs", {n: {f: v[f] for f in fams} for n, v in weights.items()})
+    return {"holdout_episodes": min(len(holdout[f]) for f in fams), "holdout_seed": HOLDOUT_SEED,
+            "method": METHOD, **out}
 
 
 def ensemble_trust(mujoco: dict[str, list[float]], model: dict[str, list[float]], partner: dict[str, list[float]]
