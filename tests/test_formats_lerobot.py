@@ -585,3 +585,73 @@ def test_views_of_other_frame_counts_are_refused(tmp_path):
     with pytest.raises(FormatError, match=r"frames 5..7 asked, the video has 6"):
         import_("lerobot-v3", src, tmp_path / "x.zarr", image_size=None, progress=False)
     assert not (tmp_path / "x.zarr").exists()
+
+
+LEROBOT_FIXTURE = Path(__file__).resolve().parent / "data" / "lerobot_two_cameras"
+AV1_TOLERANCE = 6.0  # mean absolute error of a frame after LeRobot's default AV1 at crf 30 (0..255)
+
+
+def square_centres(frames: np.ndarray, colour: np.ndarray) -> np.ndarray:
+    """(T, 2) row and column of the pixels of ``colour`` (within the codec's error) in (T, H, W, 3) frames."""
+    mask = np.abs(frames.astype(int) - colour).sum(-1) < 90
+    rows, cols = np.indices(mask.shape[1:])
+    n = mask.sum((1, 2))
+    assert n.all(), "a frame without the square"
+    return np.stack([(mask * rows).sum((1, 2)) / n, (mask * cols).sum((1, 2)) / n], 1)
+
+
+def test_a_dataset_written_by_lerobot_imports_with_both_views(tmp_path):
+    """tests/data/lerobot_two_cameras was written by LeRobot 0.4.4's own writer
+    (scripts/lerobot_two_camera_fixture.py): AV1 video, an unnamed pandas index in tasks.parquet.
+    Both cameras come back named, in order, frame by frame, and not swapped."""
+    want = np.load(LEROBOT_FIXTURE.with_suffix(".npz"))
+    assert validate(LEROBOT_FIXTURE) == ("LeRobot dataset v3.0", [])
+    out = tmp_path / "both.zarr"
+    assert main(["data", "import", "--format", "lerobot-v3", "--in", str(LEROBOT_FIXTURE), "--out", str(out),
+                 "--image-size", "0", "--no-progress"]) == 0
+    both = EpisodeStore.open(out)
+    assert both.attrs["cameras"] == ["top", "side"]
+    assert both.attrs["source_cameras"] == ["observation.images.top", "observation.images.side"]
+    assert sorted(both.keys) == ["action", "img", "img_side", "state"]
+    assert both.attrs["task"] == str(want["task"]) and both.attrs["fps"] == 10
+    assert list(both.episode_ends) == [12, 24]
+    for e in range(2):
+        ep = both.episode(e)
+        np.testing.assert_array_equal(ep["action"], want["action"][e])
+        np.testing.assert_array_equal(ep["state"], want["state"][e])
+        for key, view, other in (("img", "top", "side"), ("img_side", "side", "top")):
+            assert ep[key].shape == (12, 64, 64, 3) and ep[key].dtype == np.uint8
+            err = np.abs(ep[key].astype(int) - want[view][e]).mean(axis=(1, 2, 3))
+            assert err.max() < AV1_TOLERANCE, (e, view, err.max())
+            assert np.abs(ep[key].astype(int) - want[other][e]).mean() > 20, (e, view)  # not swapped
+            # each frame from its own time step: the square moves 4-5 px a frame
+            first = want[view][e, 0]
+            colour = first[(first != first[0, 0]).any(-1)][0]  # the square's (the corner is background)
+            shift = np.abs(square_centres(ep[key], colour) - square_centres(want[view][e], colour)).max()
+            assert shift < 1.5, (e, view, shift)
+    assert validate(out) == ("episode store", [])
+
+    assert main(["data", "import", "--format", "lerobot-v3", "--in", str(LEROBOT_FIXTURE), "--out",
+                 str(tmp_path / "side.zarr"), "--camera", "side", "--image-size", "0", "--no-progress"]) == 0
+    side = EpisodeStore.open(tmp_path / "side.zarr")
+    assert sorted(side.keys) == ["action", "img", "state"] and "cameras" not in side.attrs
+    assert side.attrs["camera"] == "observation.images.side"
+    for e in range(2):
+        np.testing.assert_array_equal(side.episode(e)["img"], both.episode(e)["img_side"])
+
+
+@pytest.mark.parametrize("layout", ["unnamed index", "named index", "column"])
+def test_v3_task_strings_are_read_from_every_tasks_parquet_layout(tmp_path, layout):
+    """LeRobot's ``write_tasks`` leaves the task index unnamed (``__index_level_0__`` in the
+    file); ours names it ``task``; a converter may write a ``task`` column. Tasks come in
+    ``task_index`` order."""
+    src = tmp_path / "ds"
+    handwritten_v3(src)
+    tasks = pd.DataFrame({"task_index": [1, 0]}, index=pd.Index(["place", "stack"]))
+    if layout == "named index":
+        tasks.index.name = "task"
+    elif layout == "column":
+        tasks = tasks.rename_axis("task").reset_index()
+    tasks.to_parquet(src / "meta/tasks.parquet")
+    attrs, _, _ = read_v3(src, camera=None)
+    assert attrs["tasks"] == ["stack", "place"] and attrs["task"] == "stack"

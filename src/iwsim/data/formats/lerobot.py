@@ -29,7 +29,9 @@ in v2.1 ``total_videos`` counts episodes x cameras). An import reads every ``vid
 Checked against LeRobot's ``src/lerobot/datasets/utils.py`` (path templates, default
 features, ``create_empty_dataset_info``), ``compute_stats.py`` (stats keys and the image
 stats' (3, 1, 1) shape in [0, 1]), ``dataset_metadata.py`` (tasks.parquet indexed by task)
-and ``video_utils.py`` (the video ``info`` block).
+and ``video_utils.py`` (the video ``info`` block); the import also against a dataset of two
+cameras that LeRobot 0.4.4's own writer made (``tests/data/lerobot_two_cameras``, AV1 video,
+written by ``scripts/lerobot_two_camera_fixture.py``).
 """
 
 from __future__ import annotations
@@ -507,6 +509,33 @@ def _attrs(info: dict, tasks: list[str], cams: SourceViews) -> dict[str, Any]:
     return attrs
 
 
+def _tasks_v3(path: Path) -> list[str]:
+    """meta/tasks.parquet's task strings in ``task_index`` order. LeRobot writes a frame of
+    ``task_index`` indexed by the task (``write_tasks``: ``tasks.to_parquet(path)``), an index
+    it leaves unnamed, so the file calls it ``__index_level_0__``; pandas' own metadata says
+    which column is the index. A plain ``task`` column is read too."""
+    from pandas.api.types import is_string_dtype
+
+    table = _read_parquet(path)
+    try:
+        frame = table.to_pandas()
+    except (ValueError, TypeError, KeyError) as e:
+        raise FormatError(f"{path}: not a table of tasks ({' '.join(str(e).split())[:120]}).") from None
+    if "task" in frame.columns:
+        names = frame["task"]
+    elif is_string_dtype(frame.index):
+        names = frame.index.to_series()
+    else:
+        return []  # no task strings (the index is a plain row number)
+    if "task_index" in frame.columns:
+        try:
+            names = names.iloc[np.argsort(frame["task_index"].to_numpy(np.int64), kind="stable")]
+        except (ValueError, TypeError):
+            raise FormatError(f"{where(path, 'task_index')}: {frame['task_index'].tolist()[:3]!r} are not "
+                              "integers.") from None
+    return [str(x) for x in names]
+
+
 def _slice(frames: np.ndarray, first: int, n: int, path: Path, e: int) -> np.ndarray:
     if first < 0 or first + n > len(frames):
         raise FormatError(f"{where(path, episode=e)}: frames {first}..{first + n - 1} asked, the video has "
@@ -527,10 +556,7 @@ def read_v3(src: Path, *, camera: str | None) -> tuple[dict, int, Iterator[tuple
     meta = pa.concat_tables([_read_parquet(p) for p in meta_files]).to_pylist()
     meta.sort(key=lambda m: m.get("episode_index", -1))
     tasks_path = src / "meta" / "tasks.parquet"
-    tasks: list[str] = []
-    if tasks_path.exists():
-        t = _read_parquet(tasks_path)
-        tasks = [str(x) for x in (t.column("task").to_pylist() if "task" in t.column_names else [])]
+    tasks = _tasks_v3(tasks_path) if tasks_path.exists() else []
     data_path, video_path = _templates(info, src, V3_DATA, V3_VIDEO, ("chunk_index", "file_index"),
                                        ("video_key", "chunk_index", "file_index"))
 
