@@ -165,7 +165,9 @@ def _judge(model: Mapping[str, Sequence[float] | np.ndarray], real: Mapping[str,
         y = np.asarray(real[name][:n], np.float64)
         est = paired_estimate(model[name], y, list(range(n)), bounds=(0.0, 1.0))  # the scores lie in [0, 1]
         lo, hi = est["interval"]
-        alone = float(stats.t.ppf(0.975, n - 1) * np.std(y, ddof=1) / math.sqrt(n))
+        # n real episodes alone: their mean's Student t interval, clipped to [0, 1] as the estimate's is
+        h = float(stats.t.ppf(0.975, n - 1) * np.std(y, ddof=1) / math.sqrt(n))
+        alone = (min(1.0, y.mean() + h) - max(0.0, y.mean() - h)) / 2
         rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
                       "model": float(np.mean(model[name])), "truth": float(truth[name]),
                       "covered": bool(lo <= truth[name] <= hi), "half_width": (hi - lo) / 2,
