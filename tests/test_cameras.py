@@ -378,3 +378,25 @@ def test_demonstrations_in_a_two_view_model_record_every_view_scored_on_the_top_
     np.testing.assert_allclose(ep["iou"], pixel_iou(ep["img"]), atol=1e-6)  # scored on the top view
     assert main([*argv[:4], "3", *argv[5:]]) == 0  # resumes
     assert EpisodeStore.open(out).n_episodes == 3
+
+
+def test_demonstrations_in_mujoco_record_every_camera_asked_for(tmp_path: Path, capsys):
+    from iwsim.envs.pusht.pixels import pixel_iou
+
+    out = tmp_path / "demos.zarr"
+    argv = ["demos", "--task", "pusht", "--cameras", "top,side", "--episodes", "1", "--steps", "3",
+            "--accept-iou", "0", "--tail", "0", "--batch", "1", "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
+    s = EpisodeStore.open(out)
+    assert s.n_episodes == 1 and store_cameras(s.attrs, s.keys) == ("top", "side")
+    ep = s.episode(0)
+    assert ep["img"].shape == ep["img_side"].shape == (3, 64, 64, 3) and not np.array_equal(ep["img"], ep["img_side"])
+    np.testing.assert_allclose(ep["iou"], pixel_iou(ep["img"]), atol=1e-6)  # scored on the top view
+    one = tmp_path / "one.zarr"  # the same take with the top camera alone: the same top frames
+    assert main([*argv[:3], "--cameras", "top", *argv[5:-2], str(one), "--no-progress"]) == 0
+    np.testing.assert_array_equal(EpisodeStore.open(one).episode(0)["img"], ep["img"])
+    capsys.readouterr()
+    assert main([*argv[:3], "--cameras", "top", *argv[5:]]) == 1  # the store records both views
+    assert "cameras=['top', 'side'], not cameras=['top']" in capsys.readouterr().err
+    assert main([*argv[:3], "--cameras", "side,top", *argv[5:]]) == 1
+    assert "the first camera must be 'top'" in capsys.readouterr().err

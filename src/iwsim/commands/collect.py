@@ -84,6 +84,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--image-size", type=int, metavar="N",
                    help=f"frame size in MuJoCo: {', '.join(map(str, IMAGE_SIZES))} (default: the task's, "
                         f"{TASK.image_size})")
+    p.add_argument("--cameras", metavar="NAMES", help="MuJoCo's views to record, comma-separated, as iwsim collect's "
+                   "(tabletop tasks: top, side; the takes are scored on the first) (default: top; in a world model, "
+                   "its own views)")
     wait_for_lock_flag(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_demos)
@@ -139,6 +142,7 @@ def _collect(args: argparse.Namespace) -> int:
 
 
 def _demos(args: argparse.Namespace) -> int:
+    from iwsim.data.views import parse_cameras
     from iwsim.envs.registry import DEFAULT_TASK, get_task
     from iwsim.eval.policy import WORLD_MODEL
     from iwsim.experiments.demos import record_demos
@@ -150,6 +154,7 @@ def _demos(args: argparse.Namespace) -> int:
         handover["takeover_steps"] = numbers("--takeover-steps", args.takeover_steps, int, "LO,HI, two steps", 2)
     if args.world_model is not None and args.image_size is not None:
         raise InputError("--image-size applies to MuJoCo; a world model renders frames of its own size.")
+    cameras = None if args.cameras is None else parse_cameras(args.cameras)
     # a batch's candidates keep every step's frame until they are judged
     check_frames_memory(f"--batch {args.batch} of --steps {args.steps}", args.batch * (args.steps + 1))
     task = None if args.task is None else get_task(args.task)
@@ -161,6 +166,6 @@ def _demos(args: argparse.Namespace) -> int:
                          max_attempts=args.max_attempts, give_up_after=args.give_up_after,
                          dart_noise=args.dart_noise, start=args.start, demonstrator=args.demonstrator,
                          takeover=args.takeover, image_size=args.image_size, progress=not args.no_progress,
-                         wait_for_lock=args.wait_for_lock, model_task=task, **handover)
+                         wait_for_lock=args.wait_for_lock, model_task=task, cameras=cameras, **handover)
     print(stats.summary())
     return 0

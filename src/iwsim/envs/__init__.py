@@ -9,6 +9,7 @@ Gymnasium envs over a learned world model live with the model, in
 from __future__ import annotations
 
 import os
+from collections import OrderedDict
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before any task module imports mujoco: headless rendering
 
@@ -30,7 +31,9 @@ def pixels_space(image_size: int, cameras: tuple[str, ...] = ("top",)) -> gym.sp
     """An observation's ``pixels``: one (H, W, 3) uint8 frame, or {camera: frame} with several
     cameras (gym-aloha's convention; LeRobot reads either as ``observation.image(s)``)."""
     frame = gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
-    return frame if len(cameras) == 1 else gym.spaces.Dict({c: frame for c in cameras})
+    # in the cameras' order (a plain dict would be sorted by name, putting "side" before "top"): the
+    # first is the view a pixel scorer and a scripted pixel policy read (iwsim.data.views.first_view)
+    return frame if len(cameras) == 1 else gym.spaces.Dict(OrderedDict((c, frame) for c in cameras))
 
 
 def check_task(task: str) -> str:

@@ -105,7 +105,7 @@ def collect(
     simulator's views to record (the first in ``data/img``, :mod:`iwsim.data.views`).
     """
     _check_args(task, policy, episodes, steps, image_size, workers, seed, scripted=recorder is None)
-    cameras = _check_cameras(task, cameras, recorder is None)
+    cameras = check_task_cameras(task, cameras, recorder is None)
     out = Path(out)
     attrs = store_attrs(task, policy, steps, image_size, cameras)
     if out.exists():
@@ -222,8 +222,9 @@ def _record(job: Job) -> dict[str, np.ndarray]:
     return get_task(task).record_episode(policy, seed, steps, image_size, cameras)
 
 
-def _check_cameras(task: str, cameras: tuple[str, ...], scripted: bool) -> tuple[str, ...]:
-    """``cameras`` checked against the task's simulator (a recorder records what it records)."""
+def check_task_cameras(task: str, cameras: tuple[str, ...], scripted: bool = True) -> tuple[str, ...]:
+    """``cameras`` checked against the task's simulator (``scripted`` False: a recorder of
+    its own, which records what it records)."""
     names = check_cameras(cameras, "--cameras")
     have = get_task(task).cameras
     if scripted and names != (DEFAULT_CAMERA,):

@@ -78,7 +78,7 @@ from iwsim.core.errors import InputError
 from iwsim.data.store import EpisodeStore, attrs_mismatch
 from iwsim.data.views import IMAGE_KEY, VIEW_PREFIX, first_view, unstack_views, view_keys
 from iwsim.envs import IMAGE_SIZES
-from iwsim.envs.collect import store_attrs
+from iwsim.envs.collect import check_task_cameras, store_attrs
 from iwsim.envs.registry import ANY_EXPERTS, REGISTRY, get_task
 from iwsim.envs.task import Task
 from iwsim.eval.policy import ENVS, MAX_SEED, WORLD_MODEL, check_model_task, rollout, seed_sampling
@@ -101,10 +101,10 @@ SOURCES = {WORLD_MODEL: "world_model", "simulator": "mujoco"}
 # by another path (another working directory, a trailing slash, a copy) resume the store.
 MATCHING_ATTRS = ("task", "policy", "image_size", "steps", "world_model_sha256", "first_seed",
                   "accept_iou", "tail_steps", "dart_noise", "start", "demonstrator",
-                  "takeover_sha256", "takeover_steps")
+                  "takeover_sha256", "takeover_steps", "cameras")
 # What stores written before an attribute existed hold.
 OLDER_ATTRS = {"dart_noise": 0.0, "start": "random", "demonstrator": "expert", "takeover": None,
-               "takeover_sha256": None, "takeover_steps": None}
+               "takeover_sha256": None, "takeover_steps": None, "cameras": ["top"]}
 # What a recipe may name, over every registered task (a recording checks its own task's).
 ANY_STARTS = tuple(dict.fromkeys(s for make in REGISTRY.values() for s in make().starts))
 EXTRA_ATTEMPTS = 4  # default max_attempts: this many candidates per wanted episode
@@ -207,7 +207,8 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
                  dart_noise: float = 0.0, start: str = "random", demonstrator: str = "expert",
                  takeover: str | os.PathLike | None = None, takeover_steps: tuple[int, int] = (40, 200),
                  image_size: int | None = None, progress: bool = True,
-                 wait_for_lock: bool = False, model_task: Task | None = None) -> DemoStats:
+                 wait_for_lock: bool = False, model_task: Task | None = None,
+                 cameras: tuple[str, ...] | None = None) -> DemoStats:
     """Record scripted demonstrations into the store ``out`` until it holds ``episodes``
     accepted ones or ``max_attempts`` candidates (default ``4 * episodes``) were tried
     (see the module docstring), or, with ``give_up_after``, until the store holds nothing
@@ -229,8 +230,9 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
     trained policy (checkpoint or run, of the store's frame size) drives each candidate
     until a step drawn from its seed in ``takeover_steps`` (lo, hi; 0 <= lo <= hi < steps),
     then the demonstrator takes over and only its part is stored (HG-DAgger, Kelly et al.
-    2019; see the module docstring): takes from the states a learned policy reaches. Returns
-    the store's :class:`DemoStats`."""
+    2019; see the module docstring): takes from the states a learned policy reaches.
+    ``cameras``: MuJoCo's views to record (None: the task's first; a world model records
+    its own views, and a takeover policy must see these). Returns the store's :class:`DemoStats`."""
     max_attempts = EXTRA_ATTEMPTS * episodes if max_attempts is None else max_attempts
     _check_args(env, episodes, steps, seed, world_model, accept_iou, tail, batch, max_attempts, give_up_after,
                 image_size)
@@ -244,25 +246,34 @@ def record_demos(env: str, out: str | os.PathLike, episodes: int, steps: int, se
         assert world_model is not None  # _check_args checks it
         model = WorldModel.load(world_model)
         task, image_size = check_model_task(model, model_task, f"world model {world_model}"), model.image_size
+        if cameras is not None and tuple(cameras) != tuple(model.cameras):
+            raise InputError(f"--cameras {','.join(cameras)}: a world model records its own views, "
+                             f"{','.join(model.cameras)}.")
+        cameras = tuple(model.cameras)
     else:
         task = get_task(env)
         image_size = image_size or task.image_size
         _check_choice("start", start, task.starts)
+        cameras = check_task_cameras(env, cameras or task.cameras[:1])
     _check_choice("demonstrator", demonstrator, task.pixel_experts)
     accept_iou = task.success_score if accept_iou is None else accept_iou
     if accept_iou is None:
         raise InputError(f"task {task.name!r} has no success score; give accept_iou.")
     assert image_size is not None  # a task with a simulator has a frame size
     policy = None if takeover is None else _takeover_policy(takeover, task, image_size)
+    if policy is not None and max(len(policy.cameras), len(cameras)) > 1 and tuple(policy.cameras) != cameras:
+        raise InputError(f"--takeover {takeover} sees the views {','.join(policy.cameras)}; the takes record "
+                         f"{','.join(cameras)}: the policy must see the views it hands over.")
     wm_name = None if world_model is None or env != WORLD_MODEL else os.fspath(world_model)
     attrs = demo_attrs(env, steps, image_size, wm_name, seed, float(accept_iou), tail, float(dart_noise), start,
                        demonstrator, task, None if takeover is None else os.fspath(takeover), takeover_steps,
-                       ("top",) if model is None else tuple(model.cameras))
+                       cameras)
     with EpisodeStore.open_or_create(Path(out), attrs, check=lambda s: _check_existing(s, attrs, task),
                                      blank=lambda s: not s.attrs.get("candidates_tried"),
                                      wait=wait_for_lock) as store:
         return _record_into(store, env, model, task, episodes, steps, seed, accept_iou, tail, batch, max_attempts,
-                            give_up_after, float(dart_noise), start, demonstrator, policy, takeover_steps, progress)
+                            give_up_after, float(dart_noise), start, demonstrator, policy, takeover_steps, progress,
+                            cameras)
 
 
 def _takeover_policy(path: str | os.PathLike, task: Task, image_size: int) -> Policy:
@@ -382,7 +393,7 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: 
                  seed: int,
                  accept_iou: float, tail: int | None, batch: int, max_attempts: int, give_up_after: int | None,
                  dart_noise: float, start: str, demonstrator: str, takeover: Policy | None,
-                 takeover_steps: tuple[int, int], progress: bool) -> DemoStats:
+                 takeover_steps: tuple[int, int], progress: bool, cameras: tuple[str, ...]) -> DemoStats:
     a = store.attrs
     # The candidates whose scores the store records. A run killed between an append and the
     # attribute update below kept takes of candidates it did not record: those are tried
@@ -412,7 +423,7 @@ def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: 
         seeds = [seed + tried + i for i in range(n)]
         t0 = time.perf_counter()
         expert: ScriptedBatch | _NoisyExecution | _Takeover
-        views = None if model is None or len(model.cameras) == 1 else tuple(model.cameras)  # every view is recorded
+        views = cameras if len(cameras) > 1 else None  # every view is recorded
         if takeover is not None:
             expert = _Takeover(takeover, seeds, takeover_steps, demonstrator, task)
             seed_sampling(seeds)  # the policy's sampling noise: a rerun records the same takes
