@@ -299,17 +299,20 @@ def paired_markdown(rows: dict) -> list[str]:
                   f"{pr['holdout_episodes']} other first states (seeds from {pr['holdout_seed']}); {pr['method']}. "
                   "Targets: coverage >= 90%, half-width <= 0.75x of n MuJoCo episodes alone, r >= 0.9 and "
                   "MMRV <= 0.05 at n = 5.", "",
-                  "| n | weighting | coverage | median half-width | against n MuJoCo alone | r (the model's own) | "
-                  "MMRV (the model's own) |", "|---|---|---|---|---|---|---|"]
+                  "| n | weighting | coverage (n MuJoCo alone) | median half-width | against n MuJoCo alone | "
+                  "r (the model's own; n MuJoCo alone) | MMRV (the model's own; n MuJoCo alone) |",
+                  "|---|---|---|---|---|---|---|"]
         parts = {"the model as it is": pr["by_n"], **{f"distrusted where `{s}` > {t['warn']:g}": t["by_n"]
                                                     for s, t in pr.get("trust_weighted", {}).items()}}
         for k in pr["by_n"]:
             for what, by_n in parts.items():
                 j = by_n[k]
-                a, m, ratio = j["agreement"], j["agreement_model"], j["median_half_width_ratio"]
-                lines.append(f"| {k} | {what} | {j['coverage']:.0%} | {j['median_half_width']:.3f} | "
-                             f"{'-' if ratio is None else f'{ratio:.2f}x'} | {fmt(a['pearson'])} ({fmt(m['pearson'])}) "
-                             f"| {fmt(a['mmrv'], 3)} ({fmt(m['mmrv'], 3)}) |")
+                a, m, r, ratio = (j["agreement"], j["agreement_model"], j["agreement_real_alone"],
+                                  j["median_half_width_ratio"])
+                lines.append(f"| {k} | {what} | {j['coverage']:.0%} ({j['coverage_real_alone']:.0%}) | "
+                             f"{j['median_half_width']:.3f} | {'-' if ratio is None else f'{ratio:.2f}x'} | "
+                             f"{fmt(a['pearson'])} ({fmt(m['pearson'])}; {fmt(r['pearson'])}) | "
+                             f"{fmt(a['mmrv'], 3)} ({fmt(m['mmrv'], 3)}; {fmt(r['mmrv'], 3)}) |")
         ks = list(pr["by_n"])
         lines += ["", "| family | held-out MuJoCo | model | " + " | ".join(f"n = {k}" for k in ks) + " |",
                   "|---|---|---|" + "---|" * len(ks)]

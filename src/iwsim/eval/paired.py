@@ -165,13 +165,14 @@ def _judge(model: Mapping[str, Sequence[float] | np.ndarray], real: Mapping[str,
         y = np.asarray(real[name][:n], np.float64)
         est = paired_estimate(model[name], y, list(range(n)), bounds=(0.0, 1.0))  # the scores lie in [0, 1]
         lo, hi = est["interval"]
-        # n real episodes alone: their mean's Student t interval, clipped to [0, 1] as the estimate's is
+        # the trivial baseline, n real episodes alone: their mean's Student t interval, clipped to [0, 1]
         h = float(stats.t.ppf(0.975, n - 1) * np.std(y, ddof=1) / math.sqrt(n))
-        alone = (min(1.0, y.mean() + h) - max(0.0, y.mean() - h)) / 2
+        lo_a, hi_a = max(0.0, y.mean() - h), min(1.0, y.mean() + h)
         rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
                       "model": float(np.mean(model[name])), "truth": float(truth[name]),
                       "covered": bool(lo <= truth[name] <= hi), "half_width": (hi - lo) / 2,
-                      "half_width_real_alone": alone}
+                      "real_alone": float(y.mean()), "half_width_real_alone": (hi_a - lo_a) / 2,
+                      "covered_real_alone": bool(lo_a <= truth[name] <= hi_a)}
     widths = [(r["half_width"], r["half_width_real_alone"]) for r in rows.values() if r["half_width_real_alone"] > 0]
     names = list(model)
     return {"policies": rows, "coverage": float(np.mean([r["covered"] for r in rows.values()])),
@@ -180,4 +181,7 @@ def _judge(model: Mapping[str, Sequence[float] | np.ndarray], real: Mapping[str,
             "agreement": agreement([truth[m] for m in names], [rows[m]["estimate"] for m in names],
                                    labels=(f"held-out real {label}", f"paired estimates (n={n})")),
             "agreement_model": agreement([truth[m] for m in names], [float(np.mean(model[m])) for m in names],
-                                         labels=(f"held-out real {label}", f"the model's {label}"))}
+                                         labels=(f"held-out real {label}", f"the model's {label}")),
+            "coverage_real_alone": float(np.mean([r["covered_real_alone"] for r in rows.values()])),
+            "agreement_real_alone": agreement([truth[m] for m in names], [rows[m]["real_alone"] for m in names],
+                                              labels=(f"held-out real {label}", f"{n} real episodes' {label}"))}

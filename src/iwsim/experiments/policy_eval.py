@@ -504,17 +504,18 @@ def _paired_markdown(paired: dict[str, Any] | None, name: str | None) -> list[st
     return lines
 
 
-PAIRED_HEADER = ("| n | coverage of the 95% intervals | median half-width | against n MuJoCo episodes alone | "
-                 "Pearson r | Spearman rho | MMRV |", "|---|---|---|---|---|---|---|")
+PAIRED_HEADER = ("| n | coverage of the 95% intervals (n MuJoCo alone) | median half-width | against n MuJoCo "
+                 "episodes alone | Pearson r (n MuJoCo alone) | Spearman rho | MMRV (n MuJoCo alone) |",
+                 "|---|---|---|---|---|---|---|")
 
 
 def _paired_table(by_n: dict[str, Any]) -> list[str]:
     lines = []
     for n, r in by_n.items():
-        a, ratio = r["agreement"], r["median_half_width_ratio"]
-        lines.append(f"| {n} | {r['coverage']:.0%} | {r['median_half_width']:.3f} | "
-                     f"{'-' if ratio is None else f'{ratio:.2f}x'} | {_fmt(a['pearson'])} | "
-                     f"{_fmt(a['spearman'])} | {_fmt(a['mmrv'])} |")
+        a, alone, ratio = r["agreement"], r["agreement_real_alone"], r["median_half_width_ratio"]
+        lines.append(f"| {n} | {r['coverage']:.0%} ({r['coverage_real_alone']:.0%}) | {r['median_half_width']:.3f} | "
+                     f"{'-' if ratio is None else f'{ratio:.2f}x'} | {_fmt(a['pearson'])} ({_fmt(alone['pearson'])}) | "
+                     f"{_fmt(a['spearman'])} | {_fmt(a['mmrv'])} ({_fmt(alone['mmrv'])}) |")
     return lines
 
 
