@@ -64,6 +64,7 @@ from iwsim.commands.common import numbers
 from iwsim.core.checkpoint import load_json, named_checkpoints, write_json_atomic, write_text_atomic
 from iwsim.core.errors import InputError, check_positive, reporting_errors
 from iwsim.core.resources import set_threads
+from iwsim.eval.paired import judged_table
 from iwsim.eval.policy import check_model_task
 from iwsim.eval.profiling import speed, stability
 from iwsim.eval.ranking import agreement
@@ -313,17 +314,7 @@ def paired_markdown(rows: dict) -> list[str]:
                              f"{j['median_half_width']:.3f} | {'-' if ratio is None else f'{ratio:.2f}x'} | "
                              f"{fmt(a['pearson'])} ({fmt(m['pearson'])}; {fmt(r['pearson'])}) | "
                              f"{fmt(a['mmrv'], 3)} ({fmt(m['mmrv'], 3)}; {fmt(r['mmrv'], 3)}) |")
-        ks = list(pr["by_n"])
-        lines += ["", "| family | held-out MuJoCo | model | " + " | ".join(f"n = {k}" for k in ks) + " |",
-                  "|---|---|---|" + "---|" * len(ks)]
-        first = pr["by_n"][ks[0]]["policies"]
-        for f, row in first.items():
-            cells = [f, f"{row['truth']:.3f}", f"{row['model']:.3f}"]
-            for k in ks:
-                e = pr["by_n"][k]["policies"][f]
-                cells.append(f"{e['estimate']:.3f} ({e['interval'][0]:.2f}-{e['interval'][1]:.2f})"
-                             f"{'' if e['covered'] else ' *'}")
-            lines.append("| " + " | ".join(cells) + " |")
+        lines += ["", *judged_table(pr["by_n"], "family")]
         lines += ["", "(* : the interval misses the held-out mean.)"]
     return lines
 

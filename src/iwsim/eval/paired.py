@@ -185,3 +185,21 @@ def _judge(model: Mapping[str, Sequence[float] | np.ndarray], real: Mapping[str,
             "coverage_real_alone": float(np.mean([r["covered_real_alone"] for r in rows.values()])),
             "agreement_real_alone": agreement([truth[m] for m in names], [rows[m]["real_alone"] for m in names],
                                               labels=(f"held-out real {label}", f"{n} real episodes' {label}"))}
+
+
+def judged_table(by_n: Mapping[str, Any], what: str) -> list[str]:
+    """Markdown rows of :func:`judge_paired`'s ``by_n``, one per policy (``what``: the first
+    column's name), best held-out mean first: that mean, the model's own score, and each n's
+    estimate with its interval (`` *`` where the interval misses the held-out mean)."""
+    ns = list(by_n)
+    first = by_n[ns[0]]["policies"]
+    lines = [f"| {what} | held-out real | model | " + " | ".join(f"n = {n}" for n in ns) + " |",
+             "|---|---|---|" + "---|" * len(ns)]
+    for name in sorted(first, key=lambda m: -first[m]["truth"]):
+        cells = [name, f"{first[name]['truth']:.3f}", f"{first[name]['model']:.3f}"]
+        for n in ns:
+            r = by_n[n]["policies"][name]
+            cells.append(f"{r['estimate']:.3f} ({r['interval'][0]:.2f}-{r['interval'][1]:.2f})"
+                         f"{'' if r['covered'] else ' *'}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines

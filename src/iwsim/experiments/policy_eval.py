@@ -45,7 +45,7 @@ from iwsim.data.store import EpisodeStore
 from iwsim.envs.registry import foreign_task, get_task
 from iwsim.envs.task import Task
 from iwsim.eval.figures import pyplot, save_figure
-from iwsim.eval.paired import METHOD, TRUST_WEIGHTS, judge_paired
+from iwsim.eval.paired import METHOD, TRUST_WEIGHTS, judge_paired, judged_table
 from iwsim.eval.policy import WORLD_MODEL, check_args
 from iwsim.eval.ranking import agreement
 from iwsim.eval.trust import SIGNALS
@@ -489,18 +489,8 @@ def _paired_markdown(paired: dict[str, Any] | None, name: str | None) -> list[st
         lines += ["", f"Distrusted where `{signal}` > {t['warn']:g} ({warned:.0%} of the model's episodes): the "
                   "model's episode scores there replaced by their mean over those episodes (still unbiased):", "",
                   *PAIRED_HEADER, *_paired_table(t["by_n"])]
-    ns = list(paired["by_n"])
-    first = paired["by_n"][ns[0]]["policies"]
     lines += ["", "Per policy (95% intervals; * : the interval misses the held-out mean):", "",
-              "| policy | held-out MuJoCo | " + " | ".join(f"n = {n}" for n in ns) + " |",
-              "|---|---|" + "---|" * len(ns)]
-    for policy in sorted(first, key=lambda m: -first[m]["truth"]):
-        cells = [policy, f"{first[policy]['truth']:.3f}"]
-        for n in ns:
-            r = paired["by_n"][n]["policies"][policy]
-            cells.append(f"{r['estimate']:.3f} ({r['interval'][0]:.2f}-{r['interval'][1]:.2f})"
-                         f"{'' if r['covered'] else ' *'}")
-        lines.append("| " + " | ".join(cells) + " |")
+              *judged_table(paired["by_n"], "policy")]
     return lines
 
 
