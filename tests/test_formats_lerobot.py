@@ -655,3 +655,46 @@ def test_v3_task_strings_are_read_from_every_tasks_parquet_layout(tmp_path, layo
     tasks.to_parquet(src / "meta/tasks.parquet")
     attrs, _, _ = read_v3(src, camera=None)
     assert attrs["tasks"] == ["stack", "place"] and attrs["task"] == "stack"
+
+
+def test_a_dataset_written_by_lerobot_trains_a_world_model_that_runs_and_plays_both_views(tmp_path):
+    """Issue 68's target end to end: LeRobot's own two-camera dataset -> ``data import`` ->
+    a tiny world model of both views -> ``iwsim/WorldModel-v0`` and ``iwsim play`` with both."""
+    from conftest import train_tiny_world_model
+
+    from iwsim.play import protocol as proto
+    from iwsim.play.engine import Engine, PlayConfig
+    from iwsim.world_model import WorldModel
+    from iwsim.world_model.env import WorldModelEnv
+
+    store = tmp_path / "both.zarr"
+    wm_dir = train_tiny_world_model(store, tmp_path, ["data", "import", "--format", "lerobot-v3", "--in",
+                                                      str(LEROBOT_FIXTURE), "--out", str(store), "--image-size",
+                                                      "64", "--no-progress"])
+    wm = WorldModel.load(wm_dir)
+    assert wm.cameras == ("top", "side")
+    first = EpisodeStore.open(store).episode(1)
+    env = WorldModelEnv(wm_dir)
+    obs, _ = env.reset(seed=1)
+    assert env.observation_space.contains(obs) and list(obs["pixels"]) == ["top", "side"]
+    starts = [EpisodeStore.open(store).episode(e) for e in range(2)]  # a store task starts from its episodes
+    assert any(np.array_equal(obs["pixels"]["top"], ep["img"][0]) and
+               np.array_equal(obs["pixels"]["side"], ep["img_side"][0]) for ep in starts)
+    for _ in range(3):
+        obs, *_ = env.step(first["action"][0])
+        assert env.observation_space.contains(obs) and obs["pixels"]["side"].shape == (64, 64, 3)
+    env.close()
+    takes = tmp_path / "takes.zarr"
+    eng = Engine(wm, PlayConfig(record_to=takes))
+    s = eng.open()
+    header, views = proto.unpack_frame(eng.frame_message(s))
+    assert header["views"] == ["world_model", "world_model:side"] and len(views) == 2
+    eng.handle(s, proto.Command("record"))
+    for t in range(2):
+        eng.handle(s, proto.Action(t, tuple(float(x) for x in first["action"][t])))
+        eng.tick()
+    eng.handle(s, proto.Command("save"))
+    eng.recorder.close()
+    eng.shutdown()
+    back = EpisodeStore.open(takes)
+    assert back.attrs["cameras"] == ["top", "side"] and back.episode(0)["img_side"].shape == (2, 64, 64, 3)
