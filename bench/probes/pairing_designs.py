@@ -28,7 +28,7 @@ import numpy as np
 from scipy import stats
 
 from iwsim.core.errors import InputError, reporting_errors
-from iwsim.eval.paired import paired_estimate
+from iwsim.eval.paired import paired_estimate, real_alone
 
 SIGNALS = ("sample_spread", "command_lead")
 TILT = 0.6  # the share of the pairs in the distrusted half (at least 2 in each)
@@ -39,18 +39,13 @@ def clipped_half(estimate: float, half: float) -> tuple[float, float]:
     return max(0.0, estimate - half), min(1.0, estimate + half)
 
 
-def alone(y: np.ndarray) -> tuple[float, float, float]:
-    h = float(stats.t.ppf(0.975, len(y) - 1) * np.std(y, ddof=1) / math.sqrt(len(y)))
-    return (float(y.mean()), *clipped_half(float(y.mean()), h))
-
-
-def ppi(f: np.ndarray, y: np.ndarray, idx: np.ndarray, lam: float | None = None) -> tuple[float, float, float]:
-    est = paired_estimate(f, y[idx], idx, lam=lam, bounds=(0.0, 1.0))
-    return (est["estimate"], *est["interval"])
+def ppi(f: np.ndarray, y: np.ndarray, idx: np.ndarray, lam: float | None = None) -> tuple[float, float]:
+    lo, hi = paired_estimate(f, y[idx], idx, lam=lam, bounds=(0.0, 1.0))["interval"]
+    return lo, hi
 
 
 def stratified(f: np.ndarray, y: np.ndarray, u: np.ndarray, n: int, rng: np.random.Generator
-               ) -> tuple[float, float, float]:
+               ) -> tuple[float, float]:
     order = np.argsort(-u, kind="stable")
     halves = (order[: len(order) // 2], order[len(order) // 2:])  # distrusted first
     tilted = max(2, min(n - 2, math.ceil(TILT * n)))
@@ -63,7 +58,7 @@ def stratified(f: np.ndarray, y: np.ndarray, u: np.ndarray, n: int, rng: np.rand
     estimate = sum(w * e for w, e, _, _ in parts)
     var = sum(w**2 * v for w, _, v, _ in parts)
     df = var**2 / sum((w**2 * v) ** 2 / d for w, _, v, d in parts)
-    return (estimate, *clipped_half(estimate, float(stats.t.ppf(0.975, df)) * math.sqrt(var)))
+    return clipped_half(estimate, float(stats.t.ppf(0.975, df)) * math.sqrt(var))
 
 
 def cross_lambda(model: dict[str, np.ndarray], real: dict[str, np.ndarray], picks: dict[str, np.ndarray],
@@ -107,14 +102,14 @@ def main() -> None:
         for _ in range(args.draws):
             picks = {f: np.sort(rng.choice(len(model[f]), n, replace=False)) for f in fams}
             for f in fams:
-                designs = {"real alone": alone(real[f][picks[f]]), "PPI": ppi(model[f], real[f], picks[f]),
+                designs = {"real alone": real_alone(real[f][picks[f]]), "PPI": ppi(model[f], real[f], picks[f]),
                            "cross-fitted lam": ppi(model[f], real[f], picks[f],
                                                    lam=cross_lambda(model, real, picks, f))}
                 if n >= 4:
                     for s in SIGNALS:
                         designs[f"stratified by {s}"] = stratified(model[f], real[f],
                                                                    np.asarray(g["signals"][s][f]), n, rng)
-                for name, (_, lo, hi) in designs.items():
+                for name, (lo, hi) in designs.items():
                     rows.setdefault(name, []).append((lo <= truth[f] <= hi, (hi - lo) / 2))
         for name, v in rows.items():
             a = np.asarray(v, np.float64)

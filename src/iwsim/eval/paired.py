@@ -121,6 +121,14 @@ def paired_rate(model: Sequence[bool], real: Sequence[bool], paired: Sequence[in
                            bounds=(0.0, 1.0))
 
 
+def real_alone(real: Sequence[float] | np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """The trivial baseline of a paired estimate: the n ``real`` scores' mean with its
+    Student t ``level`` interval, clipped to [0, 1] (the scores' range)."""
+    y = np.asarray(real, np.float64)
+    h = float(stats.t.ppf((1 + level) / 2, len(y) - 1) * np.std(y, ddof=1) / math.sqrt(len(y)))
+    return max(0.0, float(y.mean()) - h), min(1.0, float(y.mean()) + h)
+
+
 def distrust(model: Sequence[float] | np.ndarray, signal: Sequence[float] | np.ndarray, warn: float) -> np.ndarray:
     """``model`` (N,) scores with those of the states whose trust ``signal`` (N,) is above
     ``warn`` replaced by their mean: the model's level kept where it is least to be trusted,
@@ -165,9 +173,7 @@ def _judge(model: Mapping[str, Sequence[float] | np.ndarray], real: Mapping[str,
         y = np.asarray(real[name][:n], np.float64)
         est = paired_estimate(model[name], y, list(range(n)), bounds=(0.0, 1.0))  # the scores lie in [0, 1]
         lo, hi = est["interval"]
-        # the trivial baseline, n real episodes alone: their mean's Student t interval, clipped to [0, 1]
-        h = float(stats.t.ppf(0.975, n - 1) * np.std(y, ddof=1) / math.sqrt(n))
-        lo_a, hi_a = max(0.0, y.mean() - h), min(1.0, y.mean() + h)
+        lo_a, hi_a = real_alone(y)
         rows[name] = {"estimate": est["estimate"], "interval": est["interval"], "lam": est["lam"],
                       "model": float(np.mean(model[name])), "truth": float(truth[name]),
                       "covered": bool(lo <= truth[name] <= hi), "half_width": (hi - lo) / 2,
