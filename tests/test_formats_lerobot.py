@@ -673,11 +673,11 @@ def test_a_dataset_written_by_lerobot_trains_a_world_model_that_runs_and_plays_b
                                                       "64", "--no-progress"])
     wm = WorldModel.load(wm_dir)
     assert wm.cameras == ("top", "side")
-    first = EpisodeStore.open(store).episode(1)
+    starts = [EpisodeStore.open(store).episode(e) for e in range(2)]  # a store task starts from its episodes
+    first = starts[1]
     env = WorldModelEnv(wm_dir)
     obs, _ = env.reset(seed=1)
     assert env.observation_space.contains(obs) and list(obs["pixels"]) == ["top", "side"]
-    starts = [EpisodeStore.open(store).episode(e) for e in range(2)]  # a store task starts from its episodes
     assert any(np.array_equal(obs["pixels"]["top"], ep["img"][0]) and
                np.array_equal(obs["pixels"]["side"], ep["img_side"][0]) for ep in starts)
     for _ in range(3):
