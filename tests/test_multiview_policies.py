@@ -258,3 +258,56 @@ def test_collect_records_a_two_view_policys_episodes_from_the_first_view(trained
                  "--out", str(out), "--no-progress"]) == 0
     store = EpisodeStore.open(out)
     assert store.attrs["cameras"] == ["top"] and store.episode(0)["img"].shape == (3, 64, 64, 3)
+
+
+# -- the studies on a two-view world model (item 4) ---------------------------------------------------------
+
+
+def test_the_policy_eval_study_on_a_two_view_model_trains_and_scores_two_view_policies(two_view_model,  # noqa: F811
+                                                                                         tmp_path, capsys):
+    """The study takes its views from the world model: the simulator expert's takes are
+    recorded by both cameras (a store beside the one-view one), every learned policy sees
+    both views, and each is scored in MuJoCo rendering them and in the model."""
+    out, work = tmp_path / "out", tmp_path / "work"
+    assert main(["experiment", "policy-eval", "--preset", "tiny", "--world-model", str(two_view_model["checkpoint"]),
+                 "--out", str(out), "--work", str(work), "--no-progress"]) == 0
+    assert "Pearson r" in capsys.readouterr().out
+    report = json.loads((out / "results.json").read_text())
+    demos = work / "demos" / "sim_expert_top_side.zarr"
+    assert report["scale"]["demos"]["path"] == str(demos) and report["scale"]["demos"]["cameras"] == list(VIEWS)
+    assert not (work / "demos" / "sim_expert.zarr").exists()
+    store = EpisodeStore.open(demos)
+    assert list(store.attrs["cameras"]) == list(VIEWS) and {"img", "img_side"} <= set(store.keys)
+    learned = [p for p in report["policies"] if p["kind"] != "scripted"]
+    assert len(learned) == 4 and all(load_policy(p["source"]).cameras == VIEWS for p in learned)
+    for p in report["policies"]:
+        assert len(p["pusht"]["max_iou"]) == len(p["world-model"]["max_iou"]) == 2
+    assert "seeing the camera views top, side" in (out / "results.md").read_text()
+
+
+def test_a_study_refuses_demonstrations_of_other_views_than_its_model(two_view_model, tmp_path,  # noqa: F811
+                                                                       capsys):
+    one_view = tmp_path / "top.zarr"
+    assert main(["collect", "--task", "pusht", "--policy", "expert", "--episodes", "2", "--steps", "6", "--workers",
+                 "1", "--out", str(one_view), "--no-progress"]) == 0
+    assert main(["experiment", "policy-eval", "--preset", "tiny", "--world-model", str(two_view_model["checkpoint"]),
+                 "--demos", str(one_view), "--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"),
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "holds the camera view(s) top; the world model sees top,side" in err and "\n" not in err
+    assert "--cameras top,side" in err and not (tmp_path / "out").exists()
+
+
+def test_the_datagen_study_on_a_two_view_model_mixes_takes_of_both_views(two_view_model, tmp_path):  # noqa: F811
+    """Demonstrations recorded in a two-view model and in MuJoCo by both cameras mix into one
+    policy's data; the policies are scored in MuJoCo rendering both cameras."""
+    out, work = tmp_path / "out", tmp_path / "work"
+    assert main(["experiment", "datagen", "--preset", "tiny", "--world-model", str(two_view_model["checkpoint"]),
+                 "--out", str(out), "--work", str(work), "--jobs", "1", "--no-progress"]) == 0
+    r = json.loads((out / "results.json").read_text())
+    assert r["scale"]["cameras"] == list(VIEWS) and "seeing the camera views top, side" in (out / "results.md").read_text()
+    for run in r["runs"]:
+        stores = [EpisodeStore.open(d["store"]) for d in run["data"]]
+        assert all(list(s.attrs["cameras"]) == list(VIEWS) for s in stores)
+        assert load_policy(run["run"]).cameras == VIEWS and len(run["episodes"]) == 2
+    assert any(run["n_wm"] and run["n_sim"] for run in r["runs"])  # a mixture of both sources

@@ -37,6 +37,7 @@ from iwsim.core.lock import DirLock, LockedError
 from iwsim.core.resources import torch_threads
 from iwsim.core.trainer import data_by_content
 from iwsim.data.store import EpisodeStore
+from iwsim.data.views import store_cameras
 from iwsim.envs.registry import DEFAULT_TASK, get_task, task_from_config, task_of
 from iwsim.envs.task import Task
 from iwsim.eval.policy import WORLD_MODEL, sampled_rollout, summarize, trust
@@ -173,6 +174,30 @@ def check_study_model(world_model: str | os.PathLike | None, task: Task = STUDY)
         raise InputError(f"{path} is a world model of task {own.name!r}; the study compares with MuJoCo's "
                          f"{task.name!r} (--task): give a world model of {task.name!r} (evaluate a policy in any "
                          "world model with iwsim eval policy).")
+
+
+def model_cameras(world_model: str | os.PathLike) -> tuple[str, ...]:
+    """The camera views of a world-model checkpoint (one checked by :func:`check_study_model`),
+    read from its config: a study records its simulator demonstrations with them and its
+    policies see them, in MuJoCo and in the model."""
+    stage2 = load_json(locate(world_model) / "config.json")["stage2"]
+    return tuple(stage2.get("cameras") or ("top",))  # a model from before views: the top one
+
+
+def check_views(path: Path, store: EpisodeStore, cameras: tuple[str, ...]) -> None:
+    """One line unless the demonstration store ``path`` holds the views ``cameras`` (a
+    study's world model's): its policies see the store's views, and run in that model."""
+    have = store_cameras(store.attrs, store.keys)
+    if max(len(have), len(cameras)) > 1 and have != tuple(cameras):
+        raise InputError(f"{path} holds the camera view(s) {','.join(have)}; the world model sees "
+                         f"{','.join(cameras)}: the policies train on the model's views (record the "
+                         f"demonstrations with iwsim collect --cameras {','.join(cameras)}).")
+
+
+def views_phrase(cameras: Sequence[str] | None) -> str:
+    """A report's words for the camera views a study's policies see: nothing for one view
+    (the reports read as ever)."""
+    return f", seeing the camera views {', '.join(cameras)}" if cameras and len(cameras) > 1 else ""
 
 
 def fingerprint(world_model: str | os.PathLike) -> str:

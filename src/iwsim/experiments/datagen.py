@@ -53,6 +53,7 @@ from iwsim.experiments.common import (
     evaluate_policies,
     fingerprint,
     lock_work,
+    model_cameras,
     on_task,
     report_task,
     study_command,
@@ -60,6 +61,7 @@ from iwsim.experiments.common import (
     study_task,
     train_runs,
     training_time,
+    views_phrase,
 )
 from iwsim.experiments.demos import DemoRecipe, DemoStats, record_with, simulator_demos, simulator_store
 from iwsim.policies import policy_type
@@ -179,7 +181,7 @@ def demo_paths(cfg: DatagenConfig, work: Path, wm_tag: str) -> dict[str, Path]:
     (named after the world-model checkpoint and its fingerprint), each the recipe's
     demonstrator's (another than the expert's: its name in the store's)."""
     who = "" if cfg.recipe.demonstrator == "expert" else f"_{cfg.recipe.demonstrator}"
-    return {"sim": simulator_store(work, cfg.recipe.demonstrator),
+    return {"sim": simulator_store(work, cfg.recipe.demonstrator, model_cameras(cfg.world_model)),
             "wm": work / "demos" / f"wm_teleop_{Path(cfg.world_model).name}_{wm_tag}{who}.zarr"}
 
 
@@ -216,9 +218,10 @@ def _run_datagen(cfg: DatagenConfig, task: Task, out: Path, work: Path, reproduc
     paths = demo_paths(cfg, work, tag)
     names = {r: r.name(cfg.preset, tag) for r in runs}
     need = {"sim": max((r.n_sim for r in runs), default=0), "wm": max((r.n_wm for r in runs), default=0)}
+    cameras = model_cameras(cfg.world_model)  # the simulator's takes are seen by the model's views
     demos: dict[str, DemoStats] = {}
     if need["sim"]:
-        _, demos["sim"] = simulator_demos(work, need["sim"], cfg.recipe, progress, task)
+        _, demos["sim"] = simulator_demos(work, need["sim"], cfg.recipe, progress, task, cameras)
     if need["wm"]:
         demos["wm"] = record_with(WORLD_MODEL, paths["wm"], need["wm"], cfg.wm_seed, cfg.recipe,
                                   world_model=cfg.world_model, progress=progress)
@@ -242,7 +245,7 @@ def _run_datagen(cfg: DatagenConfig, task: Task, out: Path, work: Path, reproduc
         "command": reproduce,
         "config": dataclasses.asdict(cfg),
         "preset": preset,
-        "scale": {"demonstrations": need, "runs": len(runs), "trained": len(trainable),
+        "scale": {"demonstrations": need, "cameras": list(cameras), "runs": len(runs), "trained": len(trainable),
                   "train_steps": policy_runs[0].stage_config().train.steps if policy_runs else None,
                   "eval_episodes": cfg.episodes, "eval_steps": cfg.steps, "eval_seeds": [seeds[0], seeds[-1]]},
         "demos": {k: {**dataclasses.asdict(s), "complete": s.complete} for k, s in demos.items()},
@@ -365,7 +368,8 @@ def markdown(r: dict[str, Any]) -> str:
         f"**{headline(r)}**",
         "",
         f"Policy: {c['policy']} (preset `{c['policy_preset']}{c['policy']}`, {s['train_steps']} training steps); "
-        f"world model `{c['world_model']}`. Evaluation in MuJoCo: {s['eval_episodes']} episodes of "
+        f"world model `{c['world_model']}`{views_phrase(s.get('cameras'))}. Evaluation in MuJoCo: "
+        f"{s['eval_episodes']} episodes of "
         f"{s['eval_steps']} steps (seeds {s['eval_seeds'][0]}..{s['eval_seeds'][1]}); score = max {name} within the "
         f"horizon, success = {name} >= {task.success_score}.",
         "",

@@ -360,33 +360,41 @@ class _Takeover:
 
 def record_with(env: str, out: str | os.PathLike, episodes: int, seed: int, recipe: DemoRecipe, *,
                 world_model: str | os.PathLike | None = None, image_size: int | None = None,
-                progress: bool = True) -> DemoStats:
+                progress: bool = True, cameras: tuple[str, ...] | None = None) -> DemoStats:
     """:func:`record_demos` with ``recipe``: at most ``ceil(attempts_per_demo * episodes)``
-    candidates, frames of ``image_size`` (MuJoCo only, None: the task's; a world model
-    renders its own)."""
+    candidates, frames of ``image_size`` and views ``cameras`` (MuJoCo only, None: the
+    task's; a world model renders its own)."""
     return record_demos(env, out, episodes, recipe.steps, seed, world_model=world_model, image_size=image_size,
                         accept_iou=recipe.accept_iou,
                         tail=recipe.tail, batch=recipe.batch,
                         max_attempts=math.ceil(recipe.attempts_per_demo * episodes),
                         give_up_after=recipe.give_up_after, dart_noise=recipe.dart_noise, start=recipe.start,
                         demonstrator=recipe.demonstrator, takeover=recipe.takeover,
-                        takeover_steps=recipe.takeover_steps, progress=progress)
+                        takeover_steps=recipe.takeover_steps, progress=progress, cameras=cameras)
 
 
-def simulator_store(work: str | os.PathLike, demonstrator: str = "expert") -> Path:
+def simulator_store(work: str | os.PathLike, demonstrator: str = "expert",
+                    cameras: tuple[str, ...] = ("top",)) -> Path:
     """The simulator expert's demonstration store of a work directory (shared by the
-    studies); another ``demonstrator``'s takes go beside it (``sim_expert-wide.zarr``)."""
-    return Path(work) / "demos" / (SIM_STORE if demonstrator == "expert" else f"sim_{demonstrator}.zarr")
+    studies); another ``demonstrator``'s takes go beside it (``sim_expert-wide.zarr``), and
+    so do takes seen by several ``cameras`` (``sim_expert_top_side.zarr``: the same
+    candidates, every view recorded)."""
+    name = SIM_STORE if demonstrator == "expert" else f"sim_{demonstrator}.zarr"
+    if len(cameras) > 1:
+        name = name.replace(".zarr", "_" + "_".join(cameras) + ".zarr")
+    return Path(work) / "demos" / name
 
 
 def simulator_demos(work: str | os.PathLike, episodes: int, recipe: DemoRecipe,
-                    progress: bool = True, task: Task = PUSHT) -> tuple[Path, DemoStats]:
+                    progress: bool = True, task: Task = PUSHT,
+                    cameras: tuple[str, ...] = ("top",)) -> tuple[Path, DemoStats]:
     """Record (or resume) the simulator expert's demonstrations of ``task`` in
     :func:`simulator_store` until it holds ``episodes`` (or the recipe's attempts are
-    spent), candidates from seed :data:`SIM_SEED`. Returns the store's path and its
-    :class:`DemoStats`."""
-    path = simulator_store(work, recipe.demonstrator)
-    return path, record_with(task.kind, path, episodes, SIM_SEED, recipe, progress=progress)
+    spent), candidates from seed :data:`SIM_SEED`, seen by MuJoCo's ``cameras`` (a study's:
+    its world model's views). Returns the store's path and its :class:`DemoStats`."""
+    path = simulator_store(work, recipe.demonstrator, cameras)
+    several = tuple(cameras) if len(cameras) > 1 else None  # one view: the task's own camera, as ever
+    return path, record_with(task.kind, path, episodes, SIM_SEED, recipe, progress=progress, cameras=several)
 
 
 def _record_into(store: EpisodeStore, env: str, model: WorldModel | None, task: Task, episodes: int, steps: int,

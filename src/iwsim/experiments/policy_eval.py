@@ -57,9 +57,11 @@ from iwsim.experiments.common import (
     PolicySource,
     check_dirs,
     check_study_model,
+    check_views,
     checkpoints,
     evaluate_policies,
     lock_work,
+    model_cameras,
     on_task,
     report_task,
     study_command,
@@ -67,6 +69,7 @@ from iwsim.experiments.common import (
     study_task,
     train_runs,
     training_time,
+    views_phrase,
 )
 from iwsim.experiments.demos import DemoRecipe, simulator_demos
 from iwsim.policies.scripted import ScriptedConfig
@@ -203,10 +206,11 @@ def _store_tag(path: Path, episodes: int) -> str:
 def _demos(cfg: PolicyEvalConfig, work: Path, progress: bool) -> tuple[Path, dict[str, Any]]:
     """The demonstration store the policies train on, checked (or recorded) before any
     training starts, and what it holds."""
-    need, task = cfg.demo_episodes, get_task(cfg.task)
+    need, task, cameras = cfg.demo_episodes, get_task(cfg.task), model_cameras(cfg.world_model)
     if cfg.demos is not None:
         path = Path(cfg.demos)
         store = EpisodeStore.open(path, "r")
+        check_views(path, store, cameras)
         if store.n_episodes < need:
             raise InputError(f"{path} holds {store.n_episodes} demonstrations; the study trains on the first {need} "
                              "(lower --demo-episodes or bring a bigger store).")
@@ -215,14 +219,15 @@ def _demos(cfg: PolicyEvalConfig, work: Path, progress: bool) -> tuple[Path, dic
             raise InputError(f"{path} holds episodes of task {other!r}; the study runs on {task.name!r} "
                              "(--task): bring demonstrations of it.")
         return path, {"path": str(path), "episodes": store.n_episodes, "policy": store.attrs.get("policy"),
-                      "given": True}
-    path, stats = simulator_demos(work, need, cfg.recipe, progress, task)
+                      "given": True, "cameras": list(cameras)}
+    path, stats = simulator_demos(work, need, cfg.recipe, progress, task, cameras)
     if stats.episodes < need:
         raise InputError(f"{path} holds {stats.episodes} of the {need} simulator demonstrations the study needs "
                          f"after {stats.candidates} candidates (acceptance {100 * stats.acceptance_rate:.0f}%).")
     return path, {"path": str(path), "episodes": stats.episodes, "policy": EpisodeStore.open(path).attrs["policy"],
-                  "given": False, "first_seed": stats.first_seed, "candidates": stats.candidates,
-                  "acceptance_rate": stats.acceptance_rate, "record_seconds": stats.seconds, "added_now": stats.added}
+                  "given": False, "cameras": list(cameras), "first_seed": stats.first_seed,
+                  "candidates": stats.candidates, "acceptance_rate": stats.acceptance_rate,
+                  "record_seconds": stats.seconds, "added_now": stats.added}
 
 
 def mean_interval(values: np.ndarray, level: float = LEVEL, resamples: int = BOOTSTRAP,
@@ -418,8 +423,8 @@ def markdown(report: dict[str, Any]) -> str:
         f"MuJoCo's rendering of the same seed). Score: the maximum {name} an episode reaches; success: {name} >= "
         f"{task.success_score:g}. "
         f"Learned policies trained on the first N (the demos column) of the {demos['episodes']} demonstrations "
-        f"in `{demos['path']}` (policy `{demos['policy']}`). Intervals: 95%; mean max {name} by a bootstrap over "
-        "episodes, success by Clopper-Pearson.",
+        f"in `{demos['path']}` (policy `{demos['policy']}`){views_phrase(demos.get('cameras'))}. Intervals: 95%; "
+        f"mean max {name} by a bootstrap over episodes, success by Clopper-Pearson.",
         "",
         "## Agreement (world model against MuJoCo)",
         "",
