@@ -136,8 +136,9 @@ def test_the_default_preset_is_the_study_asked_for():
     assert len(names) >= 14 and cfg.episodes >= 20 and cfg.seed == 100000 and cfg.steps == 600
     assert sum(n.startswith("dp-100demos") for n in names) >= 3 and sum(n.startswith("act-") for n in names) >= 2
     assert {"expert", "play"} <= set(names) and any("noise" in n for n in names) and any("latency" in n for n in names)
-    run, steps = cfg.runs("store.zarr")[0]  # every evaluated step is kept
-    assert all(s % run.checkpoint_every == 0 for s in steps) and run.steps == max(steps)
+    for run, steps in cfg.runs("store.zarr"):  # every evaluated step is kept, and a run saves every 500 steps
+        assert all(s % run.checkpoint_every == 0 for s in steps) and run.steps == max(steps)
+        assert run.checkpoint_every <= 500
 
 
 def test_mean_interval_brackets_the_mean():

@@ -25,6 +25,11 @@ def test_runs_train_side_by_side_and_are_not_redone(play_store, tmp_path):
     stamp = (dirs["a"] / "metrics.jsonl").stat().st_mtime_ns
     train_runs(runs[:1], tmp_path, progress=False)  # finished: nothing is trained again
     assert (dirs["a"] / "metrics.jsonl").stat().st_mtime_ns == stamp
+    # saving more or less often is the same training: finished, and a longer one resumes
+    train_runs([dataclasses.replace(runs[0], checkpoint_every=1)], tmp_path, progress=False)
+    assert (dirs["a"] / "metrics.jsonl").stat().st_mtime_ns == stamp
+    train_runs([dataclasses.replace(runs[0], checkpoint_every=1, steps=5)], tmp_path, progress=False)
+    assert sorted(checkpoints(dirs["a"])) == [2, 4, 5]
     # another training under the same name is not taken for the finished one
     other = dataclasses.replace(runs[0], seed=1)
     with pytest.raises(InputError, match="different config"):

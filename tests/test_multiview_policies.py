@@ -305,7 +305,8 @@ def test_the_datagen_study_on_a_two_view_model_mixes_takes_of_both_views(two_vie
     assert main(["experiment", "datagen", "--preset", "tiny", "--world-model", str(two_view_model["checkpoint"]),
                  "--out", str(out), "--work", str(work), "--jobs", "1", "--no-progress"]) == 0
     r = json.loads((out / "results.json").read_text())
-    assert r["scale"]["cameras"] == list(VIEWS) and "seeing the camera views top, side" in (out / "results.md").read_text()
+    assert r["scale"]["cameras"] == list(VIEWS)
+    assert "seeing the camera views top, side" in (out / "results.md").read_text()
     for run in r["runs"]:
         stores = [EpisodeStore.open(d["store"]) for d in run["data"]]
         assert all(list(s.attrs["cameras"]) == list(VIEWS) for s in stores)

@@ -87,15 +87,20 @@ def step_generator(seed: int, step: int) -> torch.Generator:
 # iwsim after runs were started (a world model's "task"): a run whose config lacks one
 # resumes, and its config gains it.
 ADDED_DESCRIPTIONS = ("task",)
+# Training fields a resume may change: ``steps`` (training longer is a resume) and
+# ``checkpoint_every`` (how often a run saves does not change its weights: every step's
+# randomness is drawn from its own generator, step_generator).
+RESUMABLE_CHANGES = ("steps", "checkpoint_every")
 
 
 def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False,
                     complete: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> None:
     """Create ``run_dir`` with ``config.json``, or check that an existing one holds the
-    same config (so rerunning the same command resumes). ``train.steps`` may differ:
-    training longer is a resume. ``force`` overwrites a different config. ``complete``
-    fills a stored config with the defaults of fields added to iwsim since (as loading the
-    run reads it), so that a run started before a new field resumes."""
+    same config (so rerunning the same command resumes). ``train.steps`` and
+    ``train.checkpoint_every`` may differ (:data:`RESUMABLE_CHANGES`). ``force`` overwrites
+    a different config. ``complete`` fills a stored config with the defaults of fields
+    added to iwsim since (as loading the run reads it), so that a run started before a new
+    field resumes."""
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / "config.json"
     if path.exists():
@@ -104,11 +109,11 @@ def prepare_run_dir(run_dir: Path, config: dict[str, Any], force: bool = False,
             old = json.loads(json.dumps(complete(old)))
         config = json.loads(json.dumps(config))  # tuples -> lists, as read back
 
-        def comparable(c: Any) -> Any:  # the config without any train.steps
+        def comparable(c: Any) -> Any:  # the config without the train fields a resume may change
             if not isinstance(c, dict):
                 return c
-            return {k: ({kk: vv for kk, vv in v.items() if kk != "steps"} if k == "train" and isinstance(v, dict)
-                        else comparable(v)) for k, v in c.items()}
+            return {k: ({kk: vv for kk, vv in v.items() if kk not in RESUMABLE_CHANGES}
+                        if k == "train" and isinstance(v, dict) else comparable(v)) for k, v in c.items()}
 
         # compared without the descriptions the old config predates
         new = {k: v for k, v in config.items() if k in old or k not in ADDED_DESCRIPTIONS}

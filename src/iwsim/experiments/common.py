@@ -35,7 +35,7 @@ from iwsim.core.config import from_dict, to_dict
 from iwsim.core.errors import InputError
 from iwsim.core.lock import DirLock, LockedError
 from iwsim.core.resources import torch_threads
-from iwsim.core.trainer import data_by_content
+from iwsim.core.trainer import RESUMABLE_CHANGES, data_by_content
 from iwsim.data.store import EpisodeStore
 from iwsim.data.views import store_cameras
 from iwsim.envs.registry import DEFAULT_TASK, get_task, task_from_config, task_of
@@ -234,7 +234,8 @@ def training_time(run: Path) -> dict[str, Any]:
 
 
 def _finished(run: PolicyRun, root: Path) -> bool:
-    """Whether ``root / run.name`` holds this very training, trained to its steps. A run
+    """Whether ``root / run.name`` holds this very training, trained to its steps (saved
+    as often or not: :data:`~iwsim.core.trainer.RESUMABLE_CHANGES`). A run
     directory with another config is not finished: training it then stops with the
     trainer's "different config" error instead of a stale run being reused."""
     cfg = run.stage_config()
@@ -243,11 +244,12 @@ def _finished(run: PolicyRun, root: Path) -> bool:
         return False
     saved = load_json(root / run.name / "config.json")
     expected = {"policy": cfg.policy, "model": to_dict(from_dict(config_class(cfg.policy), cfg.model)),
-                "train": {k: v for k, v in to_dict(cfg.train).items() if k != "steps"}, "shift": cfg.shift,
+                "train": {k: v for k, v in to_dict(cfg.train).items() if k not in RESUMABLE_CHANGES},
+                "shift": cfg.shift,
                 "data": [{"path": str(s.path), "episodes": s.episodes,
                           "sha256": EpisodeStore.open(s.path).content_hash(s.episodes)} for s in run.sources()]}
     saved = {k: saved.get(k) for k in expected}
-    saved["train"] = {k: v for k, v in (saved["train"] or {}).items() if k != "steps"}
+    saved["train"] = {k: v for k, v in (saved["train"] or {}).items() if k not in RESUMABLE_CHANGES}
     saved, expected = data_by_content(saved, json.loads(json.dumps(expected)))  # tuples as lists, as read back
     return expected == saved
 

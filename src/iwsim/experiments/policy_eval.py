@@ -81,6 +81,7 @@ BOOTSTRAP = 2000  # resamples of the episodes for the interval of a mean max sco
 LEVEL = 0.95
 # The config fields the command's flags override.
 RECIPE_FLAGS = {"demonstrator": "--demonstrator"}  # the recipe fields the command's flags override
+SAVE_EVERY = 500  # a study's policy trainings save at least this often (PolicyEvalConfig.runs)
 FLAGS = {"world_model": "--world-model", "episodes": "--episodes", "steps": "--steps", "seed": "--seed",
          "demos": "--demos", "demo_episodes": "--demo-episodes", "small_demos": "--small-demos",
          "paired": "--paired-episodes", "holdout_episodes": "--holdout-episodes"}
@@ -165,11 +166,12 @@ class PolicyEvalConfig:
 
     def runs(self, demos: str) -> list[tuple[PolicyRun, tuple[int, ...]]]:
         """The trainings, each with the training steps of the checkpoints evaluated (every
-        one of them kept: checkpoints every gcd of those steps)."""
+        one of them kept: checkpoints every gcd of those steps and :data:`SAVE_EVERY`, so
+        that an interrupted session loses at most that many steps of a run)."""
         plan = [("dp", self.demo_episodes, self.dp_steps), ("dp", self.small_demos, (self.dp_small_steps,)),
                 ("act", self.demo_episodes, self.act_steps)]
         return [(PolicyRun(f"{policy}-{n}demos", policy, ((demos, n),), steps=max(steps),
-                           preset=f"{self.policy_preset}{policy}", checkpoint_every=math.gcd(*steps)),
+                           preset=f"{self.policy_preset}{policy}", checkpoint_every=math.gcd(*steps, SAVE_EVERY)),
                  tuple(sorted(set(steps)))) for policy, n, steps in plan if steps]
 
     def policy_names(self) -> list[str]:
