@@ -37,7 +37,7 @@ from iwsim.core.lock import DirLock, LockedError
 from iwsim.core.resources import torch_threads
 from iwsim.core.trainer import RESUMABLE_CHANGES, data_by_content
 from iwsim.data.store import EpisodeStore
-from iwsim.data.views import store_cameras
+from iwsim.data.views import DEFAULT_CAMERA, store_cameras
 from iwsim.envs.registry import DEFAULT_TASK, get_task, task_from_config, task_of
 from iwsim.envs.task import Task
 from iwsim.eval.policy import WORLD_MODEL, sampled_rollout, summarize, trust
@@ -181,7 +181,7 @@ def model_cameras(world_model: str | os.PathLike) -> tuple[str, ...]:
     read from its config: a study records its simulator demonstrations with them and its
     policies see them, in MuJoCo and in the model."""
     stage2 = load_json(locate(world_model) / "config.json")["stage2"]
-    return tuple(stage2.get("cameras") or ("top",))  # a model from before views: the top one
+    return tuple(stage2.get("cameras") or (DEFAULT_CAMERA,))  # a model from before views: the one camera
 
 
 def check_views(path: Path, store: EpisodeStore, cameras: tuple[str, ...]) -> None:
