@@ -11,7 +11,6 @@ from typing import cast
 
 import torch
 from torch.nn import functional as F
-from torchmetrics.functional.image import structural_similarity_index_measure
 
 from iwsim.core.errors import InputError
 
@@ -38,6 +37,10 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Structural similarity (Wang et al. 2004): 11 x 11 Gaussian window (sigma 1.5),
     K1 = 0.01, K2 = 0.03, data range 1, averaged over channels and pixels; (B,)."""
+    # imported here: torchmetrics takes seconds to import (scipy.signal, matplotlib), a cost
+    # every training process paid at start for a metric only evaluations compute
+    from torchmetrics.functional.image import structural_similarity_index_measure
+
     a, b = _check(a, b)
     # one tensor: a (tensor, image) pair only with return_full_image, which the annotation does not tell apart
     return cast(torch.Tensor, structural_similarity_index_measure(a, b, data_range=1.0, reduction="none"))

@@ -519,11 +519,16 @@ def convert(kind: str, sources: list[Path], out_dir: Path | None = None) -> Path
 # --------------------------------------------------------------------------------------------
 
 
-def frechet_distance(a: np.ndarray, b: np.ndarray, eps: float = 1e-6) -> float:
+def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
     """Frechet distance between Gaussians fitted to features a (N, D) and b (M, D), in float64:
-    ||mu_a - mu_b||^2 + Tr(S_a + S_b - 2 (S_a S_b)^(1/2)), computed as pytorch-fid does."""
-    from scipy import linalg  # only this function needs scipy
+    ||mu_a - mu_b||^2 + Tr(S_a + S_b - 2 (S_a S_b)^(1/2)), as pytorch-fid defines it.
 
+    Tr (S_a S_b)^(1/2) is the sum of the singular values of F_a F_b^T for any factors with
+    S = F^T F (the eigenvalues of S_a S_b are the squared singular values): F is the
+    centred features / sqrt(N - 1) where there are fewer samples than dimensions, else
+    the symmetric root of S (``eigh``). Exact for singular covariances too (pytorch-fid's
+    ``sqrtm`` needs a regulariser there), and seconds where ``sqrtm`` of a 2048 x 2048
+    product takes a quarter of a minute."""
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     if a.ndim != 2 or b.ndim != 2:
         raise InputError(f"frechet_distance expects two (N, D) feature arrays, got shapes {a.shape} and {b.shape}.")
@@ -532,18 +537,19 @@ def frechet_distance(a: np.ndarray, b: np.ndarray, eps: float = 1e-6) -> float:
     if len(a) < 2 or len(b) < 2:
         raise InputError(f"frechet_distance needs at least 2 samples per set to estimate a covariance, "
                          f"got {len(a)} and {len(b)}.")
-    mu_a, mu_b = a.mean(0), b.mean(0)
-    s_a, s_b = np.atleast_2d(np.cov(a, rowvar=False)), np.atleast_2d(np.cov(b, rowvar=False))
-    covmean = linalg.sqrtm(s_a @ s_b)
-    if not np.isfinite(covmean).all():
-        # Singular product: regularise both covariances, as pytorch-fid does.
-        offset = np.eye(len(s_a)) * eps
-        covmean = linalg.sqrtm((s_a + offset) @ (s_b + offset))
-    if np.iscomplexobj(covmean):
-        if not np.allclose(np.diagonal(covmean).imag, 0, atol=1e-3):
-            raise InputError(f"the matrix square root has a large imaginary part ({np.abs(covmean.imag).max():.3g}); "
-                             "the covariances are too ill-conditioned, use more samples.")
-        covmean = covmean.real
-    diff = mu_a - mu_b
-    return float(diff @ diff + np.trace(s_a) + np.trace(s_b) - 2 * np.trace(covmean))
+    f_a, f_b = _covariance_factor(a), _covariance_factor(b)
+    tr_covmean = float(np.linalg.svd(f_a @ f_b.T, compute_uv=False).sum())
+    diff = a.mean(0) - b.mean(0)
+    return float(diff @ diff + np.sum(f_a * f_a) + np.sum(f_b * f_b) - 2 * tr_covmean)
+
+
+def _covariance_factor(x: np.ndarray) -> np.ndarray:
+    """F (R, D) with F^T F the unbiased covariance of x (N, D): the centred samples scaled
+    (R = N) where N <= D, else the covariance's symmetric root (R = D)."""
+    n, d = x.shape
+    centred = (x - x.mean(0)) / np.sqrt(n - 1)
+    if n <= d:
+        return centred
+    w, v = np.linalg.eigh(centred.T @ centred)
+    return (v * np.sqrt(np.clip(w, 0, None))) @ v.T
 
