@@ -18,7 +18,8 @@ The steps (shapes as the shipped models and presets run them):
   predictions, the gradient cut every 8), on 8 x 8 x 8 latents (the x8 codec) or 16 x 16 x 8
   (the x4 codec: the finer latents of issue 64);
 - ``wm-step-1``, ``wm-step-64``: one step of the shipped world model (dynamics + decoder,
-  a frame out) for one stream and for a batch of 64;
+  a frame out) for one stream and for a batch of 64; ``wm-step-1-two-views``: one stream
+  of its architecture over two camera views (issue 68; random dynamics weights);
 - ``codec-encode-64``, ``codec-decode-64``: the shipped codec on 64 frames;
 - ``dp-train``, ``act-train``: one training step of the shipped policies' networks at their
   training batch size; ``dp-predict``, ``act-predict``: one ``predict_action`` of one stream.
@@ -205,9 +206,25 @@ def world_model(bf16: bool, cl: bool, fast: bool) -> WorldModel:
     return wm
 
 
-def wm_step(batch: int, bf16: bool, cl: bool, fast: bool) -> Step:
+def two_view_model(wm: WorldModel) -> WorldModel:
+    """The shipped model's architecture over two camera views (issue 68's layout: one codec,
+    the views' latents stacked along the channels, so the dynamics takes and predicts
+    twice the channels), its dynamics randomly initialised: a step costs what a trained
+    one's does."""
+    d = wm.cfg.dynamics
+    cfg = dataclasses.replace(wm.cfg, cameras=("top", "side"),
+                              dynamics=dataclasses.replace(d, latent_channels=2 * d.latent_channels))
+    torch.manual_seed(0)
+    two = WorldModel(wm.codec, Dynamics(cfg.dynamics), cfg, wm.action_low, wm.action_high).eval()
+    two.bf16 = wm.bf16
+    return two
+
+
+def wm_step(batch: int, bf16: bool, cl: bool, fast: bool, views: int = 1) -> Step:
     wm = world_model(bf16, cl, fast)
-    frame = torch.zeros(batch, 64, 64, 3, dtype=torch.uint8).numpy()
+    if views == 2:
+        wm = two_view_model(wm)
+    frame = torch.zeros(batch, 64, 64, 3 * views, dtype=torch.uint8).numpy()
     actions = ((wm.action_low + wm.action_high) / 2).repeat(batch, 1).numpy()
     wm.reset(frame)
 
@@ -266,6 +283,7 @@ STEPS: dict[str, tuple[Callable[[bool, bool, bool], Step], bool]] = {  # name ->
        for kind in ("preset", "long") for size in (8, 16)},
     "wm-step-1": ((lambda b, c, f: wm_step(1, b, c, f)), False),
     "wm-step-64": ((lambda b, c, f: wm_step(64, b, c, f)), False),
+    "wm-step-1-two-views": ((lambda b, c, f: wm_step(1, b, c, f, views=2)), False),
     "codec-encode-64": ((lambda b, c, f: codec_step("encode", b, c, f)), False),
     "codec-decode-64": ((lambda b, c, f: codec_step("decode", b, c, f)), False),
     "dp-train": ((lambda b, c, f: policy_train_step("dp", b, c, f)), True),
