@@ -30,7 +30,7 @@ $(CHROMIUM):
 # Everything: unit tests, end-to-end runs, the browser and the two-process DDP tests. Two
 # workers (pytest-xdist), a file's tests on one of them, each on one torch thread: two
 # threads per worker would oversubscribe two cores.
-XDIST := -n 2 --dist loadfile --durations=25
+XDIST := -n 2 --dist loadfile --no-loadscope-reorder --durations=25
 test: $(STAMP) $(CHROMIUM)
 	MUJOCO_GL=egl OMP_NUM_THREADS=1 $(PY) -m pytest -q $(XDIST)
 

@@ -302,6 +302,7 @@ def test_the_side_view_reads_the_blocks_pose_by_the_cameras_geometry():
     assert err[0] < 0.002 and np.degrees(err[1]) < 1.0, err  # measured: ~1 mm, ~0.3 degrees
 
 
+@pytest.mark.slow
 def test_the_cross_view_bench_compares_one_model_of_both_views_with_two_of_one(two_view_model, tmp_path: Path):
     """``bench/cross_view.py`` on the tiny two-view model and a pair of single-view models
     (the shipped one for both views: the mechanics, no quality asserted); the readers on

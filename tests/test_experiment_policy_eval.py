@@ -39,6 +39,7 @@ def _argv(inputs: dict[str, Path], tmp_path: Path, *extra: str) -> list[str]:
             *extra]
 
 
+@pytest.mark.slow
 def test_tiny_study_end_to_end_and_resumed(inputs, tmp_path, capsys, caplog):
     caplog.set_level(logging.INFO)
     assert main(_argv(inputs, tmp_path)) == 0
@@ -169,6 +170,7 @@ def test_config_refuses_a_study_that_cannot_rank():
                          small_demos=1, demo_episodes=2)
 
 
+@pytest.mark.slow
 def test_tiny_study_on_pile_sweeping(pile_model, tmp_path, capsys):
     """Issue 45: the study on pile sweeping: its MuJoCo the reference, its expert the
     demonstrator (recorded here, in a work directory of the task's own), its scripted
@@ -216,6 +218,7 @@ def test_a_study_on_pile_sweeping_refuses_another_tasks_inputs(inputs, pile_mode
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_a_study_with_two_jobs_ends_without_leaked_semaphores(inputs, tmp_path):
     """Issue 65's smaller list: a clean ``--jobs 2`` study printed "leaked semaphore
     objects" at exit (its pool's workers were killed holding tqdm's multiprocessing lock)."""
@@ -230,6 +233,7 @@ def test_a_study_with_two_jobs_ends_without_leaked_semaphores(inputs, tmp_path):
     assert "leaked" not in run.stderr and "resource_tracker" not in run.stderr, run.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_a_tiny_study_with_paired_estimates(inputs, tmp_path, capsys):
     """Issue 66 item 2: --paired-episodes N reports every policy's paired estimate judged
     against MuJoCo on held-out first states, with coverage, widths and the ranking."""

@@ -15,6 +15,7 @@ from iwsim.policies.scripted import ScriptedConfig
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
+@pytest.mark.slow
 def test_runs_train_side_by_side_and_are_not_redone(play_store, tmp_path):
     runs = [PolicyRun("a", "dp", ((str(play_store), 2),), steps=4, preset="tiny-dp", checkpoint_every=2),
             PolicyRun("b", "act", ((str(play_store), None),), steps=2, preset="tiny-act")]

@@ -263,6 +263,7 @@ def test_collect_records_a_two_view_policys_episodes_from_the_first_view(trained
 # -- the studies on a two-view world model (item 4) ---------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_policy_eval_study_on_a_two_view_model_trains_and_scores_two_view_policies(two_view_model,  # noqa: F811
                                                                                          tmp_path, capsys):
     """The study takes its views from the world model: the simulator expert's takes are

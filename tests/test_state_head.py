@@ -181,6 +181,7 @@ def test_play_shows_the_predicted_agent_pos_of_each_session(state_model, one_thr
     np.testing.assert_allclose(run(True), run(False), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_pusher_state_bench_compares_the_prediction_and_the_pixel_reading(state_model, play_store, tmp_path):
     """``bench/pusher_state.py`` on a state model and one without: each row says where its
     agent_pos comes from, and the errors are finite millimetres (no quality asserted)."""

@@ -48,6 +48,7 @@ def test_yardstick_runs_on_a_tiny_model(tmp_path):
     assert again.returncode == 0 and json.loads((out / "results.json").read_text())["models"]["tiny"] == m
 
 
+@pytest.mark.slow
 def test_wm_strip_shows_a_policy_in_the_model_above_mujoco(tmp_path):
     ckpt = tiny_world_model().save(tmp_path / "wm", {})
     out = tmp_path / "strip.png"
