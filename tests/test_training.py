@@ -1,6 +1,7 @@
 import dataclasses
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -218,6 +219,27 @@ def test_resume_falls_back_past_a_truncated_newest_checkpoint(play_store, tmp_pa
     with pytest.raises(CheckpointError, match="no checkpoint in .* is whole \\(damaged: 00000006, 00000003\\)"):
         train_autoencoder(tiny(6), play_store, b, device=cpu, progress=False)
 
+
+
+def test_a_finished_run_returns_without_building_an_optimizer(play_store, tmp_path, monkeypatch, caplog):
+    """A rerun of a finished training (a recipe run again) stops before the optimizer, whose
+    first construction costs seconds; its checkpoint must still fit the network."""
+    run = tmp_path / "run"
+    train_autoencoder(tiny(3), play_store, run, device=torch.device("cpu"), progress=False)
+
+    def no_optimizer(*a, **k):
+        raise AssertionError("an optimizer was built for a finished run")
+
+    with monkeypatch.context() as m, caplog.at_level("INFO"):
+        m.setattr(torch.optim, "AdamW", no_optimizer)
+        assert train_autoencoder(tiny(3), play_store, run, device=torch.device("cpu"), progress=False) == {}
+    assert "is already trained to step 3" in caplog.text
+    other = dataclasses.replace(tiny(3), encoder=dataclasses.replace(TINY.encoder, channels=(8, 16, 16)))
+    train_autoencoder(other, play_store, tmp_path / "other", device=torch.device("cpu"), progress=False)
+    shutil.rmtree(run / "checkpoints")
+    shutil.copytree(tmp_path / "other" / "checkpoints", run / "checkpoints", symlinks=True)
+    with pytest.raises(CheckpointError, match="does not fit this model"):
+        train_autoencoder(tiny(3), play_store, run, device=torch.device("cpu"), progress=False)
 
 def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_weights(play_store, tmp_path, capsys,
                                                                                      one_thread):

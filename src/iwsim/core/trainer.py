@@ -271,20 +271,24 @@ def lock_run_dir(run_dir: Path) -> DirLock:
 def _train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str, Any], device: torch.device,
            d: distributed.Dist, progress: bool, compile: bool = False) -> dict[str, float]:
     module = task.module.to(device)
-    precision = training_precision(device, cfg.cpu_bf16)
     ema = copy.deepcopy(module).requires_grad_(False).eval()
-    opt = torch.optim.AdamW(module.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     ckpt_root = run_dir / "checkpoints"
     start, elapsed = 0, 0.0
-    resumed = _resume(ckpt_root, module, ema, opt)
-    if resumed is not None:
-        last, start, elapsed = resumed
+    found = _newest_whole_checkpoint(ckpt_root)
+    if found is not None:
+        last, state, tensors = found
+        start, elapsed = state["step"], float(state["elapsed_s"])
         log.info("resuming from %s (step %d)", last, start)
+        _load_into(last, (module, tensors["model"]), (ema, tensors["ema"]))
+        if start >= cfg.steps:  # before the optimizer, whose first construction imports torch._dynamo (seconds)
+            log.info("%s is already trained to step %d (>= %d)", run_dir, start, cfg.steps)
+            return {}
         if d.main:
             _truncate_metrics(run_dir / "metrics.jsonl", start)
-    if start >= cfg.steps:
-        log.info("%s is already trained to step %d (>= %d)", run_dir, start, cfg.steps)
-        return {}
+    precision = training_precision(device, cfg.cpu_bf16)
+    opt = torch.optim.AdamW(module.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+    if found is not None:
+        _load_into(last, (opt, (tensors["optimizer"], state["optimizer"])))
 
     path = ("bf16" if precision.bf16 else "fp32") + ("+compile" if compile else "")
     log.info("training path: %s on %s (%s; bf16 instructions: %s)", path, device.type, cpu_info().model,
@@ -377,33 +381,37 @@ def _read_checkpoint(ckpt: Path) -> tuple[dict[str, Any], dict[str, dict[str, to
                    for stem in ("model", "ema", "optimizer")}
 
 
-def _resume(ckpt_root: Path, module: nn.Module, ema: nn.Module,
-            opt: torch.optim.Optimizer) -> tuple[Path, int, float] | None:
-    """Load the newest whole checkpoint into ``module``, ``ema`` and ``opt``: (its path,
-    step, elapsed seconds), or None when the run has none. A damaged one (truncated or
-    unreadable files, e.g. from a full disk or a kill outside our atomic writes) is skipped
-    with a warning naming it; a checkpoint of another model is an error, not skipped."""
-    candidates = resume_candidates(ckpt_root)
+def _newest_whole_checkpoint(
+        ckpt_root: Path) -> tuple[Path, dict[str, Any], dict[str, dict[str, torch.Tensor]]] | None:
+    """The newest whole checkpoint of a run, read (its path, state.json and training
+    tensors), or None when the run has none. A damaged one (truncated or unreadable files,
+    e.g. from a full disk or a kill outside our atomic writes) is skipped with a warning
+    naming it."""
     damaged: list[str] = []
-    for ckpt in candidates:
+    for ckpt in resume_candidates(ckpt_root):
         try:
-            state, tensors = _read_checkpoint(ckpt)
+            return (ckpt, *_read_checkpoint(ckpt))
         except CheckpointError as e:
             log.warning("%s; resuming from the checkpoint before it instead", " ".join(str(e).split())[:300])
             damaged.append(ckpt.name)
-            continue
-        try:
-            module.load_state_dict(tensors["model"])
-            ema.load_state_dict(tensors["ema"])
-            optimizer_from_tensors(opt, tensors["optimizer"], state["optimizer"])
-        except (RuntimeError, KeyError, ValueError) as e:
-            raise CheckpointError(f"checkpoint {ckpt} does not fit this model ({' '.join(str(e).split())[:200]}); "
-                                  "train into a new --out.") from None
-        return ckpt, state["step"], float(state["elapsed_s"])
     if damaged:
         raise CheckpointError(f"no checkpoint in {ckpt_root} is whole (damaged: {', '.join(damaged)}); remove them "
                               "to train from scratch, or train into a new --out.")
     return None
+
+
+def _load_into(ckpt: Path, *targets: tuple[Any, Any]) -> None:
+    """Load a checkpoint's tensors into modules (``(module, state_dict)``) or the optimizer
+    (``(opt, (tensors, meta))``); a checkpoint of another model is an error."""
+    try:
+        for target, tensors in targets:
+            if isinstance(target, torch.optim.Optimizer):
+                optimizer_from_tensors(target, *tensors)
+            else:
+                target.load_state_dict(tensors)
+    except (RuntimeError, KeyError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {ckpt} does not fit this model ({' '.join(str(e).split())[:200]}); "
+                              "train into a new --out.") from None
 
 
 # Peak memory per sample of one training step on CPU at 64x64, measured with the pusht-64
