@@ -36,7 +36,7 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 def _argv(inputs: dict[str, Path], tmp_path: Path, *extra: str) -> list[str]:
     return ["experiment", "policy-eval", "--preset", "tiny", "--world-model", str(inputs["wm"]), "--demos",
             str(inputs["demos"]), "--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"), "--no-progress",
-            *extra]
+            "--jobs", "1", *extra]  # in this process: a pool's spawned workers would cost more than these jobs
 
 
 @pytest.mark.slow
@@ -177,7 +177,8 @@ def test_tiny_study_on_pile_sweeping(pile_model, tmp_path, capsys):
     policies in the zoo, its score in the report."""
     out, work = tmp_path / "out", tmp_path / "work"
     assert main(["experiment", "policy-eval", "--preset", "tiny", "--task", "pilesweep", "--world-model",
-                 str(pile_model["checkpoint"]), "--out", str(out), "--work", str(work), "--no-progress"]) == 0
+                 str(pile_model["checkpoint"]), "--out", str(out), "--work", str(work), "--no-progress",
+                 "--jobs", "1"]) == 0
     assert "mean max share in tray: Pearson r" in capsys.readouterr().out
     report = json.loads((out / "results.json").read_text())
     assert report["config"]["task"] == "pilesweep" and report["scale"]["steps"] == 6  # the tiny preset's

@@ -271,7 +271,7 @@ def test_the_policy_eval_study_on_a_two_view_model_trains_and_scores_two_view_po
     both views, and each is scored in MuJoCo rendering them and in the model."""
     out, work = tmp_path / "out", tmp_path / "work"
     assert main(["experiment", "policy-eval", "--preset", "tiny", "--world-model", str(two_view_model["checkpoint"]),
-                 "--out", str(out), "--work", str(work), "--no-progress"]) == 0
+                 "--out", str(out), "--work", str(work), "--no-progress", "--jobs", "1"]) == 0
     assert "Pearson r" in capsys.readouterr().out
     report = json.loads((out / "results.json").read_text())
     demos = work / "demos" / "sim_expert_top_side.zarr"
