@@ -17,7 +17,7 @@ OUT=${OUT:-runs}
 DATA=${DATA:-data}
 if [ "${SCALE:-full}" = tiny ]; then
     PLAY="--episodes 3 --steps 30" EXPERT="--episodes 2 --steps 30" EVAL="--episodes 2 --steps 20" AE=${AE:-2}
-    BATCH="--batch-size 2"
+    BATCH="--batch-size 2" WORKERS=${WORKERS:-1}  # a pool's spawned workers cost more than a few tiny episodes
 else
     PLAY="--episodes 400 --steps 200" EXPERT="--episodes 300 --steps 200" EVAL="--episodes 20 --steps 200"
     AE=${AE:-8000} BATCH=""

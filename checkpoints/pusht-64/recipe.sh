@@ -7,8 +7,9 @@
 # $OUT/pusht-64 and its yardstick row in $OUT/yardstick/results.md.
 #
 # Environment: OUT (default runs/rebuild-pusht-64), DATA (default data); SCALE=tiny shrinks
-# every step to seconds (a smoke test of the chain: other weights); YARDSTICK=0 skips the
-# final yardstick. Steps and seeds are those of checkpoints/pusht-64/README.md.
+# every step to seconds (a smoke test of the chain: other weights); WORKERS, the collection
+# processes (default 2; 1 at SCALE=tiny); YARDSTICK=0 skips the final yardstick. Steps and
+# seeds are those of checkpoints/pusht-64/README.md.
 set -euo pipefail
 export MUJOCO_GL=${MUJOCO_GL:-egl} OMP_NUM_THREADS=1
 IWSIM=${IWSIM:-iwsim}
@@ -18,10 +19,11 @@ DATA=${DATA:-data}
 if [ "${SCALE:-full}" = tiny ]; then
     PLAY="--episodes 4 --steps 30" EXPERT="--episodes 3 --steps 30" BROAD="--episodes 4 --steps 30"
     HANDS="--episodes 3 --steps 30" AE=2 DYN1=2 DYN2=4 DEC=2 FT1=2 FT2=2 FT3=2 FT4=2 BATCH="--batch-size 2"
+    WORKERS=${WORKERS:-1}  # a pool's spawned workers cost more than a few tiny episodes
 else
     PLAY="--episodes 400 --steps 200" EXPERT="--episodes 300 --steps 150"
     BROAD="--episodes 600 --steps 200" HANDS="--episodes 300 --steps 150"
-    AE=1000 DYN1=5000 DYN2=10000 DEC=2000 FT1=1800 FT2=1200 FT3=1200 FT4=7200 BATCH=""
+    AE=1000 DYN1=5000 DYN2=10000 DEC=2000 FT1=1800 FT2=1200 FT3=1200 FT4=7200 BATCH="" WORKERS=${WORKERS:-2}
 fi
 mkdir -p "$OUT" "$DATA"
 step() { echo "== $(date +%H:%M:%S) $*"; }
@@ -34,7 +36,7 @@ export_once() {  # export-model RUN -> DIR, unless DIR is already a model
 }
 
 step "play episodes (seeds 0-399)"
-"$IWSIM" collect --task pusht --policy play $PLAY --image-size 64 --workers 2 --seed 0 \
+"$IWSIM" collect --task pusht --policy play $PLAY --image-size 64 --workers $WORKERS --seed 0 \
     --out "$DATA/play.zarr" --no-progress
 step "stage 1: the conv-x8-64 codec, $AE steps"
 "$IWSIM" train ae --data "$DATA/play.zarr" --preset conv-x8-64 --steps $AE $BATCH --out "$OUT/codec_x8" \
@@ -48,7 +50,7 @@ fi
     --steps $DYN2 $BATCH --out "$OUT/dyn_x8_long" --latent-cache "$OUT/latents_x8.safetensors" --threads 1 --no-progress
 export_once "$OUT/dyn_x8_long" "$OUT/x8long"
 step "noisy-expert episodes (seeds 1000-1299), merged with play"
-"$IWSIM" collect --task pusht --policy expert-noisy $EXPERT --image-size 64 --workers 2 --seed 1000 \
+"$IWSIM" collect --task pusht --policy expert-noisy $EXPERT --image-size 64 --workers $WORKERS --seed 1000 \
     --out "$DATA/expert_noisy.zarr" --no-progress
 if [ ! -d "$DATA/contact.zarr" ]; then
     "$IWSIM" data merge "$DATA/play.zarr" "$DATA/expert_noisy.zarr" --out "$DATA/contact.zarr" --no-progress
@@ -69,9 +71,9 @@ export_once "$OUT/dyn_x8_contact" "$OUT/wm_contact_dec" --decoder "$OUT/dec_cont
 step "the last fine-tune with rest_threshold 0.05 (issue 41; the model shipped before this one)"
 export_once "$OUT/dyn_contact_more2" "$OUT/wm_contact_more2" --rest-threshold 0.05
 step "broad motion (issue 41): play-broad episodes (seeds 20000-20599), expert-hands (seeds 30000-30299), merged"
-"$IWSIM" collect --task pusht --policy play-broad $BROAD --image-size 64 --workers 2 --seed 20000 \
+"$IWSIM" collect --task pusht --policy play-broad $BROAD --image-size 64 --workers $WORKERS --seed 20000 \
     --out "$DATA/play_broad.zarr" --no-progress
-"$IWSIM" collect --task pusht --policy expert-hands $HANDS --image-size 64 --workers 2 --seed 30000 \
+"$IWSIM" collect --task pusht --policy expert-hands $HANDS --image-size 64 --workers $WORKERS --seed 30000 \
     --out "$DATA/expert_hands.zarr" --no-progress
 if [ ! -d "$DATA/broad.zarr" ]; then
     "$IWSIM" data merge "$DATA/contact.zarr" "$DATA/play_broad.zarr" "$DATA/expert_hands.zarr" \
