@@ -607,7 +607,8 @@ def main(argv: list[str] | None = None) -> int:
         print("expert_strip.png leaves out (checkpoint not on this machine): "
               + ", ".join(n for n in report["models"] if n not in present), flush=True)
     if "core" in parts:
-        strip(out / "expert_strip.png", [*present.values(), None], RANK_SEED)
+        shown = min(100, args.steps)  # the expert's first 100 steps, a frame every 10, or a shorter take's
+        strip(out / "expert_strip.png", [*present.values(), None], RANK_SEED, shown, max(1, shown // 10))
     write_text_atomic(out / "results.md", markdown(report, list(present)))
     print((out / "results.md").read_text())
     return 0
