@@ -178,7 +178,7 @@ def test_tiny_study_on_pile_sweeping(pile_model, tmp_path, capsys):
     out, work = tmp_path / "out", tmp_path / "work"
     assert main(["experiment", "policy-eval", "--preset", "tiny", "--task", "pilesweep", "--world-model",
                  str(pile_model["checkpoint"]), "--out", str(out), "--work", str(work), "--no-progress",
-                 "--jobs", "1"]) == 0
+                 "--jobs", "1", "--paired-episodes", "2", "--holdout-episodes", "3"]) == 0
     assert "mean max share in tray: Pearson r" in capsys.readouterr().out
     report = json.loads((out / "results.json").read_text())
     assert report["config"]["task"] == "pilesweep" and report["scale"]["steps"] == 6  # the tiny preset's
@@ -201,6 +201,13 @@ def test_tiny_study_on_pile_sweeping(pile_model, tmp_path, capsys):
     assert "maximum share in tray an episode reaches; success: share in tray >= 0.9" in md
     assert "MuJoCo max share in tray" in md and "IoU" not in md
     assert (out / "scatter.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # issue 66 on this task too: each policy's paired estimate of its mean max share in tray
+    paired = report["paired"]
+    assert paired["holdout_episodes"] == 3 and set(paired["by_n"]["2"]["policies"]) == set(PRESETS["tiny"].policy_names())
+    held = json.loads((work / "pilesweep" / "policy_eval" / "eval_holdout" / "pilesweep" / "expert.json").read_text())
+    lo, hi = paired["holdout_seeds"]
+    assert held["key"]["seeds"] == list(range(lo, hi + 1)) and held["key"]["env"] == "pilesweep"
+    assert "## Paired estimates" in md and "mean max share in tray" in md
 
 
 @pytest.mark.parametrize(("extra", "match"), [
