@@ -203,7 +203,8 @@ def test_tiny_study_on_pile_sweeping(pile_model, tmp_path, capsys):
     assert (out / "scatter.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # issue 66 on this task too: each policy's paired estimate of its mean max share in tray
     paired = report["paired"]
-    assert paired["holdout_episodes"] == 3 and set(paired["by_n"]["2"]["policies"]) == set(PRESETS["tiny"].policy_names())
+    assert paired["holdout_episodes"] == 3
+    assert set(paired["by_n"]["2"]["policies"]) == set(PRESETS["tiny"].policy_names())
     held = json.loads((work / "pilesweep" / "policy_eval" / "eval_holdout" / "pilesweep" / "expert.json").read_text())
     lo, hi = paired["holdout_seeds"]
     assert held["key"]["seeds"] == list(range(lo, hi + 1)) and held["key"]["env"] == "pilesweep"
