@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from iwsim.core.checkpoint import resolve_checkpoint
+from iwsim.core.checkpoint import resolve_checkpoint, write_text_atomic
 from iwsim.core.errors import reporting_errors
 from iwsim.core.metrics import psnr
 from iwsim.core.resources import set_threads
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
             print(lines[-1], flush=True)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text("\n".join(lines) + "\n")
+        write_text_atomic(args.out, "\n".join(lines) + "\n")  # whole or absent: the recipe skips it when present
     return 0
 
 

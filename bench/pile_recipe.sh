@@ -41,5 +41,7 @@ step "the conv-x4-64 codec, $AE steps"
 "$IWSIM" train ae --data "$DATA/pile_contact.zarr" --preset conv-x4-64 --steps "$AE" $BATCH \
     --out "$OUT/pile_codec_x4_$AE" --threads 1 --no-progress
 step "the codec on held-out frames"
-"$PYTHON" bench/pile_codec.py "x4_$AE=$OUT/pile_codec_x4_$AE" \
-    --data "$DATA/pile_play_eval.zarr" "$DATA/pile_expert_eval.zarr" --out "$OUT/pile_codec_x4_$AE.md"
+if [ ! -f "$OUT/pile_codec_x4_$AE.md" ]; then
+    "$PYTHON" bench/pile_codec.py "x4_$AE=$OUT/pile_codec_x4_$AE" \
+        --data "$DATA/pile_play_eval.zarr" "$DATA/pile_expert_eval.zarr" --out "$OUT/pile_codec_x4_$AE.md"
+fi
