@@ -17,6 +17,7 @@ per-sample seeds).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import logging
@@ -24,7 +25,7 @@ import math
 import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
@@ -279,7 +280,9 @@ def _train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str
         last, state, tensors = found
         start, elapsed = state["step"], float(state["elapsed_s"])
         log.info("resuming from %s (step %d)", last, start)
-        _load_into(last, (module, tensors["model"]), (ema, tensors["ema"]))
+        with _fitting(last):
+            module.load_state_dict(tensors["model"])
+            ema.load_state_dict(tensors["ema"])
         if start >= cfg.steps:  # before the optimizer, whose first construction imports torch._dynamo (seconds)
             log.info("%s is already trained to step %d (>= %d)", run_dir, start, cfg.steps)
             return {}
@@ -288,7 +291,8 @@ def _train(task: TrainTask[M], cfg: TrainConfig, run_dir: Path, config: dict[str
     precision = training_precision(device, cfg.cpu_bf16)
     opt = torch.optim.AdamW(module.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     if found is not None:
-        _load_into(last, (opt, (tensors["optimizer"], state["optimizer"])))
+        with _fitting(last):
+            optimizer_from_tensors(opt, tensors["optimizer"], state["optimizer"])
 
     path = ("bf16" if precision.bf16 else "fp32") + ("+compile" if compile else "")
     log.info("training path: %s on %s (%s; bf16 instructions: %s)", path, device.type, cpu_info().model,
@@ -400,15 +404,11 @@ def _newest_whole_checkpoint(
     return None
 
 
-def _load_into(ckpt: Path, *targets: tuple[Any, Any]) -> None:
-    """Load a checkpoint's tensors into modules (``(module, state_dict)``) or the optimizer
-    (``(opt, (tensors, meta))``); a checkpoint of another model is an error."""
+@contextlib.contextmanager
+def _fitting(ckpt: Path) -> Iterator[None]:
+    """Loading ``ckpt``'s tensors: a checkpoint of another model is an error, not skipped."""
     try:
-        for target, tensors in targets:
-            if isinstance(target, torch.optim.Optimizer):
-                optimizer_from_tensors(target, *tensors)
-            else:
-                target.load_state_dict(tensors)
+        yield
     except (RuntimeError, KeyError, ValueError) as e:
         raise CheckpointError(f"checkpoint {ckpt} does not fit this model ({' '.join(str(e).split())[:200]}); "
                               "train into a new --out.") from None
