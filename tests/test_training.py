@@ -220,7 +220,6 @@ def test_resume_falls_back_past_a_truncated_newest_checkpoint(play_store, tmp_pa
         train_autoencoder(tiny(6), play_store, b, device=cpu, progress=False)
 
 
-
 def test_a_finished_run_returns_without_building_an_optimizer(play_store, tmp_path, monkeypatch, caplog):
     """A rerun of a finished training (a recipe run again) stops before the optimizer, whose
     first construction costs seconds; its checkpoint must still fit the network."""
