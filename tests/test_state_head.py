@@ -52,6 +52,32 @@ def test_the_state_head_learns_where_the_pushers_go(one_thread):
     assert errors[-1] < 0.3 * errors[0], errors
 
 
+def test_contact_weighs_the_steps_where_the_robot_stands_apart_from_its_setpoint(one_thread):
+    """``state_contact_weight``: a step whose recorded state stands more than the gap from
+    the state its setpoint sets adds its state error 1 + weight times; the others once."""
+    cfg = tiny_cfg("state")
+    dynamics = Dynamics(cfg.dynamics)
+    randomise(dynamics)
+    g = torch.Generator().manual_seed(0)
+    b, n, k = 6, 3, cfg.dynamics.context
+    actions = torch.rand(b, n + 1, 4, generator=g) * 2 - 1
+    batch = batch_for(cfg, torch.randn(b, k + n, 4, 16, 16, generator=g), actions, g)
+    reached = dynamics.setpoint_state(torch.stack([actions[:, :-1], actions[:, 1:]], 2).flatten(0, 1)).view(b, n, 4)
+    reached[::2] += 0.1  # every other sequence held 0.1 (normalised) back at each step
+    batch.states = torch.cat([torch.zeros(b, 1, 4), reached], 1)
+    plain, err = DynamicsTrainModule(dynamics, cfg).unroll(batch)
+    contact = dataclasses.replace(cfg, state_contact_weight=4.0, state_contact_gap=0.05)
+    weighted, err_again = DynamicsTrainModule(dynamics, contact).unroll(batch)
+    torch.testing.assert_close(err, err_again)
+    held = torch.zeros(b, 1)
+    held[::2] = 1
+    torch.testing.assert_close(weighted - plain, 4.0 * held * err)
+    with pytest.raises(InputError, match="state_contact_weight needs a robot state"):
+        no_points = dataclasses.replace(contact, dynamics=dataclasses.replace(
+            cfg.dynamics, state_action_scale=(), state_action_offset=()))
+        DynamicsTrainModule(Dynamics(no_points.dynamics), no_points)
+
+
 def test_a_model_gains_the_state_without_changing_its_latents():
     """``add_state``: a network without the state, given one with zero input weights, predicts
     the same latents whatever the state, and its head starts at the state the setpoint sets."""
@@ -118,10 +144,11 @@ def test_the_environment_reports_the_predicted_agent_pos(state_model, one_thread
     np.testing.assert_allclose(vobs["agent_pos"][0], singles[-1], atol=1e-5)
 
 
-def test_a_state_model_refuses_mixed_batches_and_fine_tunes_add_it(state_model, play_store, tmp_path, one_thread):
+def test_a_state_model_refuses_mixed_batches_and_fine_tunes_add_it(state_model, play_store, tmp_path, one_thread,
+                                                                   capsys):
     """StreamState.cat refuses states of a model with and without the state; ``--init`` of a
-    model trained without it with ``--variant state`` trains the state in; any other
-    variant with --init is still refused."""
+    model trained without it with ``--variant state`` trains the state in, ``state-contact``
+    also weighs contact in its loss; any other variant with --init is still refused."""
     wm = WorldModel.load(state_model / "wm")
     frame = np.zeros((1, 64, 64, 3), np.uint8)
     with_state = wm.reset_state(frame, state=np.zeros((1, 4), np.float32))
@@ -139,6 +166,11 @@ def test_a_state_model_refuses_mixed_batches_and_fine_tunes_add_it(state_model, 
     assert WorldModel.load(tmp_path / "ft" / "checkpoints" / "00000003").state_dim == 4
     assert main(["train", "dynamics", "--data", str(play_store), "--init", str(plain), "--variant", "no-delta",
                  "--preset", "tiny", "--out", str(tmp_path / "bad"), "--no-progress"]) != 0
+    capsys.readouterr()
+    assert main(["train", "dynamics", "--data", str(play_store), "--init", str(state_model / "wm"), "--variant",
+                 "state-contact", "--preset", "tiny", "--out", str(tmp_path / "contact"), "--dry-run"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["predict_state"] and printed["state_contact_weight"] == 4.0 and printed["state_contact_gap"] == 0.04
 
 
 def test_training_with_the_state_needs_a_store_that_records_it(state_model, play_store, tmp_path, capsys):

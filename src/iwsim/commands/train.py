@@ -168,9 +168,10 @@ def _train_ae(args: argparse.Namespace) -> int:
 def _train_dynamics(args: argparse.Namespace) -> int:
     from iwsim.world_model.presets import DYNAMICS_PRESETS
 
-    if args.init is not None and args.variant not in ("ours", "state"):
-        raise InputError("--variant applies to training from scratch (with --init, only 'state', which adds the "
-                         "robot's state to the model); --init keeps the model's own objective and network.")
+    if args.init is not None and args.variant not in ("ours", "state", "state-contact"):
+        raise InputError("--variant applies to training from scratch (with --init, only 'state' or 'state-contact', "
+                         "which add the robot's state to the model); --init keeps the model's own objective and "
+                         "network.")
     check_positive(args, "context")
     from iwsim.world_model.train_dynamics import run_config, train_dynamics
 

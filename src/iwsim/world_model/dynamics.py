@@ -188,9 +188,14 @@ class Dynamics(nn.Module):
         if self.state_head is None:
             raise InputError("this dynamics network has no state head (it was trained without the robot's state).")
         inp = [new, newest, coordinates(new), *self.action_features(actions), *self.state_features(state)]
-        base = actions[:, 1] * self.state_action_scale + self.state_action_offset if self.cfg.state_action_scale \
-            else state
+        base = self.setpoint_state(actions) if self.cfg.state_action_scale else state
         return base + self.state_head(torch.cat(inp, 1))
+
+    def setpoint_state(self, actions: torch.Tensor) -> torch.Tensor:
+        """The normalised state (B, S) the current action of ``actions`` (B, 2, A) sets: where
+        the robot stands once it has reached its setpoint (a network whose state holds the
+        action's points, ``state_action_scale``)."""
+        return actions[:, 1] * self.state_action_scale + self.state_action_offset
 
     def action_features(self, actions: torch.Tensor) -> list[torch.Tensor]:
         """Per-cell action maps from normalised actions (B, 2, A) (previous, current)."""

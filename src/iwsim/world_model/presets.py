@@ -147,6 +147,15 @@ class DynamicsStageConfig:
     # fed back, supervised by an MSE on the normalised state weighted by state_weight.
     predict_state: bool = False
     state_weight: float = 1.0
+    # Contact in the state's loss: where the recorded state stands more than
+    # state_contact_gap (normalised units, any coordinate) from the one its setpoint sets
+    # (Dynamics.setpoint_state: a pusher held back by the block), that step's state error
+    # counts 1 + state_contact_weight times. In T-push's broad data a fifth of the steps
+    # stand beyond the default gap (9 mm), 4% beyond 20 mm, and a head trained without the
+    # weight puts a pressing pusher at its setpoint, inside the block (bench/results/
+    # ablations.md). 0: off.
+    state_contact_weight: float = 0.0
+    state_contact_gap: float = 0.04
     holdout_every: int = 20
     eval_episodes: int = 4  # held-out episodes rolled out open-loop at each evaluation
     eval_steps: int = 64
@@ -202,6 +211,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "long-unroll": {"unroll": ((0, 2), (200, 4), (500, 8), (800, 16), (1100, 24)), "unroll_grad_every": 8},
     # The robot's own state taken, predicted and fed back (the store's data/state).
     "state": {"predict_state": True},
+    # ... with the steps where contact holds a pusher back weighted 5x in the state's loss.
+    "state-contact": {"predict_state": True, "state_contact_weight": 4.0},
 }
 
 

@@ -22,7 +22,9 @@ With ``cfg.predict_state`` the network also takes the robot's own state (``data/
 and predicts it after each prediction (``Dynamics.predict_state``, from the predicted
 latent); the state of the first prediction is the recorded one, each later one the
 previous prediction, cut from the gradient where the latents are. Its loss, an MSE on
-the normalised state times ``cfg.state_weight``, is added to each prediction's.
+the normalised state times ``cfg.state_weight``, is added to each prediction's; with
+``cfg.state_contact_weight`` the steps where the recorded state stands apart from what its
+setpoint sets (contact holds the robot back) weigh more.
 
 Every checkpoint of a dynamics run is a complete world model (autoencoder + dynamics +
 action normalisation + config), loadable with :meth:`iwsim.WorldModel.load`.
@@ -65,6 +67,9 @@ class DynamicsTrainModule(nn.Module):
         super().__init__()
         if cfg.objective not in OBJECTIVES:
             raise InputError(f"unknown objective {cfg.objective!r}; expected one of {', '.join(OBJECTIVES)}.")
+        if cfg.state_contact_weight and not dynamics.cfg.state_action_scale:
+            raise InputError("state_contact_weight needs a robot state that holds the action's points (the setpoint "
+                             "says where the robot would stand); this model's does not.")
         self.dynamics, self.cfg = dynamics, cfg
         self.denoiser = Denoiser(dynamics, cfg)
         # Whether the loss's one-pass estimate is exactly what inference generates (then it
@@ -113,8 +118,13 @@ class DynamicsTrainModule(nn.Module):
             if state is not None:
                 assert batch.states is not None  # with_state
                 state = self.dynamics.predict_state(pred, ctx[:, -1], acts, state)
-                state_errs.append(((state - batch.states[:, u + 1]) ** 2).mean(1))
-                loss = loss + cfg.state_weight * state_errs[-1]
+                truth = batch.states[:, u + 1]
+                state_errs.append(((state - truth) ** 2).mean(1))
+                weight: float | torch.Tensor = cfg.state_weight
+                if cfg.state_contact_weight:  # steps where contact holds the robot back from its setpoint
+                    held = (self.dynamics.setpoint_state(acts) - truth).abs().amax(1) > cfg.state_contact_gap
+                    weight = weight * (1 + cfg.state_contact_weight * held)
+                loss = loss + weight * state_errs[-1]
                 state = state.detach() if cut else state
             losses.append(loss)
             if u == n - 1:
@@ -179,7 +189,8 @@ def run_config(cfg: DynamicsStageConfig, init: WorldModel | None = None,
         longest = max(n for _, n in init.cfg.unroll) if init.cfg.unroll else 1
         cfg = replace(init.cfg, train=cfg.train, unroll=((0, longest),),
                       predict_state=cfg.predict_state or init.cfg.predict_state,
-                      state_weight=cfg.state_weight if cfg.predict_state else init.cfg.state_weight)
+                      **{k: getattr(cfg if cfg.predict_state else init.cfg, k)
+                         for k in ("state_weight", "state_contact_weight", "state_contact_gap")})
     if context is not None:
         cfg = replace(cfg, dynamics=replace(cfg.dynamics, context=context))
     return cfg
