@@ -83,7 +83,7 @@ step "the shipped model: a one-second window (10 latents) fine-tuned on the broa
 "$IWSIM" train dynamics --init "$OUT/wm_contact_more2" --context 10 --data "$DATA/broad.zarr" --preset pusht-64 \
     --steps $FT4 $BATCH --lr 2e-4 --bf16 --out "$OUT/dyn_win10" --latent-cache "$OUT/latents_broad.safetensors" \
     --threads 1 --no-progress
-export_once "$OUT/dyn_win10" "$OUT/pusht-64" --novelty-data "$DATA/broad.zarr"
+export_once "$OUT/dyn_win10" "$OUT/pusht-64" --novelty-data "$DATA/broad.zarr" --no-progress
 if [ "${YARDSTICK:-1}" != 0 ]; then
     step "its yardstick row"
     "$PYTHON" bench/yardstick.py --models rebuilt="$OUT/pusht-64" --out "$OUT/yardstick"
