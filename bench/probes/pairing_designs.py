@@ -1,9 +1,11 @@
 """Can a trust signal or the other policies tighten the paired estimates (issue 66)? On the
 yardstick's families (a ``bench/yardstick.py --paired-episodes`` results.json: each
 family's model and MuJoCo scores of the same 16 first states, its trust signals and 50
-held-out MuJoCo episodes), many random choices of which n first states are paired, and for
-each design the share of 95% intervals that cover the family's held-out mean and their
-mean half-width (clipped to [0, 1]):
+held-out MuJoCo episodes) or the policy-evaluation study's zoo (an ``iwsim experiment
+policy-eval --paired-episodes`` results.json: each policy's scores of the same 20 first
+states in both, and its held-out mean; no per-episode signals), many random choices of
+which n first states are paired, and for each design the share of 95% intervals that
+cover the held-out mean and their mean half-width (clipped to [0, 1]):
 
 - ``real alone``: the n MuJoCo episodes' mean, Student t (the trivial baseline);
 - ``PPI``: :func:`iwsim.eval.paired.paired_estimate` as the studies use it;
@@ -16,6 +18,7 @@ mean half-width (clipped to [0, 1]):
   own n pairs keep n - 1 degrees of freedom.
 
     python bench/probes/pairing_designs.py runs/ys_paired/results.json --model shipped
+    python bench/probes/pairing_designs.py runs/pe_paired/results.json
 """
 
 from __future__ import annotations
@@ -83,19 +86,11 @@ def main() -> None:
     args = p.parse_args()
     with open(args.results) as fh:
         r = json.load(fh)
-    try:
-        g = r["models"][args.model]["generalisation"]
-        mujoco, holdout = r["mujoco"]["families"], r["mujoco"]["families_holdout"]
-    except KeyError as e:
-        raise InputError(f"{args.results} has no families part with held-out episodes for model "
-                         f"{args.model!r} (missing {e}).") from None
-    fams = [f for f in g["scores"] if f in holdout]
-    model = {f: np.asarray(g["scores"][f], np.float64) for f in fams}
-    real = {f: np.asarray(mujoco[f], np.float64) for f in fams}
-    truth = {f: float(np.mean(holdout[f])) for f in fams}
+    model, real, truth, signals = (_study if "policies" in r else _families)(r, args)
+    fams = list(model)
     rng = np.random.default_rng(args.seed)
-    print(f"{len(fams)} families x {len(model[fams[0]])} first states, {args.draws} random pairings each; "
-          "95% intervals against 50 held-out MuJoCo episodes")
+    print(f"{len(fams)} policies x {len(model[fams[0]])} first states, {args.draws} random pairings each; "
+          "95% intervals against the held-out MuJoCo episodes")
     print("| n | design | coverage | mean half-width |\n|---|---|---|---|")
     for n in (int(x) for x in args.ns.split(",")):
         rows: dict[str, list[tuple[bool, float]]] = {}
@@ -106,14 +101,44 @@ def main() -> None:
                            "cross-fitted lam": ppi(model[f], real[f], picks[f],
                                                    lam=cross_lambda(model, real, picks, f))}
                 if n >= 4:
-                    for s in SIGNALS:
-                        designs[f"stratified by {s}"] = stratified(model[f], real[f],
-                                                                   np.asarray(g["signals"][s][f]), n, rng)
+                    for s, u in signals.items():
+                        designs[f"stratified by {s}"] = stratified(model[f], real[f], u[f], n, rng)
                 for name, (lo, hi) in designs.items():
                     rows.setdefault(name, []).append((lo <= truth[f] <= hi, (hi - lo) / 2))
         for name, v in rows.items():
             a = np.asarray(v, np.float64)
             print(f"| {n} | {name} | {a[:, 0].mean():.3f} | {a[:, 1].mean():.3f} |")
+
+
+Scores = dict[str, np.ndarray]
+
+
+def _families(r: dict, args: argparse.Namespace) -> tuple[Scores, Scores, dict[str, float], dict[str, Scores]]:
+    """A yardstick report's families: model and MuJoCo scores, held-out means, signals."""
+    try:
+        g = r["models"][args.model]["generalisation"]
+        mujoco, holdout = r["mujoco"]["families"], r["mujoco"]["families_holdout"]
+    except KeyError as e:
+        raise InputError(f"{args.results} has no families part with held-out episodes for model "
+                         f"{args.model!r} (missing {e}).") from None
+    fams = [f for f in g["scores"] if f in holdout]
+    return ({f: np.asarray(g["scores"][f], np.float64) for f in fams},
+            {f: np.asarray(mujoco[f], np.float64) for f in fams}, {f: float(np.mean(holdout[f])) for f in fams},
+            {s: {f: np.asarray(g["signals"][s][f], np.float64) for f in fams} for s in SIGNALS})
+
+
+def _study(r: dict, args: argparse.Namespace) -> tuple[Scores, Scores, dict[str, float], dict[str, Scores]]:
+    """A policy-evaluation study's zoo: each policy's scores in the model and in the task's
+    simulator, and its held-out mean (the paired section's truth)."""
+    if "paired" not in r:
+        raise InputError(f"{args.results} is a study without paired estimates (--paired-episodes).")
+    task = r["config"]["task"]
+    key = "max_iou" if task == "pusht" else "max_score"
+    truth = next(iter(r["paired"]["by_n"].values()))["policies"]
+    names = [p["name"] for p in r["policies"]]
+    return ({p["name"]: np.asarray(p["world-model"][key], np.float64) for p in r["policies"]},
+            {p["name"]: np.asarray(p[task][key], np.float64) for p in r["policies"]},
+            {n: float(truth[n]["truth"]) for n in names}, {})
 
 
 if __name__ == "__main__":
