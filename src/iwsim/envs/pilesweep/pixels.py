@@ -16,7 +16,6 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from scipy import ndimage
 
 from iwsim.envs.pilesweep.sim import PALETTE, PIECE_RADIUS, in_tray
 from iwsim.envs.tabletop.palette import Palette, check_frames, pixel_centers, pusher_centroids
@@ -46,6 +45,8 @@ def piece_fraction(frames: np.ndarray) -> np.ndarray:
 def find_pieces(fraction: np.ndarray) -> np.ndarray:
     """The pieces seen in one frame's piece fraction (H, W): (n, 2) world positions, one
     per piece (see the module docstring), n = 0 when none is seen."""
+    from scipy import ndimage  # here: half a second of every iwsim process's start-up, which imports the tasks
+
     size = fraction.shape[-1]
     centres, _ = _grid(size)
     one = piece_area(size)

@@ -24,7 +24,6 @@ from collections.abc import Generator
 
 import gymnasium as gym
 import numpy as np
-from scipy import ndimage
 
 from iwsim.core.errors import InputError
 from iwsim.data.views import first_view
@@ -109,6 +108,8 @@ class Grid:
         path that is in straight sight (``goal`` itself when in sight or unreachable)."""
         if self._clear(start, goal, blocked):
             return goal
+        from scipy import ndimage  # here: half a second of every iwsim process's start-up, which imports the tasks
+
         free = ~blocked
         dist = np.full(blocked.shape, -1)
         front = np.zeros_like(free)
