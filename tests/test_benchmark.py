@@ -53,6 +53,17 @@ def test_ssim_and_uiqi_fall_with_noise_and_handle_flat_images():
         mse(a, a[:1])
 
 
+@pytest.mark.parametrize("shape", [(3, 3, 64, 64), (2, 1, 32, 48), (1, 6, 16, 16)])
+def test_ssim_is_torchmetrics_ssim(shape):
+    from torchmetrics.functional.image import structural_similarity_index_measure as reference
+
+    g = torch.Generator().manual_seed(shape[1])
+    a = torch.rand(shape, generator=g)
+    for b in (a, (a + 0.1 * torch.randn(shape, generator=g)).clamp(0, 1), torch.rand(shape, generator=g), a * 0.5):
+        expected = reference(b, a, data_range=1.0, reduction="none")
+        assert torch.allclose(ssim(b, a), expected, atol=1e-5), (ssim(b, a), expected)
+
+
 def test_missing_weights_are_reported_not_scored(tmp_path):
     nets = sc.FeatureNets.load(tmp_path)
     assert nets.lpips is None and nets.inception is None and nets.i3d is None

@@ -167,12 +167,12 @@ def _train_ae(args: argparse.Namespace) -> int:
 
 
 def _train_dynamics(args: argparse.Namespace) -> int:
-    from iwsim.world_model.presets import DYNAMICS_PRESETS
+    from iwsim.world_model.presets import DYNAMICS_PRESETS, FINE_TUNE_VARIANTS
 
-    if args.init is not None and args.variant not in ("ours", "state", "state-contact"):
-        raise InputError("--variant applies to training from scratch (with --init, only 'state' or 'state-contact', "
-                         "which add the robot's state to the model); --init keeps the model's own objective and "
-                         "network.")
+    if args.init is not None and args.variant not in FINE_TUNE_VARIANTS:
+        raise InputError("--variant applies to training from scratch (with --init, only "
+                         f"{', '.join(FINE_TUNE_VARIANTS)}: the last two add the robot's state to the model); --init "
+                         "keeps the model's own objective and network.")
     check_positive(args, "context")
     from iwsim.world_model.train_dynamics import run_config, train_dynamics
 

@@ -214,6 +214,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # ... with the steps where contact holds a pusher back weighted 5x in the state's loss.
     "state-contact": {"predict_state": True, "state_contact_weight": 4.0},
 }
+# What a fine-tune (--init) may add to a trained model: the others change its objective or network.
+FINE_TUNE_VARIANTS = ("ours", "state", "state-contact")
 
 
 def variant(cfg: DynamicsStageConfig, name: str) -> DynamicsStageConfig:
