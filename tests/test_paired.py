@@ -79,6 +79,11 @@ def test_a_success_rate_stays_in_its_range_and_bad_input_is_refused():
     model = [True] * 9 + [False]
     out = paired_rate(model, [True, True], [0, 1])
     assert 0.0 <= out["interval"][0] <= out["estimate"] <= out["interval"][1] <= 1.0
+    # the paired states the model scores far below the real ones, the rest high: the
+    # unbiased estimate (1 + 0.4) lies above the range; it and its interval are clipped into it
+    above = paired_estimate([0.5, 0.5] + [1.0] * 8, [1.0, 1.0], [0, 1], bounds=(0.0, 1.0))
+    assert above["estimate_unclipped"] == pytest.approx(1.4)
+    assert above["estimate"] == above["interval"][1] == 1.0 and 0.0 <= above["interval"][0] <= 1.0
     for args, says in ((([0.5, 0.6], [0.5], [0]), "at least 2 paired episodes"),
                        (([0.5, 0.6], [0.5, 0.4], [0, 0]), "distinct states"),
                        (([0.5, 0.6], [0.5, 0.4], [0, 2]), "distinct states"),

@@ -25,7 +25,7 @@ not hold: the interval is Student t on the paired term's degrees of freedom (n -
 n - 2 with a fitted slope), which is conservative when the unpaired term matters (on
 synthetic policies the 95% interval covers 96-100% of the time for n = 2-10).
 ``effective_n`` is how many real episodes alone would give the estimate's variance. Success
-rates are the same estimator on 0/1 scores, their interval clipped to [0, 1].
+rates are the same estimator on 0/1 scores, the estimate and its interval clipped to [0, 1].
 
 A per-episode trust signal (:mod:`iwsim.eval.trust`) known for all N model episodes can
 weight the model state by state (:func:`distrust`): where the signal warns, the model's
@@ -74,8 +74,9 @@ def paired_estimate(model: Sequence[float] | np.ndarray, real: Sequence[float] |
     """The estimate of the real mean score from ``model`` (N,) world-model scores and
     ``real`` (n,) real scores of the states ``paired`` (n indices into ``model``), with
     its ``level`` interval (see the module docstring). ``lam`` None: power-tuned.
-    ``bounds``: the range of a score (e.g. (0, 1)), to which the interval is clipped
-    (the mean lies in it, so the coverage is unchanged)."""
+    ``bounds``: the range of a score (e.g. (0, 1)), to which the estimate and its interval
+    are clipped: the mean lies in it, so the coverage is unchanged and the estimate's error
+    can only shrink (``estimate_unclipped`` keeps the unbiased value)."""
     f = np.asarray(model, np.float64)
     y = np.asarray(real, np.float64)
     idx = np.asarray(paired, np.int64)
@@ -104,10 +105,10 @@ def paired_estimate(model: Sequence[float] | np.ndarray, real: Sequence[float] |
     df = float(n - fitted)  # the paired term's: with a few pairs it dominates the uncertainty of the variance
     half = float(stats.t.ppf((1 + level) / 2, df)) * math.sqrt(var)
     real_var = float(np.var(y, ddof=1))
-    lo, hi = estimate - half, estimate + half
-    if bounds is not None:
-        lo, hi = max(bounds[0], lo), min(bounds[1], hi)
-    return {"estimate": estimate, "interval": [lo, hi], "level": level, "lam": lam,
+    raw, lo, hi = estimate, estimate - half, estimate + half
+    if bounds is not None:  # one monotone map for all three: lo <= estimate <= hi still
+        estimate, lo, hi = (min(max(v, bounds[0]), bounds[1]) for v in (estimate, lo, hi))
+    return {"estimate": estimate, "estimate_unclipped": raw, "interval": [lo, hi], "level": level, "lam": lam,
             "n_paired": n, "n_model": big_n, "df": float(df), "std_error": math.sqrt(var),
             "effective_n": real_var / var if var > 0 else float("inf"),
             "model_mean": float(f.mean()), "real_mean_paired": float(y.mean()),
