@@ -4,9 +4,10 @@ Each episode of the given stores (collected in MuJoCo, held out from training) s
 world-model environment (``iwsim/WorldModel-v0``'s vector env) from its first frame and the
 pushers' true position there, then sends the recorded commands one per step; the
 environment's ``agent_pos`` after each step is compared with MuJoCo's (the store's
-``data/state``). For a model trained with the robot's state (``--variant state``) the
-environment reports the model's own prediction; for any other it reads the pushers off the
-frame (``PushTTask.observe``'s pixel heuristic), which is the baseline.
+``data/state``). The environment reads the pushers off the frame (``PushTTask.observe``'s pixel
+heuristic); a model trained with the robot's state (``--variant state``) fills in, from its
+own prediction, a pusher the frame does not show (before 2026-12-05 night the environment
+reported that prediction everywhere: the rows measured then).
 
 Reported per model and store: the per-pusher error in mm (median, p90) over all steps and
 over *pressing* steps, those where the executed setpoint lies more than ``--press-mm`` ahead
@@ -116,8 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     curves = {}
     for name, ckpt in tqdm(models.items(), desc="models"):
         wm = WorldModel.load(ckpt)
-        source = "the model's own prediction" if wm.state_dim and predicts_agent_pos(wm, wm.task) else \
-            "read off the frame (pixel heuristic)"
+        source = "read off the frame, the model's prediction where unseen" if wm.state_dim and \
+            predicts_agent_pos(wm, wm.task) else "read off the frame (pixel heuristic)"
         row: dict = {"checkpoint": ckpt, "agent_pos": source, "stores": {}}
         for store, ep in data.items():
             err = pusher_errors(wm, ep, args.steps) * 1000

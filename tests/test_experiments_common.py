@@ -166,3 +166,23 @@ def test_the_studies_find_the_shipped_model_from_any_directory(tmp_path, monkeyp
     monkeypatch.chdir(tmp_path)
     check_study_model("checkpoints/pusht-64")
     assert fingerprint("checkpoints/pusht-64") == here
+
+
+def test_a_state_models_fingerprint_changes_with_its_observation_alone(tmp_path, monkeypatch):
+    """The environment's agent_pos changed for the models that predict the robot's state
+    only: their cached results go, the others' stay."""
+    import shutil
+
+    from iwsim.core.checkpoint import load_json, write_json_atomic
+    from iwsim.experiments import common
+
+    plain = tmp_path / "plain"
+    shutil.copytree("checkpoints/pusht-64", plain)
+    state = tmp_path / "state"
+    shutil.copytree(plain, state)
+    config = load_json(state / "config.json")
+    config["stage2"]["dynamics"]["state_dim"] = 4
+    write_json_atomic(state / "config.json", config)
+    before = {p: common.fingerprint(p) for p in (plain, state)}
+    monkeypatch.setattr(common, "STATE_OBSERVATION_VERSION", common.STATE_OBSERVATION_VERSION + 1)
+    assert common.fingerprint(plain) == before[plain] and common.fingerprint(state) != before[state]

@@ -115,10 +115,32 @@ def state_model(play_store, tmp_path_factory):
     return root
 
 
+def test_the_frame_shows_the_pushers_and_the_prediction_fills_in_those_it_does_not(monkeypatch):
+    """A pusher the frame shows is where the frame shows it (at its setpoint when seen near
+    it); one it does not show is where the model predicted it, or without a prediction
+    where it was; a task without a pixel reading reports the prediction, else the setpoint."""
+    from iwsim.envs.registry import get_task
+
+    task = get_task("pusht")
+    seen = np.array([[0.10, 0.10, -0.05, 0.02]])  # the left pusher seen 5 mm from its setpoint, the right 50 mm
+    monkeypatch.setattr(type(task), "read", lambda self, frames: (np.zeros(1), seen, np.array([[True, False]])))
+    setpoint = np.array([[0.105, 0.10, 0.0, 0.0]])
+    previous, predicted = np.full((1, 4), 0.2, np.float32), np.full((1, 4), -0.1, np.float32)
+    frames = np.zeros((1, 64, 64, 3), np.uint8)
+    np.testing.assert_allclose(task.observe(frames, setpoint, previous, predicted)[1], [[0.105, 0.10, -0.1, -0.1]])
+    np.testing.assert_allclose(task.observe(frames, setpoint, previous)[1], [[0.105, 0.10, 0.2, 0.2]])
+    monkeypatch.setattr(type(task), "read", lambda self, frames: (np.zeros(1), seen, np.array([[True, True]])))
+    np.testing.assert_allclose(task.observe(frames, setpoint, previous, predicted)[1], [[0.105, 0.10, -0.05, 0.02]])
+    from iwsim.envs.task import Task
+
+    np.testing.assert_array_equal(Task.observe(task, frames, setpoint, previous, predicted)[1], predicted)
+    np.testing.assert_allclose(Task.observe(task, frames, setpoint, previous)[1], setpoint)
+
+
 def test_the_environment_reports_the_predicted_agent_pos(state_model, one_thread):
     """The checkpoint records the state's normalisation; ``WorldModel-v0`` starts the state
-    at the start's agent_pos and reports the model's prediction after each step (within
-    the workspace), in one
+    at the start's agent_pos and after each step reports the pushers the frame shows, and
+    the model's prediction (within the workspace) for those it does not, in one
     environment and in the vector env (whose batched rollout equals the single ones)."""
     wm = WorldModel.load(state_model / "wm")
     assert wm.state_dim == 4 and predicts_agent_pos(wm, wm.task)
@@ -129,13 +151,15 @@ def test_the_environment_reports_the_predicted_agent_pos(state_model, one_thread
     rng = np.random.default_rng(0)
     actions = rng.uniform(-0.2, 0.2, (5, 4)).astype(np.float32)
     singles = []
+    previous = start
     for a in actions:
-        obs, *_ = env.step(a)
-        # the prediction, within the workspace (the task's agent_pos bounds)
+        obs, _, _, _, info = env.step(a)
+        # the prediction, within the workspace (the task's agent_pos bounds), where the frame shows no pusher
         own = np.clip(wm.robot_state()[0], wm.task.action_low, wm.task.action_high).astype(np.float32)
-        np.testing.assert_array_equal(obs["agent_pos"], own)
+        _, want = wm.task.observe(obs["pixels"][None], info["target"][None], previous[None], own[None])
+        np.testing.assert_array_equal(obs["agent_pos"], want[0])
         assert env.observation_space["agent_pos"].contains(obs["agent_pos"])
-        singles.append(obs["agent_pos"])
+        singles.append(previous := obs["agent_pos"])
     assert not np.allclose(singles[-1], start)  # the state moves with the commands
     venv = WorldModelVectorEnv(2, model=WorldModel.load(state_model / "wm"), max_episode_steps=10)
     venv.reset(seed=100000)
@@ -188,7 +212,8 @@ def test_training_with_the_state_needs_a_store_that_records_it(state_model, play
 
 def test_play_shows_the_predicted_agent_pos_of_each_session(state_model, one_thread):
     """``iwsim play``'s engine: two sessions stepped in one pass each get their own
-    predicted agent_pos, the one they would get alone."""
+    agent_pos (the pushers their frame shows, their predicted ones where it does not), the
+    one they would get alone."""
     from iwsim.play import protocol as proto
     from iwsim.play.engine import Engine, PlayConfig
 
@@ -204,9 +229,11 @@ def test_play_shows_the_predicted_agent_pos_of_each_session(state_model, one_thr
         for t, target in enumerate(targets):
             for other in sessions:
                 eng.handle(other, proto.Action(t, tuple(float(v) for v in target)))
+            previous = s.agent_pos.copy()
             eng.tick()
-        own = eng.model.robot_state(s.state)[0]
-        np.testing.assert_allclose(s.agent_pos, np.clip(own, -0.22, 0.22), atol=1e-6)
+        own = np.clip(eng.model.robot_state(s.state)[0], -0.22, 0.22)
+        _, want = eng.task.observe(s.frame[None], s.setpoint[None], previous[None], own[None])
+        np.testing.assert_allclose(s.agent_pos, want[0], atol=1e-6)
         assert not np.allclose(s.agent_pos, start)
         return s.agent_pos
 
@@ -227,7 +254,7 @@ def test_pusher_state_bench_compares_the_prediction_and_the_pixel_reading(state_
                     "--out", str(out)], check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
     report = json.loads((out / "results.json").read_text())
     rows = report["models"]
-    assert rows["state"]["agent_pos"].startswith("the model's own") and "pixel" in rows["plain"]["agent_pos"]
+    assert rows["state"]["agent_pos"].endswith("prediction where unseen") and "pixel" in rows["plain"]["agent_pos"]
     for row in rows.values():
         r = row["stores"][str(play_store)]
         assert r["episodes"] == 4 and 0 <= r["median_mm"] <= r["p90_mm"] < 1000

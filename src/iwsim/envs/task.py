@@ -304,12 +304,13 @@ class Task:
         lead = np.stack([np.hypot(gap[..., x], gap[..., y]) for x, y in self.action_points], -1)
         return lead.max(-1) / self.view_half
 
-    def observe(self, frames: np.ndarray, setpoint: np.ndarray, previous: np.ndarray
-                ) -> tuple[np.ndarray | None, np.ndarray]:
+    def observe(self, frames: np.ndarray, setpoint: np.ndarray, previous: np.ndarray,
+                predicted: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray]:
         """Scores (B,) of frames (B, H, W, 3) (None without a scorer) and ``agent_pos``
-        (B, A) after a step that executed ``setpoint`` (B, A): here the setpoints."""
+        (B, A) after a step that executed ``setpoint`` (B, A): here the state a world model
+        ``predicted`` (B, A) where it predicts one, else the setpoints."""
         del previous
-        return self.score(frames), np.asarray(setpoint, np.float32).copy()
+        return self.score(frames), np.asarray(setpoint if predicted is None else predicted, np.float32).copy()
 
     def is_success(self, scores: np.ndarray | None) -> np.ndarray | None:
         return None if scores is None or self.success_score is None else np.asarray(scores) >= self.success_score

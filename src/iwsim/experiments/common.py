@@ -49,7 +49,7 @@ from iwsim.policies.factory import checkpoint_dir, load_policy
 from iwsim.policies.scripted import ScriptedBatch, ScriptedConfig
 from iwsim.policies.train import train_policy
 from iwsim.world_model import WorldModel
-from iwsim.world_model.env import OBSERVATION_VERSION
+from iwsim.world_model.env import OBSERVATION_VERSION, STATE_OBSERVATION_VERSION
 
 log = logging.getLogger(__name__)
 # The studies' default task, in one place: MuJoCo's T-push, whose success threshold, scorer,
@@ -214,7 +214,16 @@ def fingerprint(world_model: str | os.PathLike) -> str:
         with path.open("rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
+    if _predicts_state(locate(world_model) / "config.json"):
+        h.update(f"state observation {STATE_OBSERVATION_VERSION}".encode())
     return h.hexdigest()[:16]
+
+
+def _predicts_state(config: Path) -> bool:
+    """Whether a checkpoint's config is a world model's that predicts the robot's state."""
+    stage2 = load_json(config).get("stage2")
+    dynamics = stage2.get("dynamics") if isinstance(stage2, dict) else None
+    return isinstance(dynamics, dict) and bool(dynamics.get("state_dim"))
 
 
 def checkpoints(run: Path) -> dict[int, Path]:

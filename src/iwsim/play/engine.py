@@ -386,8 +386,7 @@ class Engine:
         for s, state, frame in zip(sessions, states, frames):
             s.state, s.frame = state, frame
         setpoints, positions = np.stack([s.setpoint for s in sessions]), np.stack([s.agent_pos for s in sessions])
-        ious, pos = self.task.observe(self.views.first(np.stack(list(frames))), setpoints, positions)
-        pos = pos if own is None else own
+        ious, pos = self.task.observe(self.views.first(np.stack(list(frames))), setpoints, positions, own)
         for i, (s, p) in enumerate(zip(sessions, pos)):
             s.iou, s.agent_pos, s.step = None if ious is None else float(ious[i]), p, s.step + 1
             if s.twin_frame is not None:

@@ -18,12 +18,13 @@ view of MuJoCo's reset (or of a store's frame), takes ``reset(options={"frame": 
 frame}})`` and renders its views one above the other; its pixel scorer reads the first
 view (the tabletop tasks' top camera).
 
-``agent_pos`` is the robot's state the model predicts, for a model trained to predict it
-(``--variant state``: the dynamics takes and predicts the store's ``data/state``; it
-starts from the start's ``agent_pos``). For another T-push model, each pusher's
-``agent_pos`` is its executed setpoint where the frame shows it near the setpoint, and
-where the frame shows it when contact holds it back
-(:meth:`iwsim.envs.pusht.task.PushTTask.observe`). ``info["iou"]`` and the reward come
+``agent_pos`` of a T-push (or pile-sweeping) model: each pusher's executed setpoint where
+the frame shows it near the setpoint, and where the frame shows it when contact holds it
+back (:meth:`iwsim.envs.tabletop.task.TabletopTask.observe`); where the frame does not show it,
+the model's own prediction for a model trained to predict the robot's state (``--variant
+state``: the dynamics takes and predicts the store's ``data/state``, starting from the
+start's ``agent_pos``), else its last position. A task without a pixel reading reports
+the state such a model predicts. ``info["iou"]`` and the reward come
 from the pixel scorer, so nothing but the model's outputs and the commands is used.
 Actions are commanded targets, approached at the task's speed limit exactly as MuJoCo
 does (:func:`iwsim.envs.tabletop.scene.limit_targets`, starting from the pushers' positions at
@@ -58,6 +59,10 @@ STORE = "store"
 # version are other results (:func:`iwsim.experiments.common.fingerprint`). 2: T-push's
 # ``agent_pos`` at the setpoints of pushers seen near them.
 OBSERVATION_VERSION = 2
+# The same for the models that predict the robot's state, whose observation alone changed
+# (:func:`iwsim.experiments.common.fingerprint`). 2: their ``agent_pos`` read off the frame
+# like the others', their prediction only for a pusher the frame does not show.
+STATE_OBSERVATION_VERSION = 2
 
 
 class Starts:
@@ -217,9 +222,9 @@ class WorldModelEnv(gym.Env):
         task = self.task
         self._setpoint = task.executed(self._setpoint, task.check_actions(action, (task.action_dim,)))
         self._frame = self.model.step(self._setpoint.astype(np.float32)[None])[0]
-        score, pos = task.observe(self.views.first(self._frame[None]), self._setpoint[None], self._agent_pos[None])
-        own = predicted_agent_pos(self.model, task)
-        self._agent_pos = pos[0] if own is None else own[0]
+        score, pos = task.observe(self.views.first(self._frame[None]), self._setpoint[None], self._agent_pos[None],
+                                  predicted_agent_pos(self.model, task))
+        self._agent_pos = pos[0]
         info = {**self._info(score), "target": self._setpoint.astype(np.float32)}
         terminated = bool(self.terminate_on_success and info.get("is_success"))
         return self._obs(), 0.0 if score is None else float(score[0]), terminated, False, info
@@ -324,9 +329,9 @@ class WorldModelVectorEnv(VectorEnv):
         self._setpoint = task.executed(self._setpoint, task.check_actions(actions, (self.num_envs, task.action_dim)))
         novelty = self.model.novelty_of(self.model.state, self._setpoint.astype(np.float32))
         self._frames = self.model.step(self._setpoint.astype(np.float32))
-        score, pos = task.observe(self.views.first(self._frames), self._setpoint, self._agent_pos)
-        own = predicted_agent_pos(self.model, task)
-        self._agent_pos = pos if own is None else own
+        score, pos = task.observe(self.views.first(self._frames), self._setpoint, self._agent_pos,
+                                  predicted_agent_pos(self.model, task))
+        self._agent_pos = pos
         self._t += 1
         info = {**self._info(score), "target": self._setpoint.astype(np.float32)}
         if novelty is not None:  # the trust signal: how unlike the training data this step's inputs are

@@ -95,18 +95,21 @@ class TabletopTask(Task):
         """Scores (B,), pusher positions (B, 4) and found (B, 2) of frames (B, H, W, 3)."""
         raise NotImplementedError
 
-    def observe(self, frames: np.ndarray, setpoint: np.ndarray, previous: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def observe(self, frames: np.ndarray, setpoint: np.ndarray, previous: np.ndarray,
+                predicted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Scores (B,) and the pushers' positions (B, 4) after a step that executed
         ``setpoint`` (B, 4), from frames (B, H, W, 3) in one pass: a pusher seen within
         :data:`SETPOINT_TOLERANCE` of its setpoint is at the setpoint (the frame draws it
         only to about a pixel), one seen further away (held back by contact) where it is
-        seen, and one not seen keeps its ``previous`` position."""
+        seen, and one not seen where a world model ``predicted`` (B, 4) it, else at its
+        ``previous`` position. (A model's own prediction only where the frame does not show the
+        pusher: a state head on 8 x 8 latents misses contact by ~14 mm where the frame's
+        reading is off by ~5, and a closed loop reading the head's breaks; bench/results/ablations.md.)"""
         scores, pos, found = self.read(frames)
         setpoint = np.asarray(setpoint, np.float64)
         near = np.linalg.norm((pos - setpoint).reshape(*pos.shape[:-1], 2, 2), axis=-1) <= SETPOINT_TOLERANCE
         pos = np.where(np.repeat(near, 2, axis=-1), setpoint, pos)
-        return scores, _hold_unseen(pos, found, previous)
+        return scores, _hold_unseen(pos, found, previous if predicted is None else predicted)
 
     def read_agent_pos(self, frames: np.ndarray, previous: np.ndarray) -> np.ndarray:
         return _hold_unseen(*self.palette.pusher_positions(frames), previous)
