@@ -387,6 +387,26 @@ def test_the_latent_cache_serves_a_store_that_extends_its_own(play_store, tmp_pa
     assert not calls  # a cache from before the chunk hashes still serves its own store
 
 
+def test_a_bf16_run_on_a_cpu_without_the_instructions_encodes_its_latents_in_float32(play_store, tmp_path,
+                                                                                   monkeypatch, one_thread):
+    """The trainer falls back to float32 where bf16 would be emulated; the latent cache
+    follows it (before, the store was encoded under emulated bf16 autocast: 2-3x slower)."""
+    from safetensors import safe_open
+
+    from iwsim.core import trainer
+    from iwsim.world_model import dynamics_data
+
+    monkeypatch.setattr(trainer, "bf16_available", lambda device: False)
+    monkeypatch.setattr(dynamics_data, "bf16_available", lambda device: False)
+    ae, cache = tmp_path / "ae", tmp_path / "latents.safetensors"
+    assert main(["train", "ae", "--data", str(play_store), "--preset", "tiny", "--steps", "2", "--out", str(ae),
+                 "--no-progress"]) == 0
+    assert main(["train", "dynamics", "--ae", str(ae), "--data", str(play_store), "--preset", "tiny", "--steps", "2",
+                 "--bf16", "--out", str(tmp_path / "dyn"), "--latent-cache", str(cache), "--no-progress"]) == 0
+    with safe_open(cache, "pt") as f:
+        assert not f.metadata()["weights"].endswith("|bf16")
+
+
 def test_a_world_model_run_started_before_a_new_config_field_resumes(play_store, tmp_path, one_thread):
     """A stage's config that gains a field resumes the runs started before it (their
     defaults are what they trained with); a field that really changed is still refused."""

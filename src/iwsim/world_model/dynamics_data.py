@@ -1,7 +1,8 @@
 """Stage 2's training data: an episode store as latent sequences (``iwsim train dynamics``).
 
 Every frame of the store is encoded once by the frozen stage-1 encoder (on every core this
-process may use; in bf16 when the run trains in bf16 on the CPU) and cached as float16; the
+process may use; in bf16 when the run trains in bf16 on a CPU with the instructions for
+it, as :func:`iwsim.core.trainer.training_precision` decides) and cached as float16; the
 conditioning actions are min-max normalised over the training episodes; the latents are
 standardised for the dynamics (see :class:`iwsim.world_model.WorldModel`). A batch holds
 windows of training episodes with everything random a training step needs.
@@ -25,6 +26,7 @@ from tqdm import tqdm
 from iwsim.core.checkpoint import resolve_checkpoint, save_tensors
 from iwsim.core.errors import InputError
 from iwsim.core.normalize import scale, widen
+from iwsim.core.precision import bf16_available
 from iwsim.core.resources import available_cores, torch_threads
 from iwsim.data.frames import read_frames, split_episodes, to_model
 from iwsim.data.store import EpisodeStore, StoreError, conditioning_key
@@ -145,7 +147,7 @@ class DynamicsData:
         if cfg.predict_state:
             self._load_states(store, data, train_idx, len(actions), init)
         self.latents = encode_store(self.codec, store, device, progress, latent_cache,
-                                    bf16=cfg.train.cpu_bf16 and device.type == "cpu")
+                                    bf16=cfg.train.cpu_bf16 and device.type == "cpu" and bf16_available(device))
         # The action size and latent shape follow the data; positional actions where the
         # task declares them (see iwsim.world_model.dynamics).
         cfg = replace(cfg, cameras=self.cameras, dynamics=replace(cfg.dynamics, action_dim=actions.shape[1],
