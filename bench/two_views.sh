@@ -7,7 +7,8 @@
 #   data/broad_two.zarr        the shipped model's episodes (its seeds, data/broad.zarr) seen by both cameras
 #   data/broad_top.zarr, data/broad_side.zarr   its views imported alone (the single-view models' data)
 #   data/two_views_eval.zarr   16 held-out play-broad episodes x 200 steps of both views (seeds 760000-760015)
-#   $OUT/codec_two             one conv-x8-64 codec trained on the frames of both views ($AE steps, default 8000)
+#   $OUT/codec_two             one conv-x8-64 codec trained on the frames of both views ($AE steps, default 2000: twice the
+#                              shipped codec's; ~3 s a step in float32 on a 2-core AVX2 EPYC)
 #   $OUT/dyn_two, dyn_top, dyn_side   stage 2 from scratch on it, $DYN steps each (default 3000; the recipe of
 #                              bench/results/ablations.md's pt_dyn_x8_3k: long unrolls, a 10-latent window, bf16)
 # then bench/cross_view.py (the views' disagreement, each view's pose error and PSNR) writes
@@ -24,7 +25,7 @@ if [ "${SCALE:-full}" = tiny ]; then
     EVALSTEPS=10 FAST=""
 else
     PLAY="--episodes 400 --steps 200" NOISY="--episodes 300 --steps 150" BROAD="--episodes 600 --steps 200"
-    HANDS="--episodes 300 --steps 150" EVAL="--episodes 16 --steps 200" AE=${AE:-8000} DYN=${DYN:-3000}
+    HANDS="--episodes 300 --steps 150" EVAL="--episodes 16 --steps 200" AE=${AE:-2000} DYN=${DYN:-3000}
     PRESETS="conv-x8-64 pusht-64" EVALSTEPS=192 FAST="--variant long-unroll --context 10 --bf16 --compile"
 fi
 read -r AE_PRESET DYN_PRESET <<< "$PRESETS"
