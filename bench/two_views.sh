@@ -10,7 +10,8 @@
 #   $OUT/codec_two             one conv-x8-64 codec trained on the frames of both views ($AE steps, default 2000: twice the
 #                              shipped codec's; ~3 s a step in float32 on a 2-core AVX2 EPYC)
 #   $OUT/dyn_two, dyn_top, dyn_side   stage 2 from scratch on it, $DYN steps each (default 3000; the recipe of
-#                              bench/results/ablations.md's pt_dyn_x8_3k: long unrolls, a 10-latent window, bf16)
+#                              bench/results/ablations.md's pt_dyn_x8_3k: long unrolls, a 10-latent window, bf16);
+#                              one latent cache: dyn_two encodes both views, the single views' runs read theirs from it
 # then bench/cross_view.py (the views' disagreement, each view's pose error and PSNR) writes
 # bench/results/cross_view. SCALE=tiny shrinks every step to seconds (a smoke test of the chain).
 set -euo pipefail
@@ -58,7 +59,7 @@ step "one codec on both views' frames, $AE steps"
 for model in two top side; do
     step "stage 2 of the $model view(s), $DYN steps"
     "$IWSIM" train dynamics --ae "$OUT/codec_two" --data "$DATA/broad_$model.zarr" --preset "$DYN_PRESET" $FAST \
-        --steps "$DYN" --out "$OUT/dyn_$model" --latent-cache "$OUT/latents_$model.safetensors" --threads 1 --no-progress
+        --steps "$DYN" --out "$OUT/dyn_$model" --latent-cache "$OUT/latents_two.safetensors" --threads 1 --no-progress
     "$IWSIM" export-model --run "$OUT/dyn_$model" --out "$OUT/wm_$model" --force
 done
 step "cross-view consistency"

@@ -346,19 +346,27 @@ def test_a_run_from_before_the_task_entry_resumes(tmp_path):
         prepare_run_dir(tmp_path, {**old, "train": {"steps": 10, "lr": 1.0}, "task": {"kind": "pusht"}})
 
 
+def counting_codec():
+    """A tiny codec of seeded random weights (the bf16 gap below must not depend on the tests
+    run before), its own encode, and the list of batch sizes its encode is called with."""
+    from iwsim.world_model.codecs import build_codec
+
+    torch.manual_seed(0)
+    codec = build_codec("conv-ae", to_dict(AE_PRESETS["tiny-conv"])).eval()
+    calls: list[int] = []
+    encode = codec.encode
+    codec.encode = lambda x: calls.append(len(x)) or encode(x)
+    return codec, encode, calls
+
+
 def test_the_latent_cache_serves_a_store_that_extends_its_own(play_store, tmp_path, one_thread):
     from safetensors.torch import save_file
 
     from iwsim.data.frames import to_model
     from iwsim.data.store import EpisodeStore
-    from iwsim.world_model.codecs import build_codec
     from iwsim.world_model.dynamics_data import encode_store, encoder_key
 
-    torch.manual_seed(0)  # the codec's random weights: the bf16 gap below must not depend on the tests run before
-    codec = build_codec("conv-ae", to_dict(AE_PRESETS["tiny-conv"])).eval()
-    calls = []
-    encode = codec.encode
-    codec.encode = lambda x: calls.append(len(x)) or encode(x)
+    codec, encode, calls = counting_codec()
     cache, cpu = tmp_path / "latents.safetensors", torch.device("cpu")
     base = encode_store(codec, EpisodeStore.open(play_store), cpu, False, cache, chunk=16)
     assert sum(calls) == len(base) == 48
@@ -385,6 +393,29 @@ def test_the_latent_cache_serves_a_store_that_extends_its_own(play_store, tmp_pa
     save_file({"latents": base.contiguous()}, cache, metadata={"key": old_key})
     assert torch.equal(encode_store(codec, EpisodeStore.open(play_store), cpu, False, cache, chunk=16), base)
     assert not calls  # a cache from before the chunk hashes still serves its own store
+
+
+def test_the_latent_cache_of_two_views_serves_each_view_imported_alone(two_view_store, tmp_path, one_thread):
+    """bench/two_views.sh's single-view models read the two-view model's cache: each view's
+    latents come from the cached view of the same frames, none is encoded again."""
+    from iwsim.data.store import EpisodeStore
+    from iwsim.world_model.dynamics_data import encode_store
+
+    codec, _, calls = counting_codec()
+    cache, cpu = tmp_path / "latents.safetensors", torch.device("cpu")
+    both = encode_store(codec, EpisodeStore.open(two_view_store), cpu, False, cache, chunk=4)
+    assert sum(calls) == 2 * len(both) == 22
+    c = both.shape[1] // 2
+    for k, view in enumerate(["top", "side"]):
+        alone = tmp_path / f"{view}.zarr"
+        assert main(["data", "import", "--format", "zarr", "--in", str(two_view_store), "--camera", view,
+                     "--image-size", "32", "--out", str(alone), "--no-progress"]) == 0
+        calls.clear()
+        z = encode_store(codec, EpisodeStore.open(alone), cpu, False, cache, chunk=4)
+        assert not calls and torch.equal(z, both[:, k * c:(k + 1) * c])
+    calls.clear()
+    assert torch.equal(encode_store(codec, EpisodeStore.open(two_view_store), cpu, False, cache, chunk=4), both)
+    assert not calls  # the views' reads left the cache as it was
 
 
 def test_a_bf16_run_on_a_cpu_without_the_instructions_encodes_its_latents_in_float32(play_store, tmp_path,

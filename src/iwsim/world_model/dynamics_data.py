@@ -269,29 +269,34 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
     each view encoded by ``codec``, their latents stacked along the channels,
     :func:`~iwsim.world_model.codecs.base.encode_views`). A chunk of frames whose
     bytes, encoder weights and precision match what ``cache`` was written for is not
-    encoded again, so a cache made for a store serves a store that extends it (``iwsim
-    data merge`` of it and more): only the new frames are encoded. ``bf16``: encode under
+    encoded again, view by view: a cache made for a store serves a store that extends it
+    (``iwsim data merge`` of it and more: only the new frames are encoded), and one made
+    for a store of several views serves a store of some of them (``iwsim data import
+    --camera``). The cache then holds the latents of the last store that had frames to
+    encode. ``bf16``: encode under
     bf16 autocast (faster on CPUs with AVX-512-BF16 or AMX, latents within rounding of
     float32's: bench/results/speed). ``threads``: torch threads while encoding (default:
     every core this process may use); float16 storage halves the memory of large stores."""
     cameras = store_cameras(store.attrs, store.keys)
     views = len(cameras)
     n = store.array("img").shape[0]
-    weights = encoder_key(codec) + ("|bf16" if bf16 else "") + (f"|views={','.join(cameras)}" if views > 1 else "")
+    weights = encoder_key(codec) + ("|bf16" if bf16 else "")
     cached, old = _read_cache(cache, weights, store, n, chunk)
-    out, hashes = [], []
+    out, hashes, encoded = [], [], False
     with torch_threads(threads or available_cores()):
         for k, i in enumerate(tqdm(range(0, n, chunk), desc="encode", disable=not progress)):
-            frames = np.ascontiguousarray(read_frames(store, slice(i, i + chunk)))
-            hashes.append(hashlib.blake2b(frames.tobytes(), digest_size=12).hexdigest())
-            if cached is not None and k < len(old) and old[k] in (hashes[-1], "*") and len(cached) >= i + len(frames):
-                out.append(cached[i:i + len(frames)].half())
-                continue
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-                x = to_model(frames, views).to(device)
-                out.append(encode_views(codec, x, views).float().cpu().half())
+            frames = read_frames(store, slice(i, i + chunk))
+            want = [hashlib.blake2b(np.ascontiguousarray(frames[..., 3 * v:3 * v + 3]).tobytes(),
+                                    digest_size=12).hexdigest() for v in range(views)]
+            hashes.append("|".join(want))
+            z = _cached_chunk(cached, old[k] if k < len(old) else "", want, slice(i, i + len(frames)))
+            if z is None:
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                    z = encode_views(codec, to_model(frames, views).to(device), views).float().cpu()
+                encoded = True
+            out.append(z.half())
     latents = torch.cat(out)
-    if cache is not None and hashes != old:
+    if cache is not None and encoded:
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")  # per process: two runs may share a cache
         meta = {"weights": weights, "chunk": str(chunk), "hashes": ",".join(hashes)}
@@ -301,6 +306,22 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
         finally:
             tmp.unlink(missing_ok=True)
     return latents
+
+
+def _cached_chunk(cached: torch.Tensor | None, have: str, want: list[str], rows: slice) -> torch.Tensor | None:
+    """A chunk's latents from the cache, if it holds every view of the chunk: ``have`` is
+    the cached chunk's view hashes ("|"-joined; "*": the chunk as it is), ``want`` the
+    chunk's own, one per view; each view's latents are taken from the cached view of
+    the same frames (None if one is missing)."""
+    if cached is None or not have or len(cached) < rows.stop:
+        return None
+    if have == "*":
+        return cached[rows]
+    have_views = have.split("|")
+    if any(w not in have_views for w in want) or cached.shape[1] % len(have_views):
+        return None
+    c = cached.shape[1] // len(have_views)
+    return torch.cat([cached[rows, j * c:(j + 1) * c] for j in map(have_views.index, want)], 1)
 
 
 def encoder_key(codec: Codec) -> str:
