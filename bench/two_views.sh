@@ -11,7 +11,8 @@
 #                              shipped codec's; ~3 s a step in float32 on a 2-core AVX2 EPYC)
 #   $OUT/dyn_two, dyn_top, dyn_side   stage 2 from scratch on it, $DYN steps each (default 3000; the recipe of
 #                              bench/results/ablations.md's pt_dyn_x8_3k: long unrolls, a 10-latent window, bf16);
-#                              one latent cache: dyn_two encodes both views, the single views' runs read theirs from it
+#                              one latent cache: dyn_two encodes both views, then the single views' runs (side by side)
+#                              read theirs from it
 # then bench/cross_view.py (the views' disagreement, each view's pose error and PSNR) writes
 # bench/results/cross_view. SCALE=tiny shrinks every step to seconds (a smoke test of the chain).
 set -euo pipefail
@@ -56,12 +57,18 @@ collect play-broad 760000 two_views_eval.zarr $EVAL
 step "one codec on both views' frames, $AE steps"
 "$IWSIM" train ae --data "$DATA/broad_two.zarr" --preset "$AE_PRESET" --steps "$AE" --bf16 --out "$OUT/codec_two" \
     --threads 1 --no-progress
-for model in two top side; do
-    step "stage 2 of the $model view(s), $DYN steps"
-    "$IWSIM" train dynamics --ae "$OUT/codec_two" --data "$DATA/broad_$model.zarr" --preset "$DYN_PRESET" $FAST \
-        --steps "$DYN" --out "$OUT/dyn_$model" --latent-cache "$OUT/latents_two.safetensors" --threads 1 --no-progress
-    "$IWSIM" export-model --run "$OUT/dyn_$model" --out "$OUT/wm_$model" --force
-done
+dynamics() {  # dynamics MODEL: stage 2 on data/broad_MODEL.zarr, then the model exported
+    "$IWSIM" train dynamics --ae "$OUT/codec_two" --data "$DATA/broad_$1.zarr" --preset "$DYN_PRESET" $FAST \
+        --steps "$DYN" --out "$OUT/dyn_$1" --latent-cache "$OUT/latents_two.safetensors" --threads 1 --no-progress
+    "$IWSIM" export-model --run "$OUT/dyn_$1" --out "$OUT/wm_$1" --force
+}
+step "stage 2 of both views, $DYN steps (it encodes the latent cache)"
+dynamics two
+step "stage 2 of the top view and of the side view, $DYN steps each, side by side (their latents read from the cache)"
+dynamics top & top=$!
+dynamics side & side=$!
+wait "$top"
+wait "$side"
 step "cross-view consistency"
 "$PYTHON" bench/cross_view.py --models joint="$OUT/wm_two" pair="$OUT/wm_top+$OUT/wm_side" \
     --store "$DATA/two_views_eval.zarr" --steps "$EVALSTEPS" --out "${RESULTS:-bench/results/cross_view}"
