@@ -418,6 +418,31 @@ def test_the_latent_cache_of_two_views_serves_each_view_imported_alone(two_view_
     assert not calls  # the views' reads left the cache as it was
 
 
+def test_an_encoding_stopped_part_way_resumes_from_the_frames_it_saved(play_store, tmp_path, one_thread):
+    from iwsim.data.store import EpisodeStore
+    from iwsim.world_model.dynamics_data import encode_store
+
+    codec, encode, calls = counting_codec()
+    cpu, store = torch.device("cpu"), EpisodeStore.open(play_store)
+    whole = encode_store(codec, store, cpu, False, None, chunk=16)
+    calls.clear()
+
+    def stop_at_the_third_chunk(x):
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        calls.append(len(x))
+        return encode(x)
+    codec.encode = stop_at_the_third_chunk
+    cache = tmp_path / "latents.safetensors"
+    with pytest.raises(KeyboardInterrupt):
+        encode_store(codec, store, cpu, False, cache, chunk=16, save_every_s=0)
+    assert calls == [16, 16] and cache.is_file()  # the first two chunks' latents were saved
+    calls.clear()
+    codec.encode = lambda x: calls.append(len(x)) or encode(x)
+    assert torch.equal(encode_store(codec, store, cpu, False, cache, chunk=16), whole)
+    assert calls == [16]  # only the third chunk is encoded
+
+
 def test_a_bf16_run_on_a_cpu_without_the_instructions_encodes_its_latents_in_float32(play_store, tmp_path,
                                                                                    monkeypatch, one_thread):
     """The trainer falls back to float32 where bf16 would be emulated; the latent cache

@@ -14,6 +14,7 @@ import hashlib
 import json
 import logging
 import os
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -264,7 +265,8 @@ class DynamicsData:
 
 @torch.no_grad()
 def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progress: bool, cache: Path | None,
-                 chunk: int = 512, bf16: bool = False, threads: int | None = None) -> torch.Tensor:
+                 chunk: int = 512, bf16: bool = False, threads: int | None = None,
+                 save_every_s: float = 600.0) -> torch.Tensor:
     """Latents (N, C, h, w) float16 of every frame of the store (a store of several views:
     each view encoded by ``codec``, their latents stacked along the channels,
     :func:`~iwsim.world_model.codecs.base.encode_views`). A chunk of frames whose
@@ -273,7 +275,9 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
     (``iwsim data merge`` of it and more: only the new frames are encoded), and one made
     for a store of several views serves a store of some of them (``iwsim data import
     --camera``). The cache then holds the latents of the last store that had frames to
-    encode. ``bf16``: encode under
+    encode. While encoding, the frames encoded so far are written to the cache every
+    ``save_every_s`` seconds, so that an encoding stopped part way (hours for a store of
+    10,000 episodes in float32) resumes where it was. ``bf16``: encode under
     bf16 autocast (faster on CPUs with AVX-512-BF16 or AMX, latents within rounding of
     float32's: bench/results/speed). ``threads``: torch threads while encoding (default:
     every core this process may use); float16 storage halves the memory of large stores."""
@@ -282,7 +286,7 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
     n = store.array("img").shape[0]
     weights = encoder_key(codec) + ("|bf16" if bf16 else "")
     cached, old = _read_cache(cache, weights, store, n, chunk)
-    out, hashes, encoded = [], [], False
+    out, hashes, encoded, saved = [], [], False, time.monotonic()
     with torch_threads(threads or available_cores()):
         for k, i in enumerate(tqdm(range(0, n, chunk), desc="encode", disable=not progress)):
             frames = read_frames(store, slice(i, i + chunk))
@@ -295,17 +299,26 @@ def encode_store(codec: Codec, store: EpisodeStore, device: torch.device, progre
                     z = encode_views(codec, to_model(frames, views).to(device), views).float().cpu()
                 encoded = True
             out.append(z.half())
+            if cache is not None and encoded and time.monotonic() - saved > save_every_s and i + chunk < n:
+                _write_cache(cache, torch.cat(out), weights, chunk, hashes)
+                saved = time.monotonic()
     latents = torch.cat(out)
     if cache is not None and encoded:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")  # per process: two runs may share a cache
-        meta = {"weights": weights, "chunk": str(chunk), "hashes": ",".join(hashes)}
-        try:
-            save_tensors({"latents": latents}, tmp, metadata=meta)
-            os.replace(tmp, cache)
-        finally:
-            tmp.unlink(missing_ok=True)
+        _write_cache(cache, latents, weights, chunk, hashes)
     return latents
+
+
+def _write_cache(cache: Path, latents: torch.Tensor, weights: str, chunk: int, hashes: list[str]) -> None:
+    """Write a latent cache atomically: the latents of the chunks ``hashes`` names (the
+    first chunks of a store, or all of them)."""
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")  # per process: two runs may share a cache
+    meta = {"weights": weights, "chunk": str(chunk), "hashes": ",".join(hashes)}
+    try:
+        save_tensors({"latents": latents}, tmp, metadata=meta)
+        os.replace(tmp, cache)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _cached_chunk(cached: torch.Tensor | None, have: str, want: list[str], rows: slice) -> torch.Tensor | None:
