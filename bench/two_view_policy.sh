@@ -9,6 +9,7 @@
 #   data/demos_top.zarr   its top view alone
 #   $OUT/dp_two, dp_top   Diffusion Policy (preset dp) on the first $DEMOS of each, $STEPS steps, seed 0
 #   $OUT/dp_{two,top}_eval  each scored in MuJoCo: $EPISODES first states from seed 100000, $HORIZON steps
+# then bench/compare_policies.py compares them state by state (bench/results/two_view_policy).
 # ~4 core-hours on a 2-core AMD EPYC (float32); SCALE=tiny shrinks every step to seconds.
 set -euo pipefail
 export MUJOCO_GL=${MUJOCO_GL:-egl} OMP_NUM_THREADS=1
@@ -45,4 +46,6 @@ for views in two top; do
     fi
 done
 wait
-step "done: $OUT/dp_two_eval/results.json against $OUT/dp_top_eval/results.json"
+step "the two policies compared on the same first states"
+"${PYTHON:-.venv/bin/python}" bench/compare_policies.py two="$OUT/dp_two_eval" top="$OUT/dp_top_eval" \
+    --out "${RESULTS:-bench/results/two_view_policy}"

@@ -167,3 +167,42 @@ def test_distrusting_where_the_model_errs_narrows_the_interval_and_keeps_it_vali
         weighted.append(b["std_error"])
     assert covered / reps >= 0.93, covered / reps
     assert np.median(weighted) < np.median(plain)
+
+
+def _evaluation(path, scores, successes, seed=100000, steps=600):
+    from iwsim.core.checkpoint import write_json_atomic
+
+    path.mkdir(parents=True)
+    episodes = [{"seed": seed + i, "max_iou": s, "success": ok} for i, (s, ok) in enumerate(zip(scores, successes))]
+    write_json_atomic(path / "results.json", {"command": f"iwsim eval policy --out {path}", "env": "pusht",
+                                              "steps": steps, "scorer": "IoU", "world_model": None,
+                                              "episodes": episodes})
+    return path
+
+
+def test_two_policies_on_the_same_first_states_are_compared_episode_by_episode(tmp_path, capsys):
+    """bench/compare_policies.py: the paired difference's interval is the Student t one of
+    the per-state differences; evaluations of other first states or steps are refused."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("compare_policies",
+                                                  Path(__file__).parents[1] / "bench" / "compare_policies.py")
+    cp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cp)
+    a = _evaluation(tmp_path / "a", [0.9, 0.5, 0.4, 0.95], [True, False, False, True])
+    b = _evaluation(tmp_path / "b", [0.7, 0.5, 0.3, 0.60], [False, False, False, False])
+    assert cp.main([f"two={a}", f"top={b}", "--out", str(tmp_path / "out")]) == 0
+    c = cp.compare(cp.load(f"two={a}"), cp.load(f"top={b}"))
+    d = np.array([0.2, 0.0, 0.1, 0.35])
+    half = stats.t.ppf(0.975, 3) * d.std(ddof=1) / 2
+    assert c["difference"] == pytest.approx(d.mean())
+    assert c["interval"] == pytest.approx([d.mean() - half, d.mean() + half])
+    assert c["better"] == {"two": 3, "top": 0, "tie": 1} and c["success_only"] == {"two": 2, "top": 0}
+    assert "+0.163" in (tmp_path / "out" / "results.md").read_text() and (tmp_path / "out" / "scatter.png").is_file()
+    other = _evaluation(tmp_path / "c", [0.7, 0.5, 0.3, 0.6], [False] * 4, seed=200000)
+    longer = _evaluation(tmp_path / "d", [0.7, 0.5, 0.3, 0.6], [False] * 4, steps=300)
+    capsys.readouterr()
+    for bad, match in ((other, "other first states"), (longer, "other steps"), (tmp_path / "none", "no results")):
+        assert cp.main([f"two={a}", f"x={bad}"]) == 2
+        assert match in capsys.readouterr().err
