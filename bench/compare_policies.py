@@ -13,15 +13,14 @@ on, and the successes only one of them had.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from iwsim.core.checkpoint import load_json, write_json_atomic, write_text_atomic
 from iwsim.core.errors import InputError, one_line
+from iwsim.eval.paired import t_half_width
 from iwsim.eval.records import command_line
 
 SAME = ("env", "steps", "scorer", "world_model")  # what two evaluations must share
@@ -66,7 +65,7 @@ def compare(a: tuple[str, dict], b: tuple[str, dict], level: float = 0.95) -> di
     x = np.array([ea[s][key] for s in seeds], np.float64)
     y = np.array([eb[s][key] for s in seeds], np.float64)
     d = x - y
-    half = float(stats.t.ppf((1 + level) / 2, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)))
+    half = t_half_width(d, level)
     sa = np.array([bool(ea[s]["success"]) for s in seeds])
     sb = np.array([bool(eb[s]["success"]) for s in seeds])
     return {"a": na, "b": nb, "episodes": len(seeds), "first_seed": seeds[0], "steps": ra.get("steps"),

@@ -122,11 +122,17 @@ def paired_rate(model: Sequence[bool], real: Sequence[bool], paired: Sequence[in
                            bounds=(0.0, 1.0))
 
 
+def t_half_width(values: Sequence[float] | np.ndarray, level: float = 0.95) -> float:
+    """Half the width of the Student t ``level`` interval of the mean of ``values``."""
+    y = np.asarray(values, np.float64)
+    return float(stats.t.ppf((1 + level) / 2, len(y) - 1) * np.std(y, ddof=1) / math.sqrt(len(y)))
+
+
 def real_alone(real: Sequence[float] | np.ndarray, level: float = 0.95) -> tuple[float, float]:
     """The trivial baseline of a paired estimate: the n ``real`` scores' mean with its
     Student t ``level`` interval, clipped to [0, 1] (the scores' range)."""
     y = np.asarray(real, np.float64)
-    h = float(stats.t.ppf((1 + level) / 2, len(y) - 1) * np.std(y, ddof=1) / math.sqrt(len(y)))
+    h = t_half_width(y, level)
     return max(0.0, float(y.mean()) - h), min(1.0, float(y.mean()) + h)
 
 
