@@ -21,7 +21,7 @@ import numpy as np
 from iwsim.core.checkpoint import load_json, write_json_atomic, write_text_atomic
 from iwsim.core.errors import InputError, one_line
 from iwsim.eval.paired import t_half_width
-from iwsim.eval.records import command_line
+from iwsim.eval.records import command_line, with_command
 
 SAME = ("env", "steps", "scorer", "world_model")  # what two evaluations must share
 
@@ -123,12 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
-    text = report(c, command_line(__file__, argv))
+    command = command_line(__file__, argv)
+    text = report(c, command)
     print(text)
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out / "results.json", c)
+        write_json_atomic(out / "results.json", with_command(command, c, sort_keys=True), sort_keys=False)
         write_text_atomic(out / "results.md", text)
         scatter(c, out / "scatter.png")
     return 0

@@ -1,6 +1,8 @@
 """The paired (prediction-powered) estimate of a policy's real score (issue 66): its closed
 forms, its coverage on synthetic data, and its refusals."""
 
+import json
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -200,6 +202,8 @@ def test_two_policies_on_the_same_first_states_are_compared_episode_by_episode(t
     assert c["interval"] == pytest.approx([d.mean() - half, d.mean() + half])
     assert c["better"] == {"two": 3, "top": 0, "tie": 1} and c["success_only"] == {"two": 2, "top": 0}
     assert "+0.163" in (tmp_path / "out" / "results.md").read_text() and (tmp_path / "out" / "scatter.png").is_file()
+    written = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert next(iter(written)) == "command" and written["command"].startswith("python bench/compare_policies.py two=")
     other = _evaluation(tmp_path / "c", [0.7, 0.5, 0.3, 0.6], [False] * 4, seed=200000)
     longer = _evaluation(tmp_path / "d", [0.7, 0.5, 0.3, 0.6], [False] * 4, steps=300)
     capsys.readouterr()
