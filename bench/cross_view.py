@@ -22,7 +22,6 @@ frame).
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ from iwsim.data.store import EpisodeStore, StoreError
 from iwsim.data.views import stack_views, store_cameras, unstack_views
 from iwsim.envs.pusht import geometry as geo
 from iwsim.envs.pusht.pixels import estimate_block_pose, estimate_block_pose_side
+from iwsim.eval.records import command_line
 from iwsim.world_model import WorldModel
 
 VIEWS = ("top", "side")
@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     except (IwsimError, OSError) as e:
         p.error(one_line(e))
     torch.set_num_threads(1)
-    report: dict = {"command": "python bench/cross_view.py " + " ".join(argv or sys.argv[1:]), "steps": args.steps,
+    report: dict = {"command": command_line(__file__, argv), "steps": args.steps,
                     "episodes": len(ep["frames"]), "store": args.store, "models": {}}
     mujoco = measure(None, ep, args.steps)  # the readers on MuJoCo's own frames
     report["mujoco"] = mujoco
