@@ -1,0 +1,63 @@
+"""A probe of issue 64 (not a feature): do inference settings keep a model's T? For each
+setting, the yardstick's two shape measures on one model: a T fits the block over 192
+held-out play steps (``iwsim.yardstick.fidelity.score``'s ``t_found``, with its PSNR) and
+in a 2000-step play run under MuJoCo's executed targets (``iwsim.eval.profiling.stability``,
+every 10th frame). A setting is ``default`` or parts joined by ``+``: ``reencode`` (the
+newest context latent is the encoding of the decoded frame), ``jumpsN`` (consistency jumps
+per frame), ``labelX`` (the context-noise std the context is labelled with), ``restX``
+(the rest threshold), ``deadbandX`` (a cell's predicted change under X is none).
+One JSON line per setting.
+
+    MUJOCO_GL=egl python bench/probes/shape_knobs.py runs/x4_4500 default reencode jumps2 label0.3
+"""
+import argparse
+import dataclasses
+import json
+import time
+
+import torch
+
+from iwsim.eval.profiling import stability
+from iwsim.world_model.model import WorldModel
+from iwsim.yardstick.fidelity import Episodes, score
+
+p = argparse.ArgumentParser()
+p.add_argument("model", help="a world model or a stage-2 run's checkpoint")
+p.add_argument("settings", nargs="+",
+               help="default, or parts joined by '+': reencode, jumpsN, labelX, restX, deadbandX")
+p.add_argument("--data", default="data/play_eval.zarr")
+p.add_argument("--episodes", type=int, default=20)
+p.add_argument("--steps", type=int, default=2000, help="steps of the stability run")
+args = p.parse_args()
+torch.set_num_threads(1)
+play = Episodes(args.data, args.episodes)
+
+
+def configured(setting: str) -> WorldModel:
+    wm = WorldModel.load(args.model)
+    for part in setting.split("+"):
+        if part == "reencode":
+            wm.reencode = True
+        elif part.startswith("jumps"):
+            wm.jumps = int(part[5:])
+        elif part.startswith("label"):  # score() resets the label to the config's after its one-step part
+            wm.cfg = dataclasses.replace(wm.cfg, context_label=float(part[5:]))
+            wm.context_label = wm.cfg.context_label
+        elif part.startswith("rest"):
+            wm.denoiser.cfg = dataclasses.replace(wm.denoiser.cfg, rest_threshold=float(part[4:]))
+        elif part.startswith("deadband"):
+            wm.denoiser.cfg = dataclasses.replace(wm.denoiser.cfg, delta_deadband=float(part[8:]))
+        elif part != "default":
+            p.error(f"unknown setting {part!r}")
+    return wm
+
+
+for setting in args.settings:
+    wm, t0 = configured(setting), time.time()
+    held, _, _ = score(wm, play, 192)
+    runs = stability({"m": wm}, args.steps, every=10, progress=False)
+    print(json.dumps({"model": args.model, "setting": setting, "t_kept_192": round(held["t_found"], 3),
+                      "psnr_1_192": round(held["psnr_1_192"], 2),
+                      "t_kept_run": round(float(runs["m"]["detected"].mean()), 3),
+                      "t_kept_run_mujoco": round(float(runs["mujoco"]["detected"].mean()), 3),
+                      "seconds": round(time.time() - t0)}), flush=True)
