@@ -34,21 +34,24 @@ play = Episodes(args.data, args.episodes)
 
 
 def configured(setting: str) -> WorldModel:
-    wm = WorldModel.load(args.model)
+    wm, changes = WorldModel.load(args.model), {}
+    fields = {"label": "context_label", "rest": "rest_threshold", "deadband": "delta_deadband"}
     for part in setting.split("+"):
-        if part == "reencode":
-            wm.reencode = True
-        elif part.startswith("jumps"):
-            wm.jumps = int(part[5:])
-        elif part.startswith("label"):  # score() resets the label to the config's after its one-step part
-            wm.cfg = dataclasses.replace(wm.cfg, context_label=float(part[5:]))
-            wm.context_label = wm.cfg.context_label
-        elif part.startswith("rest"):
-            wm.denoiser.cfg = dataclasses.replace(wm.denoiser.cfg, rest_threshold=float(part[4:]))
-        elif part.startswith("deadband"):
-            wm.denoiser.cfg = dataclasses.replace(wm.denoiser.cfg, delta_deadband=float(part[8:]))
-        elif part != "default":
-            p.error(f"unknown setting {part!r}")
+        name = part.rstrip("0123456789.")
+        try:
+            if part == "reencode":
+                wm.reencode = True
+            elif name == "jumps":
+                wm.jumps = int(part[5:])
+            elif name in fields:
+                changes[fields[name]] = float(part[len(name):])
+            elif part != "default":
+                p.error(f"unknown setting {part!r}")
+        except ValueError:
+            p.error(f"setting {part!r} needs a number after {name!r}")
+    # one config, as a loaded model has it: score() resets the label to the config's after its one-step part
+    wm.cfg = wm.denoiser.cfg = dataclasses.replace(wm.cfg, **changes)
+    wm.context_label = wm.cfg.context_label
     return wm
 
 
