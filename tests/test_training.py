@@ -276,6 +276,10 @@ def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_w
     assert printed["dynamics"]["context"] == 4 and printed["unroll"] == [[0, 2]] and printed["train"]["steps"] == 3
     assert printed["dynamics"]["channels"] == init.cfg.dynamics.channels
     assert not (tmp_path / "wide").exists()
+    # --unroll: a fine-tune unrolls every sequence that long.
+    assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--unroll", "5",
+                 "--out", str(tmp_path / "wide"), "--dry-run", *flags]) == 0
+    assert json.loads(capsys.readouterr().out)["unroll"] == [[0, 5]]
     # --context widens the window: the older latents start unheard, the rest as it was.
     assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--context", "4",
                  "--out", str(tmp_path / "wide"), "--steps", "1", "--lr", "1e-12", *flags]) == 0
@@ -285,6 +289,16 @@ def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_w
     assert w[:, c:3 * c].abs().max() < 1e-6
     torch.testing.assert_close(torch.cat([w[:, :c], w[:, 3 * c:]], 1), init.dynamics.conv_in.weight, atol=1e-6,
                                rtol=0)
+
+
+def test_longest_unroll_keeps_the_curriculum_below_it():
+    from iwsim.world_model.train_dynamics import longest_unroll
+
+    curriculum = ((0, 2), (200, 4), (500, 8))
+    assert longest_unroll(curriculum, 16) == ((0, 2), (200, 4), (500, 8), (800, 16))
+    assert longest_unroll(curriculum, 6) == ((0, 2), (200, 4), (500, 6))
+    assert longest_unroll(curriculum, 4) == ((0, 2), (200, 4))
+    assert longest_unroll(curriculum, 1) == ((0, 1),)
 
 
 def test_dynamics_takes_either_an_autoencoder_or_a_model_to_fine_tune(play_store, tmp_path, capsys):

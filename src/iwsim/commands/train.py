@@ -43,6 +43,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--context", type=int, help="latents in the window (default: the preset's, or the fine-tuned "
                                                "model's); with --init, a wider window starts with the older "
                                                "latents' weights at zero: the model unchanged")
+    q.add_argument("--unroll", type=int, metavar="N",
+                   help="predictions unrolled per training sequence at the curriculum's longest (default: the "
+                        "preset's or variant's, or the fine-tuned model's longest); from scratch the shorter stages "
+                        "stay, with --init every sequence unrolls N")
     q.add_argument("--latent-cache", help="file for the encoded latents, shareable by runs with the same encoder; "
                                           "a store that extends the cached one (a merge of it and more) encodes "
                                           "only its new frames (default: in the run directory)")
@@ -173,13 +177,13 @@ def _train_dynamics(args: argparse.Namespace) -> int:
         raise InputError("--variant applies to training from scratch (with --init, only "
                          f"{', '.join(FINE_TUNE_VARIANTS)}: the last two add the robot's state to the model); --init "
                          "keeps the model's own objective and network.")
-    check_positive(args, "context")
+    check_positive(args, "context", "unroll")
     from iwsim.world_model.train_dynamics import run_config, train_dynamics
 
     def trained(cfg: Any) -> Any:  # what --init and --context make of the preset
         from iwsim.world_model import WorldModel
 
-        return run_config(cfg, None if args.init is None else WorldModel.load(args.init), args.context)
+        return run_config(cfg, None if args.init is None else WorldModel.load(args.init), args.context, args.unroll)
 
     cfg = _resolve_preset(args, DYNAMICS_PRESETS, trained)
     if cfg is None:
@@ -188,7 +192,7 @@ def _train_dynamics(args: argparse.Namespace) -> int:
 
     _print_metrics(train_dynamics(cfg, args.data, args.ae, args.out, device=resolve_device(args.device),
                                   force=args.force, progress=not args.no_progress, latent_cache=args.latent_cache,
-                                  init=args.init, context=args.context, compile=args.compile))
+                                  init=args.init, context=args.context, compile=args.compile, unroll=args.unroll))
     return 0
 
 

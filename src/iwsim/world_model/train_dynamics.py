@@ -179,20 +179,33 @@ def write_rollout_strip(path: Path, truth: torch.Tensor, frames: torch.Tensor) -
     imageio.imwrite(path, np.concatenate(rows, axis=0))
 
 
+def longest_unroll(curriculum: tuple[tuple[int, int], ...], n: int) -> tuple[tuple[int, int], ...]:
+    """The unroll curriculum ``curriculum`` ((from step, predictions), ...) with ``n``
+    predictions at its longest: its stages below n kept, n from the step its first stage of n
+    or more began (300 steps after its last stage where none has that many)."""
+    kept = tuple((k, m) for k, m in curriculum if m < n)
+    later = [k for k, m in curriculum if m >= n]
+    start = min(later) if later else max(k for k, _ in curriculum) + 300
+    return kept + ((start if kept else 0, n),)
+
+
 def run_config(cfg: DynamicsStageConfig, init: WorldModel | None = None,
-               context: int | None = None) -> DynamicsStageConfig:
+               context: int | None = None, unroll: int | None = None) -> DynamicsStageConfig:
     """The stage-2 config a run trains with: ``cfg``; for a fine-tune of ``init``, the model's
-    own (network, objective, context noise) with ``cfg.train``, its unroll curriculum at its
-    longest, and the robot's state if ``cfg`` asks for it; with ``context`` latents in the
-    window when given."""
+    own (network, objective, context noise) with ``cfg.train``, every sequence unrolled as
+    long as its curriculum's longest (``unroll`` when given), and the robot's state if ``cfg``
+    asks for it; with ``context`` latents in the window when given. From scratch, ``unroll``
+    sets the curriculum's longest (:func:`longest_unroll`)."""
     if init is not None:
-        longest = max(n for _, n in init.cfg.unroll) if init.cfg.unroll else 1
+        longest = unroll or (max(n for _, n in init.cfg.unroll) if init.cfg.unroll else 1)
         cfg = replace(init.cfg, train=cfg.train, unroll=((0, longest),),
                       predict_state=cfg.predict_state or init.cfg.predict_state,
                       **{k: getattr(cfg if cfg.predict_state else init.cfg, k)
                          for k in ("state_weight", "state_contact_weight", "state_contact_gap")})
     if context is not None:
         cfg = replace(cfg, dynamics=replace(cfg.dynamics, context=context))
+    if unroll is not None and init is None:
+        cfg = replace(cfg, unroll=longest_unroll(cfg.unroll or ((0, 1),), unroll))
     return cfg
 
 
@@ -212,13 +225,13 @@ class DynamicsTask:
     def __init__(self, cfg: DynamicsStageConfig, data: str | Path, ae_path: str | Path | None,
                  device: torch.device = torch.device("cpu"), progress: bool = True,
                  latent_cache: Path | None = None, init: str | Path | None = None,
-                 context: int | None = None, resume: Path | None = None) -> None:
+                 context: int | None = None, resume: Path | None = None, unroll: int | None = None) -> None:
         wm = None
         if init is not None:
             init = resolve_checkpoint(init)  # a checkpoint, or a run's last one
             wm = WorldModel.load(init, device)
             ae_path = init
-        cfg = run_config(cfg, wm, context)
+        cfg = run_config(cfg, wm, context, unroll)
         if ae_path is None:
             raise InputError("a dynamics task needs a stage-1 checkpoint (ae_path) or a world model to fine-tune "
                              "(init).")
@@ -283,10 +296,11 @@ def run_latent_norm(run: Path) -> tuple[torch.Tensor, float] | None:
 def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | None, out: str | Path, *,
                    device: torch.device, force: bool = False, progress: bool = True,
                    latent_cache: str | Path | None = None, init: str | Path | None = None,
-                   context: int | None = None, compile: bool = False) -> dict[str, float]:
+                   context: int | None = None, compile: bool = False, unroll: int | None = None) -> dict[str, float]:
     """Train (or resume) stage 2 into the run directory ``out``, from scratch on the
     stage-1 checkpoint ``ae`` or, with ``init``, fine-tuning that world model, with a
-    window of ``context`` latents if given (see :class:`DynamicsTask`). The frozen
+    window of ``context`` latents and ``unroll`` predictions at the longest if given (see
+    :class:`DynamicsTask`). The frozen
     encoder's latents are cached in ``latent_cache`` (default: the run directory), which
     runs on the same store and encoder can share; a cache of other frames or weights is
     rewritten. ``compile``: ``torch.compile`` the dynamics network (a speed setting only)."""
@@ -294,7 +308,7 @@ def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | 
         raise InputError("train dynamics takes either --ae (train from scratch) or --init (fine-tune), not both.")
     cache = Path(latent_cache) if latent_cache is not None else Path(out) / "latents.safetensors"
     task = DynamicsTask(cfg, data, ae, device, progress, latent_cache=cache, init=init, context=context,
-                        resume=Path(out))
+                        resume=Path(out), unroll=unroll)
     config = task.config(data)
     assert config["kind"] == KIND
     return trainer.train(task, task.cfg.train, Path(out), config, device=device, force=force, progress=progress,
