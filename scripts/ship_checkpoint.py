@@ -1,4 +1,4 @@
-"""Record the shipped checkpoint's metrics.json (what tests/test_shipped_checkpoint.py checks).
+"""Record a shipped checkpoint's metrics.json (what tests/test_shipped_checkpoint.py and _pile.py check).
 
     MUJOCO_GL=egl .venv/bin/python scripts/ship_checkpoint.py --checkpoint checkpoints/pusht-64 \
         [--bench bench/results/pusht-64/results.json --bench-model shipped]

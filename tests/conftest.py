@@ -8,7 +8,7 @@ import torch
 from iwsim.envs.collect import collect
 
 # Files whose every test is end to end (a demo run, the shipped checkpoint against MuJoCo).
-SLOW_FILES = ("test_demo.py", "test_shipped_checkpoint.py")
+SLOW_FILES = ("test_demo.py", "test_shipped_checkpoint.py", "test_shipped_pile.py")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -1,5 +1,5 @@
-"""The shipped checkpoint loads, is small, and still predicts MuJoCo as well as its
-metrics.json says (so the file can never silently rot)."""
+"""The shipped T-push checkpoint loads, is small, and still predicts MuJoCo as well as its
+metrics.json says (so the file can never silently rot); the pile model's: test_shipped_pile.py."""
 
 import json
 from pathlib import Path
@@ -81,56 +81,3 @@ def test_the_recipe_rebuilds_a_model_and_resumes(tmp_path):
     assert again.returncode == 0, again.stderr[-2000:]
     assert again.stderr.count("resuming from") == 7  # the codec, the dynamics, the decoder, four fine-tunes
     assert EpisodeStore.open(tmp_path / "data" / "contact.zarr").n_episodes == episodes
-
-
-PILE = SHIPPED.parent / "pilesweep-64"
-
-
-def test_the_shipped_pile_model_is_complete_small_and_the_tasks_default():
-    from iwsim.envs.registry import get_task
-
-    files = {p.name for p in PILE.iterdir()}
-    assert {"model.safetensors", "config.json", "metrics.json", "README.md", "recipe.sh"} <= files
-    assert sum(p.stat().st_size for p in PILE.iterdir()) <= 50 * 2**20
-    assert get_task("pilesweep").checkpoint == "checkpoints/pilesweep-64"
-    wm = WorldModel.load(PILE)
-    assert wm.image_size == 64 and wm.task.name == "pilesweep"
-
-
-@pytest.mark.parametrize("i", range(2))
-def test_the_shipped_pile_model_reaches_its_recorded_psnr_against_mujoco(i):
-    recorded = json.loads((PILE / "metrics.json").read_text())["mujoco_rollout"]
-    seed = recorded["seeds"][i]
-    result = against_mujoco(WorldModel.load(PILE), seed, recorded["steps"], recorded["policy"],
-                            noise_seed=recorded["noise_seed"])
-    assert abs(float(result.psnr.mean()) - recorded["psnr_per_seed"][i]) <= recorded["tolerance_db"], seed
-
-
-@pytest.mark.slow
-def test_the_pile_recipe_rebuilds_a_model_and_resumes(tmp_path):
-    """checkpoints/pilesweep-64/recipe.sh, shrunk to seconds: every step runs, and a second
-    run resumes everything (no episode collected twice, no training restarted)."""
-    import os
-    import subprocess
-    import sys
-
-    from iwsim.data.store import EpisodeStore
-
-    bin_dir = Path(sys.executable).parent
-    env = {**os.environ, "SCALE": "tiny", "YARDSTICK": "0", "OUT": str(tmp_path / "out"),
-           "DATA": str(tmp_path / "data"), "IWSIM": str(bin_dir / "iwsim"), "PYTHON": sys.executable}
-
-    def run() -> subprocess.CompletedProcess:
-        return subprocess.run(["bash", str(PILE / "recipe.sh")], env=env, cwd=PILE.parents[1], capture_output=True,
-                              text=True)
-
-    first = run()
-    assert first.returncode == 0, first.stderr[-2000:]
-    model = WorldModel.load(tmp_path / "out" / "pilesweep-64")
-    assert model.image_size == 64 and model.task.name == "pilesweep" and model.cfg.dynamics.context == 10
-    assert (model.cfg.rest_threshold, model.cfg.delta_deadband) == (0.05, 0.06)
-    episodes = EpisodeStore.open(tmp_path / "data" / "pile_contact.zarr").n_episodes
-    again = run()
-    assert again.returncode == 0, again.stderr[-2000:]
-    assert again.stderr.count("resuming from") == 4  # the codec, the dynamics, the decoder, the wider window
-    assert EpisodeStore.open(tmp_path / "data" / "pile_contact.zarr").n_episodes == episodes

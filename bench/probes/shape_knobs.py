@@ -2,10 +2,12 @@
 setting, the yardstick's two shape measures on one model: a T fits the block over 192
 held-out play steps (``iwsim.yardstick.fidelity.score``'s ``t_found``, with its PSNR) and
 in a 2000-step play run under MuJoCo's executed targets (``iwsim.eval.profiling.stability``,
-every 10th frame). A setting is ``default`` or parts joined by ``+``: ``reencode`` (the
-newest context latent is the encoding of the decoded frame), ``jumpsN`` (consistency jumps
-per frame), ``labelX`` (the context-noise std the context is labelled with), ``restX``
-(the rest threshold), ``deadbandX`` (a cell's predicted change under X is none).
+every 10th frame; with the step of its last frame before three checks in a row find no T,
+``t_run_lost_at``, and the share of the first 200 steps with one). A setting is
+``default`` or parts joined by ``+``: ``reencode`` (the newest context latent is the
+encoding of the decoded frame), ``jumpsN`` (consistency jumps per frame), ``labelX`` (the
+context-noise std the context is labelled with), ``restX`` (the rest threshold),
+``deadbandX`` (a cell's predicted change under X is none).
 One JSON line per setting.
 
     MUJOCO_GL=egl python bench/probes/shape_knobs.py runs/x4_4500 default reencode jumps2 label0.3
@@ -55,6 +57,15 @@ def configured(setting: str) -> WorldModel:
     return wm
 
 
+def lost_at(steps, detected, run: int = 3) -> int:
+    """The step of the last check before ``run`` checks in a row find no T (the run's
+    length where that never happens)."""
+    for i in range(len(detected) - run + 1):
+        if not detected[i:i + run].any():
+            return int(steps[i - 1]) if i else 0
+    return int(steps[-1])
+
+
 for setting in args.settings:
     wm, t0 = configured(setting), time.time()
     held, _, _ = score(wm, play, 192)
@@ -62,5 +73,7 @@ for setting in args.settings:
     print(json.dumps({"model": args.model, "setting": setting, "t_kept_192": round(held["t_found"], 3),
                       "psnr_1_192": round(held["psnr_1_192"], 2),
                       "t_kept_run": round(float(runs["m"]["detected"].mean()), 3),
+                      "t_kept_run_200": round(float(runs["m"]["detected"][runs["m"]["step"] <= 200].mean()), 3),
+                      "t_run_lost_at": lost_at(runs["m"]["step"], runs["m"]["detected"]),
                       "t_kept_run_mujoco": round(float(runs["mujoco"]["detected"].mean()), 3),
                       "seconds": round(time.time() - t0)}), flush=True)
