@@ -104,6 +104,31 @@ def test_every_action_pathway_reaches_the_output(spatial, film):
 
 
 @torch.no_grad()
+def test_the_unet_variant_runs_its_middle_at_half_resolution():
+    """down=1: the attention sees an 8 x 8 grid of twice the channels for a 16 x 16 latent, the
+    output keeps the latent's shape and every cell still reaches every other; down=0 has the
+    parameters every earlier model was saved with."""
+    cfg = DynamicsConfig(context=2, channels=8, blocks=4, heads=2, emb_dim=16, action_channels=2, down=1)
+    net = randomise(Dynamics(cfg))
+    seen = []
+    net.attn.register_forward_hook(lambda m, i, o: seen.append(tuple(i[0].shape)))
+    g = torch.Generator().manual_seed(0)
+    x, ctx = torch.randn(2, 4, 16, 16, generator=g), torch.randn(2, 2, 4, 16, 16, generator=g)
+    t, s, lab, a = torch.full((2,), 999.0), torch.zeros(2), torch.full((2,), 100.0), torch.zeros(2, 2, 4)
+    out = net(x, ctx, t, s, lab, a)
+    assert out.shape == x.shape and seen == [(2, 16, 8, 8)]
+    far = ctx.clone()
+    far[:, :, :, 0, 0] += 1.0  # one corner cell of the window moves the opposite corner
+    assert (net(x, far, t, s, lab, a) - out)[:, :, -1, -1].abs().max() > 1e-4
+    flat = {k.split(".")[0] for k in Dynamics(dataclasses.replace(cfg, down=0)).state_dict()}
+    assert not flat & {"down", "up", "blocks_in", "blocks_out"}
+    with pytest.raises(InputError, match="down takes 0 or 1"):
+        Dynamics(dataclasses.replace(cfg, down=2))
+    with pytest.raises(InputError, match="even latent size"):
+        Dynamics(dataclasses.replace(cfg, latent_size=15))
+
+
+@torch.no_grad()
 def test_a_widened_window_computes_the_same_function_whatever_the_older_latents():
     """widen_window: a 2-latent network made into a 5-latent one gives the same output
     for any 3 older latents, and they reach it once their weights move."""

@@ -35,9 +35,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                      "autoencoder, normalisation and network are kept")
     q.add_argument("--variant", default="ours",
                    help="ours, or a benchmark baseline or ablation: deterministic, diffusion, no-context-noise, "
-                        "film-actions, no-points, no-unroll, no-delta, window-6, long-unroll; or state: the "
-                        "dynamics also takes and predicts the robot's own state (the store's data/state; with "
-                        "--init it is added to the model); or state-contact: state, its error weighted up where the "
+                        "film-actions, no-points, no-unroll, no-delta, window-6, long-unroll, unet (the middle "
+                        "blocks at half resolution: a one-level U-Net); or state: the dynamics also takes and "
+                        "predicts the robot's own state (the store's data/state; with --init it is added to the "
+                        "model); or state-contact: state, its error weighted up where the "
                         "block holds a pusher back from its setpoint; several joined by '+' apply in turn, e.g. "
                         "long-unroll+deterministic (default: %(default)s)")
     q.add_argument("--context", type=int, help="latents in the window (default: the preset's, or the fine-tuned "

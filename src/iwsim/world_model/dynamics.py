@@ -2,10 +2,14 @@
 
 F predicts the next latent from the last K latents (the window, stacked as input
 channels, newest last), the action that produces the next frame and the one before it,
-and the noise levels of its input. It is a residual CNN at latent resolution (no spatial
-downsampling: a 16 x 16 latent has few cells per object) with FiLM from the level
-embedding and one spatial self-attention layer in the middle (the block moves as one
-rigid object however far apart its cells are).
+and the noise levels of its input. It is a residual CNN at latent resolution with FiLM from
+the level embedding and one spatial self-attention layer in the middle (the block moves as
+one rigid object however far apart its cells are). With ``down`` = 1 its middle half runs at
+half the latent's resolution with twice the channels, between a strided convolution and an
+upsampling one whose output is added to what went in (a U-Net of one level, as the paper's
+dynamics: a 16 x 16 latent's T spans ~6 cells, at 8 x 8 it is ~3, as in the coarse latent
+whose T stays rigid); a quarter of the blocks run before it and a quarter after, at full
+resolution. ``down`` = 0 keeps every block at latent resolution.
 
 Actions enter as per-cell input features at latent resolution, for the current and the
 previous action (measured here: FiLM from an action MLP was ignored by the trained model
@@ -55,6 +59,7 @@ class DynamicsConfig:
     channels: int = 64
     blocks: int = 8
     heads: int = 4  # of the spatial attention in the middle (0: none)
+    down: int = 0  # 1: the middle blocks at half resolution with 2x channels (a one-level U-Net); 0: none
     emb_dim: int = 128
     num_levels: int = 1000  # noise levels are embedded as t / T * 1000
     spatial_actions: bool = True  # the learned action grid
@@ -151,10 +156,18 @@ class Dynamics(nn.Module):
         self.state_grid = nn.Linear(cfg.state_dim, cfg.state_channels * s * s) if cfg.state_dim else None
         state_in = self.state_features_channels()
         self.conv_in = nn.Conv2d(cin + state_in, c, 3, padding=1)
-        half = cfg.blocks // 2
-        self.blocks_a = nn.ModuleList(ResBlock(c, c, e) for _ in range(half))
-        self.attn = SpatialAttention(c, cfg.heads) if cfg.heads else None
-        self.blocks_b = nn.ModuleList(ResBlock(c, c, e) for _ in range(cfg.blocks - half))
+        if cfg.down not in (0, 1) or (cfg.down and s % 2):
+            raise InputError(f"down takes 0 or 1 (1 needs an even latent size), got {cfg.down} with a {s} x {s} "
+                             "latent.")
+        outer = cfg.blocks // 4 if cfg.down else 0  # blocks at full resolution before and after the middle
+        mid, half = c * 2 ** cfg.down, (cfg.blocks - 2 * outer) // 2
+        self.blocks_in = nn.ModuleList(ResBlock(c, c, e) for _ in range(outer))
+        self.down = nn.Conv2d(c, mid, 3, stride=2, padding=1) if cfg.down else None
+        self.blocks_a = nn.ModuleList(ResBlock(mid, mid, e) for _ in range(half))
+        self.attn = SpatialAttention(mid, cfg.heads) if cfg.heads else None
+        self.blocks_b = nn.ModuleList(ResBlock(mid, mid, e) for _ in range(cfg.blocks - 2 * outer - half))
+        self.up = nn.Conv2d(mid, c, 3, padding=1) if cfg.down else None
+        self.blocks_out = nn.ModuleList(ResBlock(c, c, e) for _ in range(outer))
         self.norm_out = group_norm(c)
         self.conv_out = nn.Conv2d(c, cfg.latent_channels, 3, padding=1)
         zero_init(self.conv_out)
@@ -232,11 +245,20 @@ class Dynamics(nn.Module):
                 raise InputError("this dynamics network takes the robot's state (B, S); none was given.")
             inp += self.state_features(state)
         h = self.conv_in(torch.cat(inp, 1))
+        for block in self.blocks_in:
+            h = block(h, emb)
+        skip = h
+        if self.down is not None:
+            h = self.down(h)
         for block in self.blocks_a:
             h = block(h, emb)
         if self.attn is not None:
             h = self.attn(h)
         for block in self.blocks_b:
+            h = block(h, emb)
+        if self.up is not None:
+            h = skip + self.up(F.interpolate(h, scale_factor=2, mode="nearest"))
+        for block in self.blocks_out:
             h = block(h, emb)
         return self.conv_out(F.silu(self.norm_out(h))).view(b, *x.shape[1:])
 

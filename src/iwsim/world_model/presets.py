@@ -209,6 +209,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # longer unrolls with the gradient cut every 8 predictions.
     "window-6": {"dynamics": {"context": 6}},
     "long-unroll": {"unroll": ((0, 2), (200, 4), (500, 8), (800, 16), (1100, 24)), "unroll_grad_every": 8},
+    # The dynamics' middle blocks at half the latent's resolution (a one-level U-Net, as the
+    # paper's): for fine latents, whose objects span many cells.
+    "unet": {"dynamics": {"down": 1}},
     # The robot's own state taken, predicted and fed back (the store's data/state).
     "state": {"predict_state": True},
     # ... with the steps where contact holds a pusher back weighted 5x in the state's loss.
