@@ -181,7 +181,7 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     check_positive(args, "context", "unroll")
     from iwsim.world_model.train_dynamics import run_config, train_dynamics
 
-    def trained(cfg: Any) -> Any:  # what --init and --context make of the preset
+    def trained(cfg: Any) -> Any:  # what --init, --context and --unroll make of the preset
         from iwsim.world_model import WorldModel
 
         return run_config(cfg, None if args.init is None else WorldModel.load(args.init), args.context, args.unroll)

@@ -300,10 +300,10 @@ def train_dynamics(cfg: DynamicsStageConfig, data: str | Path, ae: str | Path | 
     """Train (or resume) stage 2 into the run directory ``out``, from scratch on the
     stage-1 checkpoint ``ae`` or, with ``init``, fine-tuning that world model, with a
     window of ``context`` latents and ``unroll`` predictions at the longest if given (see
-    :class:`DynamicsTask`). The frozen
-    encoder's latents are cached in ``latent_cache`` (default: the run directory), which
-    runs on the same store and encoder can share; a cache of other frames or weights is
-    rewritten. ``compile``: ``torch.compile`` the dynamics network (a speed setting only)."""
+    :class:`DynamicsTask`). The frozen encoder's latents are cached in ``latent_cache``
+    (default: the run directory), which runs on the same store and encoder can share; a cache
+    of other frames or weights is rewritten. ``compile``: ``torch.compile`` the dynamics
+    network (a speed setting only)."""
     if (ae is None) == (init is None):
         raise InputError("train dynamics takes either --ae (train from scratch) or --init (fine-tune), not both.")
     cache = Path(latent_cache) if latent_cache is not None else Path(out) / "latents.safetensors"
