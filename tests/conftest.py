@@ -1,3 +1,6 @@
+import os
+import subprocess
+import sys
 from collections import Counter
 from pathlib import Path
 
@@ -21,6 +24,16 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     # file's tests stay together and in order.
     slow = Counter(item.path for item in items if item.get_closest_marker("slow"))
     items.sort(key=lambda item: -slow[item.path])
+
+
+def run_recipe(recipe: Path, tmp_path: Path) -> subprocess.CompletedProcess:
+    """A shipped checkpoint's ``recipe.sh`` shrunk to seconds (SCALE=tiny, no yardstick), run
+    from the repository's root with its models under ``tmp_path/out`` and its stores under
+    ``tmp_path/data``; a second call resumes the first."""
+    env = {**os.environ, "SCALE": "tiny", "YARDSTICK": "0", "OUT": str(tmp_path / "out"),
+           "DATA": str(tmp_path / "data"), "IWSIM": str(Path(sys.executable).parent / "iwsim"),
+           "PYTHON": sys.executable}
+    return subprocess.run(["bash", str(recipe)], env=env, cwd=recipe.parents[2], capture_output=True, text=True)
 
 
 @pytest.fixture(scope="session")

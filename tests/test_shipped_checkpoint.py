@@ -10,6 +10,7 @@ import pytest
 
 from iwsim.eval.rollout import against_mujoco
 from iwsim.world_model import WorldModel
+from tests.conftest import run_recipe
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "pusht-64"
 
@@ -62,22 +63,14 @@ def test_shipped_rollout_holds_its_recorded_values():
 def test_the_recipe_rebuilds_a_model_and_resumes(tmp_path):
     """checkpoints/pusht-64/recipe.sh, shrunk to seconds: every step of the chain runs, and
     a second run resumes everything (no episode collected twice, no training restarted)."""
-    import os
-    import subprocess
-    import sys
-
     from iwsim.data.store import EpisodeStore
 
-    bin_dir = Path(sys.executable).parent
-    env = {**os.environ, "SCALE": "tiny", "YARDSTICK": "0", "OUT": str(tmp_path / "out"),
-           "DATA": str(tmp_path / "data"), "IWSIM": str(bin_dir / "iwsim"), "PYTHON": sys.executable}
-    recipe = SHIPPED / "recipe.sh"
-    first = subprocess.run(["bash", str(recipe)], env=env, cwd=SHIPPED.parents[1], capture_output=True, text=True)
+    first = run_recipe(SHIPPED / "recipe.sh", tmp_path)
     assert first.returncode == 0, first.stderr[-2000:]
     model = WorldModel.load(tmp_path / "out" / "pusht-64")
     assert model.cfg.rest_threshold == 0.05 and model.image_size == 64 and model.cfg.dynamics.context == 10
     episodes = EpisodeStore.open(tmp_path / "data" / "contact.zarr").n_episodes
-    again = subprocess.run(["bash", str(recipe)], env=env, cwd=SHIPPED.parents[1], capture_output=True, text=True)
+    again = run_recipe(SHIPPED / "recipe.sh", tmp_path)
     assert again.returncode == 0, again.stderr[-2000:]
     assert again.stderr.count("resuming from") == 7  # the codec, the dynamics, the decoder, four fine-tunes
     assert EpisodeStore.open(tmp_path / "data" / "contact.zarr").n_episodes == episodes

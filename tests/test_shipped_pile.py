@@ -9,6 +9,7 @@ import pytest
 
 from iwsim.eval.rollout import against_mujoco
 from iwsim.world_model import WorldModel
+from tests.conftest import run_recipe
 
 PILE = Path(__file__).resolve().parents[1] / "checkpoints" / "pilesweep-64"
 
@@ -37,27 +38,15 @@ def test_the_shipped_pile_model_reaches_its_recorded_psnr_against_mujoco(i):
 def test_the_pile_recipe_rebuilds_a_model_and_resumes(tmp_path):
     """checkpoints/pilesweep-64/recipe.sh, shrunk to seconds: every step runs, and a second
     run resumes everything (no episode collected twice, no training restarted)."""
-    import os
-    import subprocess
-    import sys
-
     from iwsim.data.store import EpisodeStore
 
-    bin_dir = Path(sys.executable).parent
-    env = {**os.environ, "SCALE": "tiny", "YARDSTICK": "0", "OUT": str(tmp_path / "out"),
-           "DATA": str(tmp_path / "data"), "IWSIM": str(bin_dir / "iwsim"), "PYTHON": sys.executable}
-
-    def run() -> subprocess.CompletedProcess:
-        return subprocess.run(["bash", str(PILE / "recipe.sh")], env=env, cwd=PILE.parents[1], capture_output=True,
-                              text=True)
-
-    first = run()
+    first = run_recipe(PILE / "recipe.sh", tmp_path)
     assert first.returncode == 0, first.stderr[-2000:]
     model = WorldModel.load(tmp_path / "out" / "pilesweep-64")
     assert model.image_size == 64 and model.task.name == "pilesweep" and model.cfg.dynamics.context == 10
     assert (model.cfg.rest_threshold, model.cfg.delta_deadband) == (0.05, 0.06)
     episodes = EpisodeStore.open(tmp_path / "data" / "pile_contact.zarr").n_episodes
-    again = run()
+    again = run_recipe(PILE / "recipe.sh", tmp_path)
     assert again.returncode == 0, again.stderr[-2000:]
     assert again.stderr.count("resuming from") == 4  # the codec, the dynamics, the decoder, the wider window
     assert EpisodeStore.open(tmp_path / "data" / "pile_contact.zarr").n_episodes == episodes
