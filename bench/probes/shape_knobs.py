@@ -7,7 +7,8 @@ every 10th frame; with the step of its last frame before three checks in a row f
 ``default`` or parts joined by ``+``: ``reencode`` (the newest context latent is the
 encoding of the decoded frame), ``jumpsN`` (consistency jumps per frame), ``labelX`` (the
 context-noise std the context is labelled with), ``restX`` (the rest threshold),
-``deadbandX`` (a cell's predicted change under X is none).
+``deadbandX`` (a cell's predicted change under X is none), ``tempX`` (the noise a new latent
+starts from scaled by X: 0 is the model's one deterministic prediction).
 One JSON line per setting.
 
     MUJOCO_GL=egl python bench/probes/shape_knobs.py runs/x4_4500 default reencode jumps2 label0.3
@@ -26,13 +27,18 @@ from iwsim.yardstick.fidelity import Episodes, score
 p = argparse.ArgumentParser()
 p.add_argument("model", help="a world model or a stage-2 run's checkpoint")
 p.add_argument("settings", nargs="+",
-               help="default, or parts joined by '+': reencode, jumpsN, labelX, restX, deadbandX")
+               help="default, or parts joined by '+': reencode, jumpsN, labelX, restX, deadbandX, tempX")
 p.add_argument("--data", default="data/play_eval.zarr")
 p.add_argument("--episodes", type=int, default=20)
 p.add_argument("--steps", type=int, default=2000, help="steps of the stability run")
 args = p.parse_args()
 torch.set_num_threads(1)
 play = Episodes(args.data, args.episodes)
+
+
+def scaled(noise, temperature: float):
+    """``WorldModel._noise`` with its draws (still taken from each stream's generator) scaled."""
+    return lambda generators, shape: noise(generators, shape) * temperature
 
 
 def configured(setting: str) -> WorldModel:
@@ -45,6 +51,8 @@ def configured(setting: str) -> WorldModel:
                 wm.reencode = True
             elif name == "jumps":
                 wm.jumps = int(part[5:])
+            elif name == "temp":
+                wm._noise = scaled(wm._noise, float(part[4:]))
             elif name in fields:
                 changes[fields[name]] = float(part[len(name):])
             elif part != "default":

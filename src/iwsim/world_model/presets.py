@@ -216,9 +216,15 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "state": {"predict_state": True},
     # ... with the steps where contact holds a pusher back weighted 5x in the state's loss.
     "state-contact": {"predict_state": True, "state_contact_weight": 4.0},
+    # Real sampling: one jump from pure noise learns the expected next latent (the noise is
+    # ignored), which averages what contact may do; trained on jumps from every level (half
+    # from the top, half to 0, as the decoder is) and sampled in 3 jumps (999, 666, 333, 0),
+    # the noise picks one outcome. A fine-tune may add it to a 1-jump model.
+    "sampled": {"top_fraction": 0.5, "zero_fraction": 0.5, "jumps": 3},
 }
 # What a fine-tune (--init) may add to a trained model: the others change its objective or network.
-FINE_TUNE_VARIANTS = ("ours", "state", "state-contact")
+FINE_TUNE_VARIANTS = ("ours", "state", "state-contact", "sampled")
+SAMPLING_FIELDS = ("top_fraction", "zero_fraction", "jumps")  # what "sampled" sets
 
 
 def variant(cfg: DynamicsStageConfig, name: str) -> DynamicsStageConfig:
