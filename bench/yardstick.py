@@ -66,7 +66,7 @@ from iwsim.core.errors import InputError, check_positive, reporting_errors
 from iwsim.core.resources import set_threads
 from iwsim.eval.paired import judged_table
 from iwsim.eval.policy import check_model_task
-from iwsim.eval.profiling import speed, stability
+from iwsim.eval.profiling import speed, stability, strip_steps, write_run_strip
 from iwsim.eval.ranking import agreement
 from iwsim.eval.records import command_line, with_command
 from iwsim.eval.trust import calibration_figure
@@ -399,7 +399,8 @@ def core_markdown(report: dict, strip_rows: list[str]) -> list[str]:
              f"episodes x {report['steps']} steps from seed {RANK_SEED}. Stability: {report['stability_steps']} "
              f"play steps, every {STABILITY_EVERY}th frame decoded. Speed at the thread count in brackets. "
              f"`expert_strip.png`: the pixel expert's first 100 steps, one row per model ({', '.join(strip_rows)}), "
-             "MuJoCo last.", "",
+             "MuJoCo last; `run_strip.png`: the stability run's frames at steps "
+             f"{', '.join(map(str, strip_steps(report['stability_steps'])))}, the same rows.", "",
              "| model | " + " | ".join(c for c, *_ in COLUMNS) + " | minutes |",
              "|---" * (len(COLUMNS) + 2) + "|",
              "| target | " + " | ".join(t for *_, t in COLUMNS) + " | ~20 |"]
@@ -609,6 +610,10 @@ def main(argv: list[str] | None = None) -> int:
     if "core" in parts:
         shown = min(100, args.steps)  # the expert's first 100 steps, a frame every 10, or a shorter take's
         strip(out / "expert_strip.png", [*present.values(), None], RANK_SEED, shown, max(1, shown // 10))
+        kept = strip_steps(args.stability_steps)
+        runs = stability({n: WorldModel.load(c) for n, c in present.items()}, kept[-1], every=kept[-1],
+                         progress=False, keep=kept)
+        write_run_strip(out / "run_strip.png", runs, [*present, "mujoco"])
     write_text_atomic(out / "results.md", markdown(report, list(present)))
     print((out / "results.md").read_text())
     return 0

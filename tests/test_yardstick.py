@@ -43,6 +43,8 @@ def test_yardstick_runs_on_a_tiny_model(tmp_path):
     md = (out / "results.md").read_text()
     assert "| tiny |" in md and "| MuJoCo |" in md and "| target |" in md
     assert (out / "expert_strip.png").stat().st_size > 0 and (out / "scaling.png").stat().st_size > 0
+    # the stability run's frames at steps 10 and 20: a row per model, MuJoCo last
+    assert Image.open(out / "run_strip.png").size == (2 * 64, 3 * 64) and "`run_strip.png`" in md
     # a second run reuses the cached evaluation
     again = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert again.returncode == 0 and json.loads((out / "results.json").read_text())["models"]["tiny"] == m

@@ -9,7 +9,7 @@ encoding of the decoded frame), ``jumpsN`` (consistency jumps per frame), ``labe
 context-noise std the context is labelled with), ``restX`` (the rest threshold),
 ``deadbandX`` (a cell's predicted change under X is none), ``tempX`` (the noise a new latent
 starts from scaled by X: 0 is the model's one deterministic prediction).
-One JSON line per setting.
+One JSON line per setting; with ``--strip DIR``, DIR/SETTING.png shows the run's frames.
 
     MUJOCO_GL=egl python bench/probes/shape_knobs.py runs/x4_4500 default reencode jumps2 label0.3
 """
@@ -17,10 +17,11 @@ import argparse
 import dataclasses
 import json
 import time
+from pathlib import Path
 
 import torch
 
-from iwsim.eval.profiling import stability
+from iwsim.eval.profiling import stability, strip_steps, write_run_strip
 from iwsim.world_model.model import WorldModel
 from iwsim.yardstick.fidelity import Episodes, score
 
@@ -31,6 +32,7 @@ p.add_argument("settings", nargs="+",
 p.add_argument("--data", default="data/play_eval.zarr")
 p.add_argument("--episodes", type=int, default=20)
 p.add_argument("--steps", type=int, default=2000, help="steps of the stability run")
+p.add_argument("--strip", help="a folder: SETTING.png there, the stability run's frames (the model above MuJoCo)")
 args = p.parse_args()
 torch.set_num_threads(1)
 play = Episodes(args.data, args.episodes)
@@ -77,7 +79,11 @@ def lost_at(steps, detected, run: int = 3) -> int:
 for setting in args.settings:
     wm, t0 = configured(setting), time.time()
     held, _, _ = score(wm, play, 192)
-    runs = stability({"m": wm}, args.steps, every=10, progress=False)
+    keep = strip_steps(args.steps) if args.strip else ()
+    runs = stability({"m": wm}, args.steps, every=10, progress=False, keep=keep)
+    if args.strip:
+        Path(args.strip).mkdir(parents=True, exist_ok=True)
+        write_run_strip(Path(args.strip) / f"{setting}.png", runs, ["m", "mujoco"])
     print(json.dumps({"model": args.model, "setting": setting, "t_kept_192": round(held["t_found"], 3),
                       "psnr_1_192": round(held["psnr_1_192"], 2),
                       "t_kept_run": round(float(runs["m"]["detected"].mean()), 3),
