@@ -286,6 +286,11 @@ def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_w
     printed = json.loads(capsys.readouterr().out)
     assert (printed["jumps"], printed["top_fraction"], printed["zero_fraction"]) == (3, 0.5, 0.5)
     assert printed["dynamics"] == json.loads(json.dumps(dataclasses.asdict(init.cfg.dynamics)))
+    assert printed["unroll_grad"] is init.cfg.unroll_grad is True
+    assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--variant", "detached-unroll",
+                 "--out", str(tmp_path / "wide"), "--dry-run", *flags]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["unroll_grad"] is False and printed["jumps"] == init.cfg.jumps == 1
     # --context widens the window: the older latents start unheard, the rest as it was.
     assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--context", "4",
                  "--out", str(tmp_path / "wide"), "--steps", "1", "--lr", "1e-12", *flags]) == 0

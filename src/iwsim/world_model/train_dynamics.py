@@ -54,7 +54,7 @@ from iwsim.world_model.dynamics import Dynamics, add_state, widen_window
 from iwsim.world_model.dynamics_data import DynamicsData, DynBatch
 from iwsim.world_model.model import KIND, WorldModel, complete_run_config
 from iwsim.world_model.objectives import Levels
-from iwsim.world_model.presets import OBJECTIVES, SAMPLING_FIELDS, DynamicsStageConfig
+from iwsim.world_model.presets import FINE_TUNE_FIELDS, OBJECTIVES, DynamicsStageConfig
 
 log = logging.getLogger(__name__)
 
@@ -194,16 +194,18 @@ def run_config(cfg: DynamicsStageConfig, init: WorldModel | None = None,
     """The stage-2 config a run trains with: ``cfg``; for a fine-tune of ``init``, the model's
     own (network, objective, context noise, sampling) with ``cfg.train``, every sequence
     unrolled as long as its curriculum's longest (``unroll`` when given), and the robot's
-    state or several jumps if ``cfg`` asks for them; with ``context`` latents in the window
-    when given. From scratch, ``unroll``
+    state or another sampling or unroll gradient (``FINE_TUNE_FIELDS``) where ``cfg`` sets
+    them; with ``context`` latents in the window when given. From scratch, ``unroll``
     sets the curriculum's longest (:func:`longest_unroll`)."""
     if init is not None:
+        default = DynamicsStageConfig()
         longest = unroll or (max(n for _, n in init.cfg.unroll) if init.cfg.unroll else 1)
         cfg = replace(init.cfg, train=cfg.train, unroll=((0, longest),),
                       predict_state=cfg.predict_state or init.cfg.predict_state,
                       **{k: getattr(cfg if cfg.predict_state else init.cfg, k)
                          for k in ("state_weight", "state_contact_weight", "state_contact_gap")},
-                      **{k: getattr(cfg if cfg.jumps > 1 else init.cfg, k) for k in SAMPLING_FIELDS})
+                      **{k: getattr(cfg if getattr(cfg, k) != getattr(default, k) else init.cfg, k)
+                         for k in FINE_TUNE_FIELDS})
     if context is not None:
         cfg = replace(cfg, dynamics=replace(cfg.dynamics, context=context))
     if unroll is not None and init is None:
