@@ -47,3 +47,17 @@ def test_no_block_no_pose():
 def test_bad_frame_shape():
     with pytest.raises(ValueError, match="RGB"):
         pixels.pixel_iou(np.zeros((64, 64), np.uint8))
+
+
+def test_colour_fractions_of_many_frames_are_those_of_each_frame(frames, monkeypatch):
+    """More pixels than a pass models at once (``CHUNK_PIXELS``) go through in parts, with
+    the same fractions as each frame alone."""
+    from iwsim.envs.tabletop import palette
+
+    monkeypatch.setattr(palette, "CHUNK_PIXELS", 3 * 64 * 64)
+    stack = np.stack([f for f, _ in frames[:4]] * 2).reshape(2, 4, *frames[0][0].shape)
+    names = ("block", "left", "right")
+    many = pixels.colour_fractions(stack, names)
+    assert many.shape == (2, 4, 3, *stack.shape[2:4])
+    for i, j in np.ndindex(2, 4):
+        np.testing.assert_array_equal(many[i, j], pixels.colour_fractions(stack[i, j], names))

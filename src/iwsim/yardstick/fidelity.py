@@ -22,6 +22,7 @@ from iwsim.world_model import WorldModel
 STEPS = (1, 5, 10, 20, 32)
 POSE_STEPS = (10, 20, 32)
 CHANGED = 0.1  # a latent cell changed when a standardised channel moved by more (as in training)
+CHUNK = 512  # frames (or windows) a network pass takes: 20 episodes x 192 steps in one peaked at 15 GB
 
 
 class Episodes:
@@ -72,7 +73,9 @@ def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0
         raise InputError(f"the horizon must be at least {max(STEPS)} steps (the table reports steps up to "
                          f"{max(STEPS)}), got {horizon}.")
     k = wm.cfg.dynamics.context
-    z = wm.standardize(wm.encode(ep.img.reshape(-1, *ep.img.shape[2:])).unflatten(0, (ep.n, ep.length)))
+    flat = ep.img.reshape(-1, *ep.img.shape[2:])
+    z = wm.standardize(torch.cat([wm.encode(flat[i:i + CHUNK]) for i in range(0, len(flat), CHUNK)])
+                       .unflatten(0, (ep.n, ep.length)))
     a = wm.normalize_actions(ep.actions)
     out: dict = {}
     # Teacher-forced one step, from windows of true latents (padded at the start), every
@@ -86,9 +89,15 @@ def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0
     changed = ((true - prev).abs().amax(1, keepdim=True) > CHANGED).expand_as(true)
 
     def one_step() -> torch.Tensor:
-        """The standardised next latents (E*T, C, h, w), the same noise at every call."""
-        state = wm.reset_state(wm.unstandardize(ctx), ctx_actions, seed, latents=True)
-        return wm.standardize(wm.step_state(state, now, latents=True)[1])
+        """The standardised next latents (E*T, C, h, w), the same noise at every call (window
+        i's from seed + i), CHUNK windows a pass."""
+        parts = []
+        for lo in range(0, len(ctx), CHUNK):
+            hi = min(lo + CHUNK, len(ctx))
+            state = wm.reset_state(wm.unstandardize(ctx[lo:hi]), ctx_actions[lo:hi], range(seed + lo, seed + hi),
+                                   latents=True)
+            parts.append(wm.standardize(wm.step_state(state, now[lo:hi], latents=True)[1]))
+        return torch.cat(parts)
 
     reencode, wm.reencode = wm.reencode, False  # one step from true latents: nothing to feed back
     for lab in (0.0, wm.cfg.context_label, 0.3):
@@ -123,8 +132,10 @@ def score(wm: WorldModel, ep: Episodes, horizon: int, seed: int = 0
     out["action_gap_5"] = (shuf[:, 4].mean() / err[:, 4].mean()).item()
     out["action_gap_10"] = (shuf[:, 9].mean() / err[:, 9].mean()).item()
     # Frames: PSNR, pushers and the block; the predictions decoded with fresh generators.
-    shown = wm.decode_latents(predicted, [torch.Generator(wm.device).manual_seed(seed + i) for i in range(ep.n)])
-    frames = shown.clamp(-1, 1)
+    per = max(1, CHUNK // horizon)  # episodes decoded a pass
+    frames = torch.cat([wm.decode_latents(predicted[i:i + per], [torch.Generator(wm.device).manual_seed(seed + j)
+                                                                 for j in range(i, min(i + per, ep.n))])
+                        for i in range(0, ep.n, per)]).clamp(-1, 1)
     truth = to_model(ep.img[:, 1:horizon + 1]).to(frames.device)
     first = to_model(ep.img[:, :1]).expand_as(truth)
     p = psnr(((frames + 1) / 2).flatten(0, 1), ((truth + 1) / 2).flatten(0, 1)).view(ep.n, horizon)

@@ -17,6 +17,8 @@ import numpy as np
 from iwsim.core.errors import InputError
 from iwsim.envs.tabletop.scene import VIEW_HALF
 
+CHUNK_PIXELS = 2**19  # pixels Palette.fractions models at once (128 frames of 64 x 64: ~0.5 GB)
+
 
 def pixel_centers(image_size: int, view_half: float = VIEW_HALF) -> np.ndarray:
     """(H, W, 2) world (x, y) of each pixel centre."""
@@ -59,7 +61,16 @@ class Palette:
         for name in names:
             if name not in self.names:
                 raise InputError(f"unknown surface {name!r}; expected one of {self.names}.")
-        p = check_frames(frame).astype(np.float64)  # (..., H, W, 3)
+        frame = check_frames(frame)
+        hw = frame.shape[-3] * frame.shape[-2]
+        if frame.size // 3 > CHUNK_PIXELS and frame.size // (3 * hw) > 1:
+            # a few frames at a time: every pair's (..., H, W, P) float64 arrays for the 3840 frames of
+            # the yardstick's play part at once took 17 GB
+            flat = frame.reshape(-1, *frame.shape[-3:])
+            per = max(1, CHUNK_PIXELS // hw)
+            parts = [self.fractions(flat[i:i + per], names) for i in range(0, len(flat), per)]
+            return np.concatenate(parts).reshape(*frame.shape[:-3], len(names), *frame.shape[-3:-1])
+        p = frame.astype(np.float64)  # (..., H, W, 3)
         a = self.colours[self.pairs[:, 0]].astype(np.float64)
         b = self.colours[self.pairs[:, 1]].astype(np.float64)  # (P, 3)
         d = b - a
