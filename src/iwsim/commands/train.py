@@ -177,7 +177,7 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     if args.init is not None and args.variant not in FINE_TUNE_VARIANTS:
         raise InputError("--variant applies to training from scratch (with --init, only "
                          f"{', '.join(FINE_TUNE_VARIANTS)}: state and state-contact add the robot's state to the "
-                         "model, sampled and detached-unroll change how it trains and samples); --init "
+                         "model, sampled, all-levels and detached-unroll how it trains and samples); --init "
                          "keeps the model's own objective and network.")
     check_positive(args, "context", "unroll")
     from iwsim.world_model.train_dynamics import run_config, train_dynamics

@@ -221,12 +221,14 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # from the top, half to 0, as the decoder is) and sampled in 3 jumps (999, 666, 333, 0),
     # the noise picks one outcome. A fine-tune may add it to a 1-jump model.
     "sampled": {"top_fraction": 0.5, "zero_fraction": 0.5, "jumps": 3},
+    # ... trained on jumps from every level, sampled in one jump as ours is.
+    "all-levels": {"top_fraction": 0.5, "zero_fraction": 0.5},
     # The fed-back predictions carry no gradient: each prediction learns from its context as
     # it is, not how to make the next one's easier.
     "detached-unroll": {"unroll_grad": False},
 }
 # What a fine-tune (--init) may add to a trained model: the others change its objective or network.
-FINE_TUNE_VARIANTS = ("ours", "state", "state-contact", "sampled", "detached-unroll")
+FINE_TUNE_VARIANTS = ("ours", "state", "state-contact", "sampled", "all-levels", "detached-unroll")
 # The fields of those variants a fine-tune takes from them where they set them (otherwise the model's own).
 FINE_TUNE_FIELDS = ("top_fraction", "zero_fraction", "jumps", "unroll_grad")
 
