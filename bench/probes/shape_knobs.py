@@ -1,6 +1,7 @@
 """A probe of issue 64 (not a feature): do inference settings keep a model's T? For each
 setting, the yardstick's two shape measures on one model: a T fits the block over 192
-held-out play steps (``iwsim.yardstick.fidelity.score``'s ``t_found``, with its PSNR) and
+held-out play steps (``iwsim.yardstick.fidelity.score``'s ``t_found``, with its PSNR and the
+block's median position (px) and yaw (degrees) error at step 32) and
 in a 2000-step play run under MuJoCo's executed targets (``iwsim.eval.profiling.stability``,
 every 10th frame; with the step of its last frame before three checks in a row find no T,
 ``t_run_lost_at``, and the share of the first 200 steps with one). A setting is
@@ -86,6 +87,7 @@ for setting in args.settings:
         write_run_strip(Path(args.strip) / f"{setting}.png", runs, ["m", "mujoco"])
     print(json.dumps({"model": args.model, "setting": setting, "t_kept_192": round(held["t_found"], 3),
                       "psnr_1_192": round(held["psnr_1_192"], 2),
+                      "block_pos_32": round(held["block_pos_32"], 2), "block_yaw_32": round(held["block_yaw_32"], 1),
                       "t_kept_run": round(float(runs["m"]["detected"].mean()), 3),
                       "t_kept_run_200": round(float(runs["m"]["detected"][runs["m"]["step"] <= 200].mean()), 3),
                       "t_run_lost_at": lost_at(runs["m"]["step"], runs["m"]["detected"]),

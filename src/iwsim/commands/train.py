@@ -39,7 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "blocks at half resolution: a one-level U-Net); or state: the dynamics also takes and "
                         "predicts the robot's own state (the store's data/state; with --init it is added to the "
                         "model); or state-contact: state, its error weighted up where the "
-                        "block holds a pusher back from its setpoint; several joined by '+' apply in turn, e.g. "
+                        "block holds a pusher back from its setpoint; or sampled (trained on jumps from every "
+                        "level, sampled in 3 jumps), all-levels (the same training, one jump) or detached-unroll "
+                        "(fed-back predictions without gradient), also with --init; "
+                        "several joined by '+' apply in turn, e.g. "
                         "long-unroll+deterministic (default: %(default)s)")
     q.add_argument("--context", type=int, help="latents in the window (default: the preset's, or the fine-tuned "
                                                "model's); with --init, a wider window starts with the older "
