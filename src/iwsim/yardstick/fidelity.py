@@ -22,7 +22,7 @@ from iwsim.world_model import WorldModel
 STEPS = (1, 5, 10, 20, 32)
 POSE_STEPS = (10, 20, 32)
 CHANGED = 0.1  # a latent cell changed when a standardised channel moved by more (as in training)
-CHUNK = 512  # frames (or windows) a network pass takes: 20 episodes x 192 steps in one peaked at 15 GB
+CHUNK = 512  # frames (or windows) a network pass takes: 20 episodes x 192 steps in one pass peaked at 6.8 GB
 
 
 class Episodes:
