@@ -291,6 +291,10 @@ def test_dynamics_fine_tune_keeps_the_models_normalisation_and_starts_from_its_w
                  "--out", str(tmp_path / "wide"), "--dry-run", *flags]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed["unroll_grad"] is False and printed["jumps"] == init.cfg.jumps == 1
+    assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--variant", "context-wide",
+                 "--out", str(tmp_path / "wide"), "--dry-run", *flags]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["context_sigma"] == [0.0, 0.6] and printed["context_label"] == init.cfg.context_label
     # --context widens the window: the older latents start unheard, the rest as it was.
     assert main(["train", "dynamics", "--data", str(mixed.path), "--init", str(last), "--context", "4",
                  "--out", str(tmp_path / "wide"), "--steps", "1", "--lr", "1e-12", *flags]) == 0

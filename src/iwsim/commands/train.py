@@ -40,8 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "predicts the robot's own state (the store's data/state; with --init it is added to the "
                         "model); or state-contact: state, its error weighted up where the "
                         "block holds a pusher back from its setpoint; or sampled (trained on jumps from every "
-                        "level, sampled in 3 jumps), all-levels (the same training, one jump) or detached-unroll "
-                        "(fed-back predictions without gradient), also with --init; "
+                        "level, sampled in 3 jumps), all-levels (the same training, one jump), detached-unroll "
+                        "(fed-back predictions without gradient) or context-wide (context noise up to 0.6 stds "
+                        "instead of 0.3), also with --init; "
                         "several joined by '+' apply in turn, e.g. "
                         "long-unroll+deterministic (default: %(default)s)")
     q.add_argument("--context", type=int, help="latents in the window (default: the preset's, or the fine-tuned "
@@ -180,8 +181,8 @@ def _train_dynamics(args: argparse.Namespace) -> int:
     if args.init is not None and args.variant not in FINE_TUNE_VARIANTS:
         raise InputError("--variant applies to training from scratch (with --init, only "
                          f"{', '.join(FINE_TUNE_VARIANTS)}: state and state-contact add the robot's state to the "
-                         "model, sampled, all-levels and detached-unroll how it trains and samples); --init "
-                         "keeps the model's own objective and network.")
+                         "model, sampled, all-levels, detached-unroll and context-wide how it trains and "
+                         "samples); --init keeps the model's own objective and network.")
     check_positive(args, "context", "unroll")
     from iwsim.world_model.train_dynamics import run_config, train_dynamics
 

@@ -226,11 +226,15 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # The fed-back predictions carry no gradient: each prediction learns from its context as
     # it is, not how to make the next one's easier.
     "detached-unroll": {"unroll_grad": False},
+    # Twice the context noise (stds up to 0.6 instead of 0.3): windows as rough as a model's own
+    # multi-jump samples, a harder context to predict from.
+    "context-wide": {"context_sigma": (0.0, 0.6)},
 }
 # What a fine-tune (--init) may add to a trained model: the others change its objective or network.
-FINE_TUNE_VARIANTS = ("ours", "state", "state-contact", "sampled", "all-levels", "detached-unroll")
+FINE_TUNE_VARIANTS = ("ours", "state", "state-contact", "sampled", "all-levels", "detached-unroll",
+                      "context-wide")
 # The fields of those variants a fine-tune takes from them where they set them (otherwise the model's own).
-FINE_TUNE_FIELDS = ("top_fraction", "zero_fraction", "jumps", "unroll_grad")
+FINE_TUNE_FIELDS = ("top_fraction", "zero_fraction", "jumps", "unroll_grad", "context_sigma")
 
 
 def variant(cfg: DynamicsStageConfig, name: str) -> DynamicsStageConfig:
