@@ -12,9 +12,12 @@
 #                                 (seeds 1200000-1201999)
 #   data/paper.zarr               the three merged: 10,000 episodes, ~1.85M frames
 #   $OUT/pt_dyn_paper             stage 2 from scratch, $DYN steps (default 3000; ~5 h to encode the
-#                                 frames in float32 on a 2-core AVX2 EPYC, minutes with AMX)
+#                                 frames in float32 on a 2-core AVX2 EPYC, ~55 min in bf16 on 2 cores
+#                                 of a Xeon with AMX)
 #   $OUT/wm_paper                 the model, then the yardstick's core and contact-then-rest parts
 #                                 ($OUT/ys_paper; the same parts of x8_3000 are ablations.md's row)
+# Measured on a 2-core Xeon with AMX, one worker: ~56 play-broad or play-press and ~66 expert-hands
+# episodes a minute (~2.8 h for the 10,000 on one core), the merge ~8 min.
 # SCALE=tiny shrinks every step to seconds (a smoke test of the chain).
 set -euo pipefail
 export MUJOCO_GL=${MUJOCO_GL:-egl} OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
