@@ -226,8 +226,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # The fed-back predictions carry no gradient: each prediction learns from its context as
     # it is, not how to make the next one's easier.
     "detached-unroll": {"unroll_grad": False},
-    # Twice the context noise (stds up to 0.6 instead of 0.3): windows as rough as a model's own
-    # multi-jump samples, a harder context to predict from.
+    # Twice the context noise (stds up to 0.6 instead of 0.3): a harder context to predict from.
     "context-wide": {"context_sigma": (0.0, 0.6)},
 }
 # What a fine-tune (--init) may add to a trained model: the others change its objective or network.

@@ -194,8 +194,8 @@ def run_config(cfg: DynamicsStageConfig, init: WorldModel | None = None,
     """The stage-2 config a run trains with: ``cfg``; for a fine-tune of ``init``, the model's
     own (network, objective, context noise, sampling) with ``cfg.train``, every sequence
     unrolled as long as its curriculum's longest (``unroll`` when given), and the robot's
-    state or another sampling or unroll gradient (``FINE_TUNE_FIELDS``) where ``cfg`` sets
-    them; with ``context`` latents in the window when given. From scratch, ``unroll``
+    state or another sampling, unroll gradient or context noise (``FINE_TUNE_FIELDS``) where
+    ``cfg`` sets them; with ``context`` latents in the window when given. From scratch, ``unroll``
     sets the curriculum's longest (:func:`longest_unroll`)."""
     if init is not None:
         default = DynamicsStageConfig()
