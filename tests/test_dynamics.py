@@ -13,7 +13,7 @@ from iwsim.diffusion.edm import training_sigmas
 from iwsim.world_model import WorldModel
 from iwsim.world_model.codecs.consistency import Autoencoder
 from iwsim.world_model.dynamics import Dynamics, DynamicsConfig, blobs, widen_window
-from iwsim.world_model.dynamics_data import DynBatch
+from iwsim.world_model.dynamics_data import DynBatch, latent_stats
 from iwsim.world_model.presets import AE_PRESETS, DYNAMICS_PRESETS, VARIANTS, variant
 from iwsim.world_model.train_dynamics import DynamicsTrainModule
 
@@ -206,6 +206,16 @@ def test_the_gradient_reaches_the_first_unrolled_step(through, every):
     first = batch.ctx_eps.grad[:, 0].abs().max().item()
     assert (first > 0) == (through and every != 1)
     assert batch.ctx_eps.grad[:, -1].abs().max().item() > 0
+
+
+def test_latent_stats_in_passes_match_the_whole_at_once():
+    g = torch.Generator().manual_seed(0)
+    latents = (torch.randn(300, 4, 3, 3, generator=g) * 2 + 5).half()
+    idx = np.arange(0, 300, 3)
+    mean, scale = latent_stats(latents, idx, block=7)
+    whole = latents[torch.from_numpy(idx)].float()
+    torch.testing.assert_close(mean, whole.mean(0))
+    assert scale == pytest.approx(float(whole.var(0).mean().sqrt()), rel=1e-5)
 
 
 def test_unknown_objective_is_rejected():
