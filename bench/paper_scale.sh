@@ -27,18 +27,18 @@ set -euo pipefail
 export MUJOCO_GL=${MUJOCO_GL:-egl} OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 IWSIM=${IWSIM:-.venv/bin/iwsim}
 PYTHON=${PYTHON:-.venv/bin/python}
-if [ "${SCALE:-full}" = tiny ]; then OUT=${OUT:-runs/paper_tiny} DATA=${DATA:-runs/paper_tiny/data}; fi
-OUT=${OUT:-runs}
-DATA=${DATA:-data}
-AE=${AE:-checkpoints/pusht-64}
-NAME=${NAME:-paper}
 if [ "${SCALE:-full}" = tiny ]; then
+    OUT=${OUT:-runs/paper_tiny} DATA=${DATA:-runs/paper_tiny/data}
     BROAD="--episodes 2 --steps 30" HANDS="--episodes 2 --steps 30" PRESS="--episodes 2 --steps 30" DYN=${DYN:-2}
     PRESET=tiny FAST="" YARDSTICK=${YARDSTICK:-0}
 else
     BROAD="--episodes 5000 --steps 200" HANDS="--episodes 3000 --steps 150" PRESS="--episodes 2000 --steps 200"
     DYN=${DYN:-3000} PRESET=pusht-64 FAST="--variant long-unroll --context 10 --bf16 --compile"
 fi
+OUT=${OUT:-runs}
+DATA=${DATA:-data}
+AE=${AE:-checkpoints/pusht-64}
+NAME=${NAME:-paper}
 mkdir -p "$OUT" "$DATA"
 step() { echo "== $(date +%H:%M:%S) $*"; }
 collect() {  # collect POLICY SEED STORE FLAGS...
