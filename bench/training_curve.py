@@ -27,8 +27,8 @@ MARKERS = ("o", "s", "^", "D")
 
 
 def read_rows(path: Path) -> list[dict[str, str]]:
-    """The CSV's rows; a missing column or a step count that is not a number is an error
-    naming the row."""
+    """The CSV's rows; a missing column, a step count that is not a whole number or a
+    measure that is neither a number nor empty is an error naming the row."""
     with path.open(newline="") as f:
         reader = csv.DictReader(f)
         missing = [c for c in REQUIRED if c not in (reader.fieldnames or [])]
@@ -39,6 +39,11 @@ def read_rows(path: Path) -> list[dict[str, str]]:
     for i, row in enumerate(rows, start=2):
         if not row["steps"].isdigit():
             raise InputError(f"{path} line {i}: steps {row['steps']!r} is not a whole number.")
+        for key in PANELS:
+            try:
+                float(row[key] or 0)
+            except ValueError:
+                raise InputError(f"{path} line {i}: {key} {row[key]!r} is neither a number nor empty.") from None
     return rows
 
 

@@ -25,8 +25,11 @@ def test_rows_are_drawn_per_arm_and_machine(tmp_path):
     assert not list(tmp_path.glob(".curve*"))  # written atomically, no temporary file left
 
 
-@pytest.mark.parametrize("text, message", [("arm,steps,machine\na,1,x\n", "lacks the column"),
-                                           (HEADER + "a,3k,30,1,31,one\n", "line 2: steps '3k'")])
+@pytest.mark.parametrize("text, message", [
+    ("arm,steps,machine\na,1,x\n", "lacks the column"),
+    (HEADER + "a,3k,30,1,31,one\n", "line 2: steps '3k'"),
+    (HEADER + "a,1,30,1,31,one\na,2,n/a,1,31,one\n", "line 3: t_kept_192 'n/a'"),
+])
 def test_bad_rows_are_named(tmp_path, text, message):
     curve = load_script(ROOT / "bench" / "training_curve.py")
     rows = tmp_path / "rows.csv"
