@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from iwsim.cli import main
-from iwsim.core.lock import LOCK_NAME, is_locked
+from iwsim.core.lock import LOCK_NAME, DirLock, is_locked
 from iwsim.data.store import EpisodeStore, StoreLockedError
 from iwsim.envs.collect import collect, store_attrs
 from iwsim.envs.pusht.scripted import record_episode
@@ -227,7 +227,8 @@ def test_two_collect_processes_on_one_store_take_turns(tmp_path: Path) -> None:
     first = subprocess.Popen([str(IWSIM), *collect_args(out, 4)], stderr=subprocess.PIPE, text=True, env=env)
     try:
         deadline = time.monotonic() + 60
-        while not is_locked(out):  # the first writer holds the store ...
+        # the first writer holds the store and has written its name (a moment after the lock) ...
+        while not (is_locked(out) and f"pid {first.pid} " in (out / LOCK_NAME).read_text()):
             assert first.poll() is None and time.monotonic() < deadline, "the first writer never took the lock"
             time.sleep(0.01)
         os.kill(first.pid, signal.SIGSTOP)  # ... and keeps it while the second one tries
@@ -247,6 +248,42 @@ def test_two_collect_processes_on_one_store_take_turns(tmp_path: Path) -> None:
     first.stderr.close()
     waiting.stderr.close()
     assert_same_stores(out, alone)
+
+
+def test_a_released_lock_names_nobody(tmp_path: Path) -> None:
+    """CI stop 90: a writer that had just taken a store's lock, and not yet written its name,
+    was reported as the store's last holder, a process long gone."""
+    with DirLock(tmp_path) as lock:
+        assert f"pid {os.getpid()} " in lock.holder()
+        with pytest.raises(OSError, match=f"pid {os.getpid()} "):
+            DirLock(tmp_path)  # refused: a second open lock, even in this process; it names us
+        assert f"pid {os.getpid()} " in lock.holder()  # and the refusal did not clear our name
+    assert not is_locked(tmp_path) and (tmp_path / LOCK_NAME).read_text() == ""
+
+
+@pytest.mark.parametrize("writes_its_name", [True, False])
+def test_a_refusal_never_names_a_killed_writer(tmp_path: Path, writes_its_name: bool) -> None:
+    """A killed writer leaves its name in the lock file; a new holder overwrites it a moment
+    after taking the lock. A writer refused in that moment names the new holder once it has
+    written its name, or nobody, never the dead process."""
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    (tmp_path / LOCK_NAME).write_text(f"pid {gone.pid} (iwsim collect), writing since 2026-01-01 00:00:00\n")
+    write = "os.pwrite(fd, f'pid {os.getpid()} (new), writing\\n'.encode(), 0); " if writes_its_name else ""
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, os, sys, time; "
+                               "fd = os.open(sys.argv[1], os.O_RDWR); fcntl.flock(fd, fcntl.LOCK_EX); "
+                               f"print('locked', flush=True); time.sleep(0.3); {write}time.sleep(60)",
+                               str(tmp_path / LOCK_NAME)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "locked\n"
+        with pytest.raises(OSError) as refused:
+            DirLock(tmp_path)
+    finally:
+        holder.kill()
+        holder.wait()
+        holder.stdout.close()
+    assert f"pid {gone.pid} " not in str(refused.value)
+    assert (f"pid {holder.pid} (new)" if writes_its_name else "being written by another process") in str(refused.value)
 
 
 def test_a_killed_writers_lock_is_free(tmp_path: Path) -> None:

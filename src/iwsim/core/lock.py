@@ -4,7 +4,8 @@ Writers of an episode store (``iwsim collect``, ``iwsim play --record-to``) hold
 ``<store>/.iwsim.lock`` for as long as they may append; readers never take it, so they
 never block. ``flock`` locks belong to an open file, so the kernel drops them when the
 holder exits, however it exits: a lock left by a killed process is simply free again. The
-file also says who holds it (PID, command, since when) for the error a second writer gets.
+file also says who holds it (PID, command, since when) for the error a second writer gets;
+a holder that lets go clears it, so the next holder is never named after the last one.
 
 The same lock marks temporary directories that are still being written: a hidden
 ``.NAME.<hex>.tmp`` next to ``NAME`` whose lock is free was left by a killed process and
@@ -46,6 +47,7 @@ class DirLock:
                  hint: str = "wait for it to finish, or pass --wait-for-lock to queue behind it.") -> None:
         self.path = Path(directory) / LOCK_NAME
         self._fd: int | None = None  # set first: __del__ runs even when the open below fails
+        self._owned = False  # whether this process took the lock (and so wrote the holder's text)
         # Opened without truncating: the holder's text must survive until we own the lock.
         self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         try:
@@ -60,6 +62,7 @@ class DirLock:
                                       f"at a time: {hint}") from None
                 log.warning("%s is being written by %s; waiting for it to finish", directory, holder)
                 fcntl.flock(self._fd, fcntl.LOCK_EX)
+            self._owned = True
             text = f"pid {os.getpid()} ({_command()}), {what} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode()
             os.pwrite(self._fd, text, 0)  # then cut what is left of an earlier holder's text:
             os.ftruncate(self._fd, len(text))  # the file is never empty while it is rewritten
@@ -68,15 +71,17 @@ class DirLock:
             raise
 
     def _wait_for_holder(self, seconds: float = 1.0) -> str:
-        """The holder's text; a holder that has just taken the lock of a new file writes it
-        a moment later, so an empty file is read again for up to ``seconds``."""
+        """The holder's text. A holder that has just taken the lock writes it a moment later;
+        until then the file is empty, or names a killed holder. Either is read again for up
+        to ``seconds``, and a dead process is never named."""
         deadline = time.monotonic() + seconds
-        while not (text := self.holder()) and time.monotonic() < deadline:
+        while not _names_a_live_process(text := self.holder()) and time.monotonic() < deadline:
             time.sleep(0.02)
-        return text
+        return text if _names_a_live_process(text) else ""
 
     def holder(self) -> str:
-        """Who holds (or last held) the lock, as its file says."""
+        """Who holds the lock, as its file says: empty while nobody does, unless the last
+        holder was killed (then its name stays until the next holder writes its own)."""
         try:
             return self.path.read_text(errors="replace").strip()[:200]
         except OSError:
@@ -102,6 +107,12 @@ class DirLock:
     def release(self) -> None:
         if self._fd is not None:
             fd, self._fd = self._fd, None
+            if self._owned:  # still holding it: clear our name before letting go
+                self._owned = False
+                try:
+                    os.ftruncate(fd, 0)
+                except OSError:
+                    pass
             os.close(fd)  # closing the last descriptor of the open file drops the flock
 
     def __enter__(self) -> DirLock:
@@ -112,6 +123,20 @@ class DirLock:
 
     def __del__(self) -> None:
         self.release()
+
+
+def _names_a_live_process(text: str) -> bool:
+    """Whether a lock file's text ("pid N (...), ...") names a process that is running here."""
+    words = text.split()
+    if len(words) < 2 or words[0] != "pid" or not words[1].isdigit():
+        return False
+    try:
+        os.kill(int(words[1]), 0)
+    except (ProcessLookupError, OverflowError):
+        return False
+    except OSError:  # it exists, but is not ours to signal
+        return True
+    return True
 
 
 def is_locked(directory: str | os.PathLike) -> bool:
