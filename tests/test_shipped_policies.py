@@ -37,3 +37,18 @@ def test_a_reference_policy_runs_closed_loop_in_one_command(name, env, tmp_path,
     result = json.loads((out / "results.json").read_text())
     assert len(result["episodes"]) == 2 and 0 <= result["mean_max_iou"] <= 1
     assert (out / "episode_100000.mp4").stat().st_size > 0
+
+
+def test_loading_diffusion_policy_leaves_torch_dynamo_unimported():
+    """Loading first builds a policy on the meta device to count its weights; arithmetic
+    there (its normalisers, its noise schedule) ran through torch's reference ops, whose
+    first use imports torch._dynamo: 2 s more for every process that loaded a policy.
+    (ACT's initialisation still computes on the meta device, and still pays it.)"""
+    import subprocess
+    import sys
+
+    code = ("import sys; from iwsim.policies.factory import load_policy; load_policy(sys.argv[1]); "
+            "print('torch._dynamo' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code, str(CHECKPOINTS / "dp-pusht-64")], capture_output=True,
+                         text=True, check=True)
+    assert run.stdout.split() == ["False"]

@@ -2,6 +2,8 @@
 frames, the functional core under the stateful wrapper, its latents mode, joining and
 splitting states, checkpoints, and bad input."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -184,3 +186,18 @@ def test_the_latents_mode_is_the_same_step_in_the_models_units(reencode, monkeyp
         decodes.clear()
     with pytest.raises(ValueError, match="context latents"):
         wm.reset_state(wm.encode(frames), latents=True)
+
+
+def test_loading_a_world_model_leaves_torch_dynamo_unimported(tmp_path):
+    """Building a consistency decoder on the meta device (to count its weights before
+    loading) computed its noise schedule through torch's reference ops, whose first use
+    imports torch._dynamo: 2-3 s more for every process that loaded such a model."""
+    import subprocess
+    import sys
+
+    path = tiny_world_model().save(tmp_path / "wm")
+    assert json.loads((path / "config.json").read_text())["codec"]["kind"] == "consistency-ae"
+    code = ("import sys; from iwsim.world_model import WorldModel; WorldModel.load(sys.argv[1]); "
+            "print('torch._dynamo' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
+    assert run.stdout.split() == ["False"]

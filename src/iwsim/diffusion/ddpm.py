@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch.nn import functional as F
 
@@ -21,8 +22,10 @@ def squared_cosine_alphas_cumprod(steps: int) -> torch.Tensor:
     def f(t: float) -> float:
         return math.cos((t + 0.008) / 1.008 * math.pi / 2) ** 2
 
-    betas = torch.tensor([min(1 - f((i + 1) / steps) / f(i / steps), 0.999) for i in range(steps)], dtype=torch.float64)
-    return torch.cumprod(1 - betas, 0).float()
+    abar = np.cumprod([1 - min(1 - f((i + 1) / steps) / f(i / steps), 0.999) for i in range(steps)])
+    # made from NumPy's values, so that no torch arithmetic runs on the meta device where a network
+    # is first built to be counted (torch's reference ops there import torch._dynamo: 2 s)
+    return torch.tensor(abar, dtype=torch.float32)
 
 
 def add_noise(x0: torch.Tensor, eps: torch.Tensor, abar: torch.Tensor) -> torch.Tensor:

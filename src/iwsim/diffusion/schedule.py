@@ -28,10 +28,14 @@ class Schedule:
     def __init__(self, cfg: ScheduleConfig = ScheduleConfig()) -> None:
         self.cfg = cfg
         r = cfg.sigmoid_range
-        betas = torch.sigmoid(torch.linspace(-r, r, cfg.num_levels, dtype=torch.float64))
+        # A table of constants, on the CPU whatever the default device: a network built on the
+        # meta device (to count its weights) would otherwise compute it through torch's
+        # reference ops, whose first use imports torch._dynamo (seconds).
+        cpu = torch.device("cpu")
+        betas = torch.sigmoid(torch.linspace(-r, r, cfg.num_levels, dtype=torch.float64, device=cpu))
         betas = betas * (cfg.beta_end - cfg.beta_start) + cfg.beta_start
         # alpha_bar[0] = 1: level 0 is the clean image.
-        self.alpha_bar = torch.cat([torch.ones(1, dtype=torch.float64), torch.cumprod(1 - betas, 0)])
+        self.alpha_bar = torch.cat([torch.ones(1, dtype=torch.float64, device=cpu), torch.cumprod(1 - betas, 0)])
 
     @property
     def T(self) -> int:  # noqa: N802  (the papers' name)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from iwsim.core.checkpoint import CheckpointError, build_within_memory, load_json, load_model_dir, locate
@@ -88,7 +89,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", n_action_s
     try:
         a, s = int(config["action_dim"]), int(config["state_dim"])
         policy = build_within_memory(lambda: make_policy(config["policy"], config["model"], Normalizer(
-            torch.zeros(a), torch.ones(a)), Normalizer(torch.zeros(s), torch.ones(s))), f"the policy of {path}")
+            np.zeros(a), np.ones(a)), Normalizer(np.zeros(s), np.ones(s))), f"the policy of {path}")
         policy.load_state_dict(tensors)
         # the frames it was trained on; a policy saved before they were recorded was trained on T-push's
         policy.image_size = int(config.get("image_size", DEFAULT_TASK.image_size))
