@@ -26,6 +26,14 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: -slow[item.path])
 
 
+def imports_dynamo(load: str, path: Path) -> bool:
+    """Whether ``load`` (Python code that loads ``sys.argv[1]``), run in a fresh process on
+    ``path``, imports torch._dynamo: its first import costs that process about 2 s."""
+    code = f"import sys; {load}; print('torch._dynamo' in sys.modules)"
+    run = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
+    return run.stdout.split() == ["True"]
+
+
 def run_recipe(recipe: Path, tmp_path: Path) -> subprocess.CompletedProcess:
     """A shipped checkpoint's ``recipe.sh`` shrunk to seconds (SCALE=tiny, no yardstick), run
     from the repository's root with its models under ``tmp_path/out`` and its stores under

@@ -8,6 +8,7 @@ import pytest
 
 from iwsim.cli import main
 from iwsim.policies.factory import load_policy
+from tests.conftest import imports_dynamo
 
 CHECKPOINTS = Path(__file__).resolve().parents[1] / "checkpoints"
 SHIPPED = ("dp-pusht-64", "act-pusht-64")
@@ -44,11 +45,5 @@ def test_loading_diffusion_policy_leaves_torch_dynamo_unimported():
     there (its normalisers, its noise schedule) ran through torch's reference ops, whose
     first use imports torch._dynamo: 2 s more for every process that loaded a policy.
     (ACT's initialisation still computes on the meta device, and still pays it.)"""
-    import subprocess
-    import sys
-
-    code = ("import sys; from iwsim.policies.factory import load_policy; load_policy(sys.argv[1]); "
-            "print('torch._dynamo' in sys.modules)")
-    run = subprocess.run([sys.executable, "-c", code, str(CHECKPOINTS / "dp-pusht-64")], capture_output=True,
-                         text=True, check=True)
-    assert run.stdout.split() == ["False"]
+    assert not imports_dynamo("from iwsim.policies.factory import load_policy; load_policy(sys.argv[1])",
+                              CHECKPOINTS / "dp-pusht-64")

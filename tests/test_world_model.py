@@ -12,6 +12,7 @@ from iwsim.core.checkpoint import CheckpointError, load_tensors, save_model_dir
 from iwsim.data.frames import to_uint8
 from iwsim.world_model import StreamState, WorldModel
 from iwsim.world_model.presets import VARIANTS
+from tests.conftest import imports_dynamo
 from tests.test_dynamics import tiny_world_model
 
 
@@ -192,12 +193,6 @@ def test_loading_a_world_model_leaves_torch_dynamo_unimported(tmp_path):
     """Building a consistency decoder on the meta device (to count its weights before
     loading) computed its noise schedule through torch's reference ops, whose first use
     imports torch._dynamo: 2-3 s more for every process that loaded such a model."""
-    import subprocess
-    import sys
-
     path = tiny_world_model().save(tmp_path / "wm")
     assert json.loads((path / "config.json").read_text())["codec"]["kind"] == "consistency-ae"
-    code = ("import sys; from iwsim.world_model import WorldModel; WorldModel.load(sys.argv[1]); "
-            "print('torch._dynamo' in sys.modules)")
-    run = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
-    assert run.stdout.split() == ["False"]
+    assert not imports_dynamo("from iwsim.world_model import WorldModel; WorldModel.load(sys.argv[1])", path)
