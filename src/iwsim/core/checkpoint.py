@@ -122,7 +122,11 @@ def build_within_memory(make: Callable[[], M], what: str) -> M:
     """``make()``, a network from a config that may come from a file, once its weights are
     known to fit: it is first built on the meta device (nothing allocated) to count them.
     A config that cannot be built is a CheckpointError, one that would not fit a
-    ResourceError; both one line naming ``what``."""
+    ResourceError; both one line naming ``what``.
+
+    Any arithmetic on the meta device runs through torch's reference ops, whose first use
+    imports torch._dynamo (about 2 s a process): a constructor's tables of constants are
+    therefore made on the CPU (``device="cpu"``, or from NumPy values)."""
     try:
         with torch.device("meta"):
             probe = make()

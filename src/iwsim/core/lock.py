@@ -75,9 +75,11 @@ class DirLock:
         until then the file is empty, or names a killed holder. Either is read again for up
         to ``seconds``, and a dead process is never named."""
         deadline = time.monotonic() + seconds
-        while not _names_a_live_process(text := self.holder()) and time.monotonic() < deadline:
+        while not _names_a_live_process(text := self.holder()):
+            if time.monotonic() >= deadline:
+                return ""
             time.sleep(0.02)
-        return text if _names_a_live_process(text) else ""
+        return text
 
     def holder(self) -> str:
         """Who holds the lock, as its file says: empty while nobody does, unless the last
@@ -135,7 +137,7 @@ def _names_a_live_process(text: str) -> bool:
     except (ProcessLookupError, OverflowError):
         return False
     except OSError:  # it exists, but is not ours to signal
-        return True
+        pass
     return True
 
 

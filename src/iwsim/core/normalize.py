@@ -33,9 +33,8 @@ class Normalizer(nn.Module):
 
     def __init__(self, low: np.ndarray | torch.Tensor, high: np.ndarray | torch.Tensor) -> None:
         super().__init__()
-        # Made on the CPU whatever the default device (the module is moved with its weights):
-        # on the meta device, where a network is first built to be counted, this arithmetic
-        # would run through torch's reference ops, whose first use imports torch._dynamo (2 s).
+        # on the CPU whatever the default device (see iwsim.core.checkpoint.build_within_memory);
+        # the module is moved with its weights
         cpu = torch.device("cpu")
         lo, hi = widen(torch.as_tensor(low, dtype=torch.float32, device=cpu),
                        torch.as_tensor(high, dtype=torch.float32, device=cpu), 1e-4)

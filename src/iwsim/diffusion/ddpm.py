@@ -23,8 +23,7 @@ def squared_cosine_alphas_cumprod(steps: int) -> torch.Tensor:
         return math.cos((t + 0.008) / 1.008 * math.pi / 2) ** 2
 
     abar = np.cumprod([1 - min(1 - f((i + 1) / steps) / f(i / steps), 0.999) for i in range(steps)])
-    # made from NumPy's values, so that no torch arithmetic runs on the meta device where a network
-    # is first built to be counted (torch's reference ops there import torch._dynamo: 2 s)
+    # NumPy's arithmetic, not torch's on the meta device (see iwsim.core.checkpoint.build_within_memory)
     return torch.tensor(abar, dtype=torch.float32)
 
 

@@ -28,9 +28,8 @@ class Schedule:
     def __init__(self, cfg: ScheduleConfig = ScheduleConfig()) -> None:
         self.cfg = cfg
         r = cfg.sigmoid_range
-        # A table of constants, on the CPU whatever the default device: a network built on the
-        # meta device (to count its weights) would otherwise compute it through torch's
-        # reference ops, whose first use imports torch._dynamo (seconds).
+        # A table of constants, on the CPU whatever the default device
+        # (see iwsim.core.checkpoint.build_within_memory).
         cpu = torch.device("cpu")
         betas = torch.sigmoid(torch.linspace(-r, r, cfg.num_levels, dtype=torch.float64, device=cpu))
         betas = betas * (cfg.beta_end - cfg.beta_start) + cfg.beta_start
